@@ -1,0 +1,55 @@
+# Set-up and developer commands. Every target installs what it needs into project-local venvs.
+PYTHON ?= python3
+VENV := .venv
+VENV_LTS := .venv42
+PY := $(VENV)/bin/python
+PY_LTS := $(VENV_LTS)/bin/python
+DIST := dist
+
+.PHONY: all demo test test-core test-blender bench build lint venv venv-lts samples clean
+
+all: test
+
+$(VENV)/.installed: tools/requirements-dev.txt
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --disable-pip-version-check -q -r tools/requirements-dev.txt
+	touch $@
+
+$(VENV_LTS)/.installed: tools/requirements-lts.txt
+	$(PYTHON) -m venv $(VENV_LTS)
+	$(PY_LTS) -m pip install --disable-pip-version-check -q -r tools/requirements-lts.txt
+	touch $@
+
+venv: $(VENV)/.installed
+
+venv-lts: $(VENV_LTS)/.installed
+
+# Validate the manifest and build the extension .zip with the CLI that ships inside the bpy wheel.
+build: venv
+	$(PY) tools/build_extension.py --output-dir $(DIST)
+
+# The main job: render every sample scene at a few frames into out/ (PNG + one contact sheet each).
+demo: build
+	$(PY) samples/render_samples.py --output-dir out
+
+samples: build
+	$(PY) samples/build_samples.py
+
+test: build venv-lts
+	$(PY) -m ruff check .
+	AFFINE_LTS_PYTHON=$(abspath $(PY_LTS)) $(PY) -m pytest tests
+
+test-core: venv
+	$(PY) -m pytest tests/core
+
+test-blender: build
+	$(PY) -m pytest tests/blender
+
+bench: build
+	$(PY) bench/run.py
+
+lint: venv
+	$(PY) -m ruff check .
+
+clean:
+	rm -rf $(DIST) out .pytest_cache .ruff_cache
