@@ -1,0 +1,166 @@
+"""Deformer life cycle shared by operators, property updates and scripts: create, bind, re-weight,
+remove and apply. Kind-specific work (rest data, weights, motions) is delegated to `kinds.KINDS`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import secrets
+
+import bpy
+import numpy as np
+
+from . import nodes, storage
+from .kinds import KINDS, BindError
+
+__all__ = ["BindError", "apply", "bind", "create", "rebind_probe_safely", "remove", "reweight",
+           "reweight_safely", "target_problem"]
+
+
+_quiet = 0
+
+
+@contextlib.contextmanager
+def quiet():
+    """Suspend the property-update side effects (re-weighting, probe rebinding) while operators edit
+    a deformer's properties themselves."""
+    global _quiet
+    _quiet += 1
+    try:
+        yield
+    finally:
+        _quiet -= 1
+
+
+def updates_suspended() -> bool:
+    return _quiet > 0
+
+
+def target_problem(obj: bpy.types.Object | None) -> str:
+    """Why `obj` cannot carry a deformer, or '' when it can."""
+    if obj is None:
+        return "No active object: make the mesh to deform the active object"
+    if obj.type != "MESH":
+        return f"'{obj.name}' is a {obj.type.lower()}, not a mesh: the target must be a mesh"
+    if obj.library is not None or obj.data.library is not None:
+        return f"'{obj.name}' is linked from a library and cannot be edited"
+    if obj.mode == "EDIT":
+        return f"'{obj.name}' is in Edit Mode: switch to Object Mode first"
+    return ""
+
+
+def _kind(deformer):
+    kind = KINDS.get(deformer.kind)
+    if kind is None:
+        raise BindError(f"{deformer.kind.title()} deformers are not available in this version")
+    return kind
+
+
+def _new_uid(obj: bpy.types.Object) -> str:
+    used = {d.uid for d in obj.affine_deformers}
+    names = {a.name for a in obj.data.attributes} if obj.type == "MESH" else set()
+    while True:
+        uid = secrets.token_hex(4)
+        if uid not in used and storage.offset_name(uid) not in names:
+            return uid
+
+
+def create(obj: bpy.types.Object, kind: str, name: str):
+    """Append an unbound deformer item of `kind` to `obj` and make it the active one."""
+    deformer = obj.affine_deformers.add()
+    deformer.uid = _new_uid(obj)
+    deformer.kind = kind
+    deformer.name = name
+    obj.affine_deformers_active_index = len(obj.affine_deformers) - 1
+    return deformer
+
+
+def deformer_index(obj: bpy.types.Object, deformer) -> int:
+    for i, item in enumerate(obj.affine_deformers):
+        if item.uid == deformer.uid:
+            return i
+    raise LookupError(deformer.uid)
+
+
+def bind(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
+         only: list[int] | None = None) -> None:
+    """Make the controls' current poses the rest pose (all controls, or those at indices `only`),
+    then compute and store the weights."""
+    problem = target_problem(obj)
+    if problem:
+        raise BindError(problem)
+    if not deformer.uid:  # an item added by a script without the operator
+        deformer.uid = _new_uid(obj)
+    _kind(deformer).store_rest(obj, deformer, depsgraph, only)
+    nodes.ensure_modifier(obj, storage.offset_name(deformer.uid), f"Affine {deformer.name}",
+                          bool(deformer.get("stored_show_viewport", True)),
+                          bool(deformer.get("stored_show_render", True)))
+    reweight(obj, deformer)
+
+
+def reweight(obj: bpy.types.Object, deformer) -> None:
+    """Recompute the sparse weights from the stored rest data (rest poses are kept) and store them."""
+    problem = target_problem(obj)
+    if problem:
+        raise BindError(problem)
+    mesh = obj.data
+    rest = storage.read_positions(mesh).astype(np.float64)
+    indices, values, warning = _kind(deformer).sparse_weights(obj, deformer, rest)
+    storage.write_weights(mesh, deformer.uid, indices, values)
+    deformer.bound_vertex_count = len(rest)
+    deformer.bound_flag = True
+    deformer.bind_warning = warning
+    deformer.bind_generation += 1
+    if deformer.status != warning:
+        deformer.status = warning
+    mesh.update_tag()
+
+
+def reweight_safely(obj: bpy.types.Object, deformer) -> None:
+    """`reweight` for property-update callbacks: failures become the deformer's status, never raise."""
+    try:
+        reweight(obj, deformer)
+    except Exception as exc:  # an update callback must not leave the artist with a traceback only
+        deformer.status = f"Re-weighting failed: {exc}"
+
+
+def rebind_probe_safely(obj: bpy.types.Object, deformer, probe_index: int) -> None:
+    """Bind one control at its current pose (others keep theirs); failures become the status."""
+    try:
+        bind(obj, deformer, bpy.context.evaluated_depsgraph_get(), only=[probe_index])
+    except Exception as exc:  # see reweight_safely
+        deformer.status = f"Binding the new probe failed: {exc}"
+
+
+def remove(obj: bpy.types.Object, index: int) -> None:
+    """Remove deformer `index`: its modifier, its mesh attributes and the item (rest shape back)."""
+    deformer = obj.affine_deformers[index]
+    uid = deformer.uid
+    nodes.remove_modifier(obj, storage.offset_name(uid))
+    if obj.type == "MESH" and obj.data.library is None:
+        storage.remove_all(obj.data, uid)
+    obj.affine_deformers.remove(index)
+    obj.affine_deformers_active_index = max(0, min(obj.affine_deformers_active_index,
+                                                   len(obj.affine_deformers) - 1))
+    from . import evaluate  # evaluate imports this module's neighbours; avoid an import cycle
+
+    evaluate.forget(obj, uid)
+
+
+def apply(obj: bpy.types.Object, index: int) -> None:
+    """Write the current deformed shape (rest + stored offsets, as the modifier adds them) into the mesh,
+    then remove the deformer. The caller evaluates the deformer first so the offsets are current."""
+    problem = target_problem(obj)
+    if problem:
+        raise BindError(problem)
+    mesh = obj.data
+    if mesh.shape_keys is not None:
+        raise BindError(f"'{mesh.name}' has shape keys: apply is not supported (remove them or bake)")
+    if mesh.users > 1:
+        raise BindError(f"'{mesh.name}' is used by {mesh.users} objects: make it single-user first")
+    deformer = obj.affine_deformers[index]
+    rest = storage.read_positions(mesh)
+    offsets = storage.read_offsets(mesh, deformer.uid)
+    remove(obj, index)
+    if offsets is not None and offsets.shape == rest.shape:
+        storage.write_positions(mesh, rest + offsets)

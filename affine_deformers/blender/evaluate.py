@@ -1,0 +1,239 @@
+"""Per-frame evaluation: gather control transforms → core → write the offset attribute.
+
+For each deformer on a mesh: read the controls' current matrices from the evaluated depsgraph (bpy.data
+is stale during renders), form A_i = C_i · C_rest,i⁻¹ in the target's local space (kinds.py), turn them
+into blend parameters P_i = ψ(A_i) (`motions_to_params`, the single place for that), read the sparse
+weights from the mesh, and write v' − v with v' = φ(Σ_k w_vk P_idx(v,k)) v (or the linear blend) as the
+offset attribute our Geometry Nodes modifier adds. The result at frame f depends only on the inputs at
+frame f; `_signatures` is a cache of those inputs (not bind data) so unchanged deformers cost nothing.
+
+Handlers are @persistent, guarded against re-entrancy, and never let an exception escape: bad input
+becomes the deformer's `status` and zero offsets (the mesh shows its rest shape).
+"""
+
+from __future__ import annotations
+
+import traceback
+
+import bpy
+import numpy as np
+from bpy.app.handlers import persistent
+
+from ..core import aff3, deform
+from . import nodes, storage
+from .kinds import KINDS, Motions
+
+_signatures: dict[tuple[int, str], tuple] = {}
+_busy = False
+
+
+def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
+    """Drop cached signatures (all, or those of one deformer) so the next evaluation recomputes."""
+    if obj is None:
+        _signatures.clear()
+    else:
+        _signatures.pop((obj.session_uid, uid), None)
+
+
+def motions_to_params(motions: Motions, deformer) -> np.ndarray:
+    """Blend parameters (m, 12) of the controls' motions: ψ(A_i) in the layout of docs/DEVELOPING.md.
+
+    Controls exactly at rest get exactly zero parameters. (The continuous rotation-branch choice for
+    controls turned past 180° belongs here, fed from the rest/current rotation channels.)
+    """
+    if len(motions.matrices) == 0:
+        return np.zeros((0, 12))
+    params = np.asarray(aff3.params_from_matrices(motions.matrices), dtype=np.float64)
+    params[motions.at_rest] = 0.0
+    return params
+
+
+def _set_status(deformer, message: str) -> None:
+    # Writing a property tags the object for update; only write real changes to avoid update loops.
+    if deformer.status != message:
+        deformer.status = message
+
+
+def _precheck(obj: bpy.types.Object, deformer) -> str:
+    if obj.type != "MESH":
+        return f"'{obj.name}' is not a mesh: the deformer has no effect"
+    if deformer.kind not in KINDS:
+        return f"Deformer kind '{deformer.kind}' is not available in this version"
+    if not deformer.is_bound:
+        return "Not bound: press Bind"
+    if nodes.find_modifier(obj, storage.offset_name(deformer.uid)) is None:
+        return "The deformer's modifier was removed or applied: Rebind to recreate it"
+    n = len(obj.data.vertices)
+    if n != deformer.bound_vertex_count:
+        return (f"The mesh has {n} vertices but was bound with {deformer.bound_vertex_count}: "
+                "the topology changed, rebind the deformer")
+    return ""
+
+
+def _offsets(mesh: bpy.types.Mesh, deformer, motions: Motions, rest: np.ndarray) -> np.ndarray:
+    """v' − v for every rest vertex (N, 3) float64; exactly zero when every control is at rest."""
+    if deformer.strength == 0.0 or len(motions.matrices) == 0 or np.all(motions.at_rest):
+        return np.zeros(rest.shape, dtype=np.float64)
+    indices, values = storage.read_weights(mesh, deformer.uid, len(motions.matrices))
+    values *= deformer.strength
+    points = rest.astype(np.float64)
+    if deformer.blend_mode == "LINEAR":
+        deformed = deform.blend_linear_sparse(points, motions.matrices, indices, values)
+    else:
+        deformed = deform.deform_points_params(points, motions_to_params(motions, deformer), indices, values)
+    return deformed - points
+
+
+def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> str:
+    """Evaluate one deformer and write its offsets when they changed. Returns its status ('' = fine)."""
+    error = _precheck(obj, deformer)
+    motions = None
+    if not error:
+        motions = KINDS[deformer.kind].current_motions(obj, deformer, depsgraph)
+        error = motions.error
+    if obj.type != "MESH":
+        _set_status(deformer, error)
+        return error
+    mesh = obj.data
+    rest = storage.read_positions(mesh)
+    signature = (
+        mesh.session_uid, len(rest), hash(rest.tobytes()), error, deformer.strength, deformer.blend_mode,
+        deformer.bind_generation,
+        None if motions is None else (motions.matrices.tobytes(), motions.at_rest.tobytes(),
+                                      motions.current_rotations.tobytes(), tuple(motions.rotation_modes)),
+    )
+    key = (obj.session_uid, deformer.uid)
+    if _signatures.get(key) == signature:
+        return deformer.status
+    offsets = None
+    if not error:
+        try:
+            offsets = _offsets(mesh, deformer, motions, rest)
+        except storage.StorageError as exc:
+            error = str(exc)
+        except ValueError as exc:  # core refuses to blend (e.g. a motion too degenerate for its log)
+            error = f"The controls' motions cannot be blended ({exc}): the mesh shows its rest shape"
+    if not error and not np.all(np.isfinite(offsets)):
+        error = "The deformation is not finite: the mesh shows its rest shape"
+    if error:
+        offsets = np.zeros(rest.shape)
+    if mesh.library is None:
+        storage.write_offsets(mesh, deformer.uid, offsets)
+    status = error or deformer.bind_warning
+    _set_status(deformer, status)
+    _signatures[key] = signature
+    return status
+
+
+def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None = None) -> list[str]:
+    """Evaluate every deformer of `obj`; returns their statuses. Objects in Edit Mode are left alone
+    (their mesh data is not in sync). For scripts: call `bpy.context.evaluated_depsgraph_get()`
+    afterwards to see the written offsets in the evaluated mesh."""
+    if depsgraph is None:
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+    if obj.mode == "EDIT":
+        return [d.status for d in obj.affine_deformers]
+    statuses = []
+    for deformer in obj.affine_deformers:
+        try:
+            statuses.append(evaluate_deformer(obj, deformer, depsgraph))
+        except Exception as exc:  # never let bad data take the handler (or Blender) down
+            message = f"Internal error ({type(exc).__name__}: {exc}): the mesh shows its rest shape"
+            if deformer.status != message:  # print once, not at every depsgraph update
+                traceback.print_exc()
+            try:
+                if obj.type == "MESH" and obj.data.library is None:
+                    storage.write_offsets(obj.data, deformer.uid, np.zeros((len(obj.data.vertices), 3)))
+                _set_status(deformer, message)
+            except Exception:
+                traceback.print_exc()
+            statuses.append(message)
+    return statuses
+
+
+def evaluate_all(scene: bpy.types.Scene | None = None, depsgraph: bpy.types.Depsgraph | None = None) -> None:
+    """Evaluate every deformer in `scene` (default: the context scene and its evaluated depsgraph)."""
+    if scene is None:
+        scene = bpy.context.scene
+    if depsgraph is None:
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+    _run(scene, depsgraph)
+
+
+def _run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None) -> None:
+    global _busy
+    if _busy or scene is None or depsgraph is None:
+        return
+    _busy = True
+    try:
+        for obj in scene.objects:
+            if len(obj.affine_deformers):
+                evaluate_object(obj, depsgraph)
+    except Exception:
+        traceback.print_exc()
+    finally:
+        _busy = False
+
+
+@persistent
+def on_frame_change_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None) -> None:
+    _run(scene, depsgraph)
+
+
+@persistent
+def on_depsgraph_update_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None) -> None:
+    _run(scene, depsgraph)
+
+
+@persistent
+def on_load_post(*_args) -> None:
+    forget()
+    try:
+        if bpy.context.scene is not None:
+            _run(bpy.context.scene, bpy.context.evaluated_depsgraph_get())
+    except Exception:
+        traceback.print_exc()
+
+
+@persistent
+def on_undo_redo(*_args) -> None:
+    # Undo restores mesh attributes and transforms together; cached signatures may describe neither.
+    forget()
+
+
+@persistent
+def on_render_start(scene: bpy.types.Scene, *_args) -> None:
+    # Handlers write mesh data during renders: the interface must be locked or Blender may crash.
+    try:
+        if not scene.render.use_lock_interface:
+            scene.render.use_lock_interface = True
+    except Exception:
+        traceback.print_exc()
+
+
+HANDLERS = (
+    ("frame_change_post", on_frame_change_post),
+    ("depsgraph_update_post", on_depsgraph_update_post),
+    ("load_post", on_load_post),
+    ("undo_post", on_undo_redo),
+    ("redo_post", on_undo_redo),
+    ("render_init", on_render_start),
+    ("render_pre", on_render_start),
+)
+
+
+def register_handlers() -> None:
+    unregister_handlers()
+    for name, func in HANDLERS:
+        getattr(bpy.app.handlers, name).append(func)
+
+
+def unregister_handlers() -> None:
+    # Match by qualified name too: after a reload the old function objects are different objects.
+    ours = {(f.__module__, f.__name__) for _, f in HANDLERS}
+    for name, _func in HANDLERS:
+        handlers = getattr(bpy.app.handlers, name)
+        stale = [h for h in handlers if (getattr(h, "__module__", ""), getattr(h, "__name__", "")) in ours]
+        for h in stale:
+            handlers.remove(h)
+    forget()

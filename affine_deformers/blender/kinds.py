@@ -1,0 +1,207 @@
+"""Deformer kinds: what each kind of control gives the shared bind / evaluate machinery.
+
+A kind provides
+  (a) at bind: `store_rest(obj, deformer, depsgraph)` records the rest control data on the deformer,
+      and `sparse_weights(obj, deformer, rest_points)` returns the per-vertex top-K weights computed
+      from that stored rest data only (so re-weighting never needs the current poses);
+  (b) per frame: `current_motions(obj, deformer, depsgraph)` returns the controls' motions
+      A_i = C_i · C_rest,i⁻¹ in the target's local space, plus validity.
+The probe kind lives here; the cage kind registers its own class in KINDS.
+
+Matrices are expressed in the target's local space, C = target_world⁻¹ · control_world, and rounded
+to float32 exactly like the stored rest matrices, so a control whose current matrix is bitwise equal
+to its rest matrix is recognised as "at rest" and contributes exactly the identity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import bpy
+import numpy as np
+
+from ..core import aff3, weights
+from . import nodes
+
+
+class BindError(Exception):
+    """Bind-time failure with a message meant for the artist."""
+
+
+@dataclass
+class Motions:
+    """Current motions of a deformer's controls.
+
+    matrices: (m, 4, 4) float64, A_i in Aff+(3) (identity where at_rest);
+    at_rest: (m,) bool, control i is exactly at its rest pose (its parameters are exactly zero);
+    error: '' or a message naming the first invalid control (the mesh then keeps its rest shape);
+    rest_rotation_modes / rest_rotations (m, 4) and rotation_modes / current_rotations (m, 4): the
+    controls' own rotation channels at bind and now (layout of props.AffineDeformerProbe), for choosing
+    the rotation-log branch of controls turned past 180°; empty for kinds without channels.
+    """
+
+    matrices: np.ndarray
+    at_rest: np.ndarray
+    error: str = ""
+    rest_rotation_modes: list[str] = field(default_factory=list)
+    rest_rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    rotation_modes: list[str] = field(default_factory=list)
+    current_rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+
+    @classmethod
+    def invalid(cls, m: int, error: str) -> Motions:
+        return cls(np.broadcast_to(np.eye(4), (m, 4, 4)).copy(), np.ones(m, dtype=bool), error)
+
+
+def world_matrix(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
+    """World matrix (4, 4) float64 of `obj` as evaluated in `depsgraph` (bpy.data is stale in renders)."""
+    return np.array(obj.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
+
+
+def local_matrix(target_world: np.ndarray, control_world: np.ndarray) -> np.ndarray:
+    """C = target_world⁻¹ · control_world with an exact (0, 0, 0, 1) bottom row, rounded to float32.
+
+    Raises numpy.linalg.LinAlgError when the target's matrix is singular.
+    """
+    out = np.zeros((4, 4), dtype=np.float64)
+    rhs = control_world[:3, :].copy()
+    rhs[:, 3] -= target_world[:3, 3]
+    out[:3, :] = np.linalg.solve(target_world[:3, :3], rhs)
+    out[3, 3] = 1.0
+    return out.astype(np.float32)
+
+
+def relative_motion(current: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """A = current · rest⁻¹ for affine 4×4 matrices, with an exact (0, 0, 0, 1) bottom row."""
+    out = np.eye(4)
+    lin = np.linalg.solve(rest[:3, :3].T, current[:3, :3].T).T
+    out[:3, :3] = lin
+    out[:3, 3] = current[:3, 3] - lin @ rest[:3, 3]
+    return out
+
+
+def rest_matrices(deformer) -> np.ndarray:
+    """Stored rest matrices (m, 4, 4) float32 (row-major, as written by store_rest)."""
+    flat = np.empty(len(deformer.probes) * 16, dtype=np.float32)
+    if len(deformer.probes):
+        deformer.probes.foreach_get("rest_matrix", flat)
+    return flat.reshape(-1, 4, 4)
+
+
+def probe_label(item) -> str:
+    obj = item.object
+    return obj.name if obj is not None else (item.name or "?")
+
+
+def _rotation_channels(obj: bpy.types.Object) -> tuple[float, float, float, float]:
+    mode = obj.rotation_mode
+    if mode == "QUATERNION":
+        return tuple(obj.rotation_quaternion)
+    if mode == "AXIS_ANGLE":
+        return tuple(obj.rotation_axis_angle)
+    return (*obj.rotation_euler, 0.0)
+
+
+class ProbeKind:
+    """Probes: any objects (normally Empties) whose motion drives the mesh."""
+
+    def store_rest(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
+                   only: list[int] | None = None) -> None:
+        """Record the current poses of the probes (all, or those at indices `only`) as their rest."""
+        if len(deformer.probes) == 0:
+            raise BindError("The deformer has no probes: add at least one")
+        items = list(deformer.probes) if only is None else [deformer.probes[i] for i in only]
+        try:
+            target_world = world_matrix(obj, depsgraph)
+            rests = []
+            for item in items:
+                probe = item.object
+                if probe is None:
+                    raise BindError(f"Probe '{item.name or '?'}' has no object: remove it or pick one")
+                if probe == obj:
+                    raise BindError(f"'{obj.name}' cannot be a probe of itself")
+                if not probe.users_scene:
+                    raise BindError(f"Probe '{probe.name}' is not in any scene: link it back or remove it")
+                rest = local_matrix(target_world, world_matrix(probe, depsgraph))
+                if not np.all(np.isfinite(rest)) or np.linalg.det(rest[:3, :3].astype(np.float64)) == 0.0:
+                    raise BindError(f"Probe '{probe.name}' has a zero scale or a non-finite transform: "
+                                    "fix it before binding")
+                rests.append(rest)
+        except np.linalg.LinAlgError:
+            raise BindError(f"'{obj.name}' has a zero scale: fix its transform before binding") from None
+        for item, rest in zip(items, rests, strict=True):
+            item.rest_matrix = rest.ravel().tolist()
+            item.name = item.object.name
+            item.rest_rotation_mode = item.object.rotation_mode
+            item.rest_rotation = _rotation_channels(item.object)
+
+    def sparse_weights(self, obj: bpy.types.Object, deformer,
+                       rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        rests = rest_matrices(deformer).astype(np.float64)
+        scales = np.array([item.weight_scale for item in deformer.probes], dtype=np.float64)
+        warning = ""
+        dense = None
+        if deformer.weight_mode == "VERTEX_GROUPS":
+            names = [probe_label(item) for item in deformer.probes]
+            missing = [n for n in names if obj.vertex_groups.get(n) is None]
+            if missing:
+                warning = ("No vertex group named " + ", ".join(f"'{n}'" for n in missing)
+                           + ": paint one per probe, named after it (those probes have no influence)")
+            dense = nodes.vertex_group_weights(obj, names)
+        indices, values = weights.probe_weights(
+            rest_points, rests[:, :3, 3], mode=deformer.weight_mode, radius=deformer.radius,
+            exponent=deformer.exponent, normalize=deformer.normalize, k=deformer.max_influences,
+            scales=scales, dense=dense)
+        return indices, values, warning
+
+    def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
+        m = len(deformer.probes)
+        rests = rest_matrices(deformer)
+        matrices = np.broadcast_to(np.eye(4), (m, 4, 4)).copy()
+        at_rest = np.zeros(m, dtype=bool)
+        rest_modes = [item.rest_rotation_mode for item in deformer.probes]
+        modes = list(rest_modes)
+        rest_rotations = np.array([tuple(item.rest_rotation) for item in deformer.probes], dtype=np.float64)
+        current_rotations = rest_rotations.copy()
+        try:
+            target_world = world_matrix(obj, depsgraph)
+            if not np.all(np.isfinite(target_world)):
+                return Motions.invalid(m, f"'{obj.name}' has a non-finite transform")
+            for i, item in enumerate(deformer.probes):
+                probe = item.object
+                if probe is None:
+                    return Motions.invalid(m, f"Probe '{item.name or '?'}' was deleted or unassigned: "
+                                           "remove it from the deformer or pick another object")
+                if not probe.users_scene:
+                    return Motions.invalid(m, f"Probe '{probe.name}' is not in any scene (deleted?): "
+                                           "remove it from the deformer or link it back")
+                evaluated = probe.evaluated_get(depsgraph)
+                current = local_matrix(target_world, np.array(evaluated.matrix_world, dtype=np.float64))
+                current_rotations[i] = _rotation_channels(evaluated)
+                modes[i] = evaluated.rotation_mode
+                # At rest = the same matrix AND the same channels (a full turn changes only the channels).
+                if (np.array_equal(current, rests[i]) and modes[i] == rest_modes[i]
+                        and np.array_equal(np.float32(current_rotations[i]), np.float32(rest_rotations[i]))):
+                    at_rest[i] = True
+                    continue
+                try:
+                    with np.errstate(all="ignore"):
+                        matrices[i] = relative_motion(current.astype(np.float64), rests[i].astype(np.float64))
+                except np.linalg.LinAlgError:
+                    return Motions.invalid(m, f"Probe '{probe.name}' has a singular rest matrix: rebind")
+                try:
+                    aff3.validate_affine(matrices[i])
+                except ValueError:
+                    if not np.all(np.isfinite(matrices[i])):
+                        reason = "has a non-finite transform (NaN or infinity)"
+                    elif np.linalg.det(matrices[i][:3, :3]) < 0.0:
+                        reason = "is mirrored (negative scale)"
+                    else:
+                        reason = "is scaled to zero"
+                    return Motions.invalid(m, f"Probe '{probe.name}' {reason}: the mesh shows its rest shape")
+        except np.linalg.LinAlgError:
+            return Motions.invalid(m, f"'{obj.name}' is scaled to zero: the mesh shows its rest shape")
+        return Motions(matrices, at_rest, "", rest_modes, rest_rotations, modes, current_rotations)
+
+
+KINDS: dict[str, ProbeKind] = {"PROBE": ProbeKind()}

@@ -1,0 +1,265 @@
+"""Operators: add / bind / remove / apply deformers, add / remove probes.
+
+All are undoable, report clear messages, and work from background scripts through
+`bpy.context.temp_override(active_object=..., object=..., selected_objects=[...])`; an ERROR report
+makes `bpy.ops` raise RuntimeError carrying the message.
+"""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import IntProperty
+
+from . import binding, evaluate
+from .kinds import BindError
+
+UNDOABLE = {"REGISTER", "UNDO"}
+
+
+def _target(context: bpy.types.Context) -> bpy.types.Object | None:
+    return context.active_object if context.active_object is not None else context.object
+
+
+def _selected_probes(context: bpy.types.Context, target: bpy.types.Object) -> tuple[list, list]:
+    """Selected Empties (the probes) and the other selected non-target objects (ignored)."""
+    selected = list(getattr(context, "selected_objects", None) or [])
+    probes = [o for o in selected if o != target and o.type == "EMPTY"]
+    ignored = [o for o in selected if o != target and o.type != "EMPTY"]
+    return probes, ignored
+
+
+def _new_probe(context: bpy.types.Context, target: bpy.types.Object) -> bpy.types.Object:
+    """An Empty at the target's origin, sized to the target, in the target's first collection."""
+    probe = bpy.data.objects.new(f"{target.name}.Probe", None)
+    probe.empty_display_type = "SPHERE"
+    probe.empty_display_size = max(0.1, 0.25 * max(target.dimensions))
+    probe.location = target.matrix_world.translation  # unparented: location is the world position
+    collections = target.users_collection
+    (collections[0] if collections else context.scene.collection).objects.link(probe)
+    return probe
+
+
+def _lock_render_interface(context: bpy.types.Context) -> None:
+    if context.scene is not None and not context.scene.render.use_lock_interface:
+        context.scene.render.use_lock_interface = True
+
+
+def _deformer(op: bpy.types.Operator, context: bpy.types.Context):
+    """(object, deformer) addressed by op.index on the active object, or (None, None) after a report."""
+    obj = _target(context)
+    problem = binding.target_problem(obj)
+    if problem:
+        op.report({"ERROR"}, problem)
+        return None, None
+    if not 0 <= op.index < len(obj.affine_deformers):
+        op.report({"ERROR"}, f"'{obj.name}' has no affine deformer #{op.index} "
+                  f"(it has {len(obj.affine_deformers)})")
+        return None, None
+    return obj, obj.affine_deformers[op.index]
+
+
+def _refresh(context: bpy.types.Context, obj: bpy.types.Object) -> None:
+    """Evaluate at once so status and offsets are current when the operator returns."""
+    evaluate.evaluate_object(obj, context.evaluated_depsgraph_get())
+
+
+class AFFINE_OT_probe_deformer_add(bpy.types.Operator):
+    """Add a probe deformer to the active mesh; the selected Empties become its probes (none selected:
+    one new Empty at the mesh's origin). Their current poses become the rest pose"""
+
+    bl_idname = "object.affine_probe_deformer_add"
+    bl_label = "Add Probe Deformer"
+    bl_options = UNDOABLE
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        target = _target(context)
+        problem = binding.target_problem(target)
+        if problem:
+            self.report({"ERROR"}, problem)
+            return {"CANCELLED"}
+        probes, ignored = _selected_probes(context, target)
+        created = None
+        if not probes:
+            created = _new_probe(context, target)
+            probes = [created]
+        deformer = binding.create(target, "PROBE", "Probe Deformer")
+        for probe in probes:
+            deformer.probes.add().object = probe
+        try:
+            binding.bind(target, deformer, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
+            binding.remove(target, binding.deformer_index(target, deformer))
+            if created is not None:
+                bpy.data.objects.remove(created, do_unlink=True)
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _lock_render_interface(context)
+        _refresh(context, target)
+        if ignored:
+            self.report({"WARNING"}, "Ignored selected non-Empty objects: "
+                        + ", ".join(o.name for o in ignored))
+        made = f" (created '{created.name}')" if created is not None else ""
+        self.report({"INFO"}, f"Added a probe deformer to '{target.name}' with {len(probes)} probe(s){made}")
+        return {"FINISHED"}
+
+
+class AFFINE_OT_deformer_bind(bpy.types.Operator):
+    """Rebind: the controls' current poses become the rest pose and the weights are recomputed"""
+
+    bl_idname = "object.affine_deformer_bind"
+    bl_label = "Bind Affine Deformer"
+    bl_options = UNDOABLE
+
+    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        obj, deformer = _deformer(self, context)
+        if obj is None:
+            return {"CANCELLED"}
+        try:
+            binding.bind(obj, deformer, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _lock_render_interface(context)
+        _refresh(context, obj)
+        self.report({"INFO"}, f"Bound '{deformer.name}' on '{obj.name}' "
+                    f"({deformer.bound_vertex_count} vertices)")
+        return {"FINISHED"}
+
+
+class AFFINE_OT_deformer_remove(bpy.types.Operator):
+    """Remove the deformer (its modifier and stored data): the mesh shows its exact rest shape"""
+
+    bl_idname = "object.affine_deformer_remove"
+    bl_label = "Remove Affine Deformer"
+    bl_options = UNDOABLE
+
+    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        obj = _target(context)
+        if obj is None or not 0 <= self.index < len(obj.affine_deformers):
+            self.report({"ERROR"}, f"No affine deformer #{self.index} on the active object")
+            return {"CANCELLED"}
+        if obj.mode == "EDIT":
+            self.report({"ERROR"}, f"'{obj.name}' is in Edit Mode: switch to Object Mode first")
+            return {"CANCELLED"}
+        name = obj.affine_deformers[self.index].name
+        binding.remove(obj, self.index)
+        self.report({"INFO"}, f"Removed '{name}' from '{obj.name}'")
+        return {"FINISHED"}
+
+
+class AFFINE_OT_deformer_apply(bpy.types.Operator):
+    """Write the current deformed shape into the mesh and remove the deformer"""
+
+    bl_idname = "object.affine_deformer_apply"
+    bl_label = "Apply Affine Deformer"
+    bl_options = UNDOABLE
+
+    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        obj, deformer = _deformer(self, context)
+        if obj is None:
+            return {"CANCELLED"}
+        evaluate.forget(obj, deformer.uid)
+        status = evaluate.evaluate_deformer(obj, deformer, context.evaluated_depsgraph_get())
+        if status and status != deformer.bind_warning:
+            self.report({"ERROR"}, f"Cannot apply '{deformer.name}': {status}")
+            return {"CANCELLED"}
+        name = deformer.name
+        try:
+            binding.apply(obj, self.index)
+        except BindError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Applied '{name}' to '{obj.name}'")
+        return {"FINISHED"}
+
+
+class AFFINE_OT_deformer_probe_add(bpy.types.Operator):
+    """Add the selected Empties (none selected: a new Empty at the mesh's origin) as probes of the
+    deformer; their current poses become their rest poses, the other probes keep theirs"""
+
+    bl_idname = "object.affine_deformer_probe_add"
+    bl_label = "Add Probes"
+    bl_options = UNDOABLE
+
+    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        obj, deformer = _deformer(self, context)
+        if obj is None:
+            return {"CANCELLED"}
+        if deformer.kind != "PROBE":
+            self.report({"ERROR"}, f"'{deformer.name}' is not a probe deformer")
+            return {"CANCELLED"}
+        existing = {item.object for item in deformer.probes}
+        probes, _ignored = _selected_probes(context, obj)
+        probes = [p for p in probes if p not in existing]
+        created = None
+        if not probes:
+            created = _new_probe(context, obj)
+            probes = [created]
+        first = len(deformer.probes)
+        with binding.quiet():  # bound below in one go
+            for probe in probes:
+                deformer.probes.add().object = probe
+        try:
+            binding.bind(obj, deformer, context.evaluated_depsgraph_get(),
+                         only=list(range(first, len(deformer.probes))))
+        except (BindError, ValueError) as exc:
+            while len(deformer.probes) > first:
+                deformer.probes.remove(len(deformer.probes) - 1)
+            if created is not None:
+                bpy.data.objects.remove(created, do_unlink=True)
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _refresh(context, obj)
+        self.report({"INFO"}, f"Added {len(probes)} probe(s) to '{deformer.name}'")
+        return {"FINISHED"}
+
+
+class AFFINE_OT_deformer_probe_remove(bpy.types.Operator):
+    """Remove a probe from the deformer and recompute the weights (the other rest poses are kept)"""
+
+    bl_idname = "object.affine_deformer_probe_remove"
+    bl_label = "Remove Probe"
+    bl_options = UNDOABLE
+
+    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
+    probe_index: IntProperty(name="Probe", default=0, min=0, description="Probe index in the deformer")
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        obj, deformer = _deformer(self, context)
+        if obj is None:
+            return {"CANCELLED"}
+        if not 0 <= self.probe_index < len(deformer.probes):
+            self.report({"ERROR"}, f"'{deformer.name}' has no probe #{self.probe_index}")
+            return {"CANCELLED"}
+        if len(deformer.probes) == 1:
+            self.report({"ERROR"}, "Cannot remove the last probe: remove the deformer instead")
+            return {"CANCELLED"}
+        name = deformer.probes[self.probe_index].name
+        deformer.probes.remove(self.probe_index)
+        deformer.active_probe_index = min(deformer.active_probe_index, len(deformer.probes) - 1)
+        try:
+            binding.reweight(obj, deformer)
+        except (BindError, ValueError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _refresh(context, obj)
+        self.report({"INFO"}, f"Removed probe '{name}' from '{deformer.name}'")
+        return {"FINISHED"}
+
+
+CLASSES = (
+    AFFINE_OT_probe_deformer_add,
+    AFFINE_OT_deformer_bind,
+    AFFINE_OT_deformer_remove,
+    AFFINE_OT_deformer_apply,
+    AFFINE_OT_deformer_probe_add,
+    AFFINE_OT_deformer_probe_remove,
+)

@@ -1,0 +1,197 @@
+"""Property groups: the deformer stack stored on each Object as `Object.affine_deformers`.
+
+Weight options (mode, radius, exponent, normalisation, influences, per-probe scale) re-weight the bound
+deformer immediately from its stored rest data: the artist sees the change live and the rest pose is
+kept (re-weighting never makes the current probe poses the new rest; only Bind does that).
+Strength and blend mode act per frame and need no re-weighting.
+"""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import (
+    BoolProperty,
+    CollectionProperty,
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
+
+from . import binding, nodes, storage
+
+IDENTITY16 = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+ROTATION_MODES = [
+    ("QUATERNION", "Quaternion", ""),
+    ("XYZ", "XYZ Euler", ""),
+    ("XZY", "XZY Euler", ""),
+    ("YXZ", "YXZ Euler", ""),
+    ("YZX", "YZX Euler", ""),
+    ("ZXY", "ZXY Euler", ""),
+    ("ZYX", "ZYX Euler", ""),
+    ("AXIS_ANGLE", "Axis Angle", ""),
+]
+
+
+def _owner_deformer(probe: AffineDeformerProbe) -> tuple[bpy.types.Object, AffineDeformer, int] | None:
+    """The object and deformer holding `probe`, and its index (property groups do not know their parent)."""
+    obj = probe.id_data
+    path = probe.path_from_id()  # 'affine_deformers[i].probes[j]'
+    if not isinstance(obj, bpy.types.Object) or ".probes[" not in path:
+        return None
+    deformer_path, index = path.rsplit(".probes[", 1)
+    return obj, obj.path_resolve(deformer_path), int(index.rstrip("]"))
+
+
+def _reweight(deformer: AffineDeformer) -> None:
+    obj = deformer.id_data
+    if binding.updates_suspended():
+        return
+    if deformer.is_bound and isinstance(obj, bpy.types.Object):
+        binding.reweight_safely(obj, deformer)
+
+
+def _on_weight_option(self: AffineDeformer, _context: bpy.types.Context) -> None:
+    _reweight(self)
+
+
+def _on_evaluation_option(self: AffineDeformer, _context: bpy.types.Context) -> None:
+    # Python-defined properties do not tag their ID: tag it so the depsgraph handler re-evaluates.
+    obj = self.id_data
+    if isinstance(obj, bpy.types.Object):
+        obj.update_tag()
+
+
+def _on_probe_weight_option(self: AffineDeformerProbe, _context: bpy.types.Context) -> None:
+    owner = _owner_deformer(self)
+    if owner is not None:
+        _reweight(owner[1])
+
+
+def _on_probe_object(self: AffineDeformerProbe, _context: bpy.types.Context) -> None:
+    # A newly picked probe object starts at rest: its current pose becomes its rest pose.
+    owner = _owner_deformer(self)
+    if binding.updates_suspended() or owner is None:
+        return
+    obj, deformer, index = owner
+    if deformer.is_bound and self.object is not None:
+        binding.rebind_probe_safely(obj, deformer, index)
+
+
+class AffineDeformerProbe(bpy.types.PropertyGroup):
+    """One probe: a control object and its rest pose in the target's local space (float32, as stored)."""
+
+    object: PointerProperty(
+        name="Probe", type=bpy.types.Object, update=_on_probe_object,
+        description="Object whose motion drives the deformation (a new pick is bound at its current pose)")
+    rest_matrix: FloatVectorProperty(
+        name="Rest Matrix", size=16, default=IDENTITY16,
+        description="Probe matrix at bind, in the target's local space (row-major 4x4)")
+    rest_rotation_mode: EnumProperty(
+        name="Rest Rotation Mode", items=ROTATION_MODES, default="XYZ",
+        description="Rotation mode of the probe at bind")
+    rest_rotation: FloatVectorProperty(
+        name="Rest Rotation", size=4, default=(0.0, 0.0, 0.0, 0.0),
+        description="Rotation channels at bind: quaternion WXYZ, axis-angle (angle, X, Y, Z) or Euler XYZ")
+    weight_scale: FloatProperty(
+        name="Weight Scale", default=1.0, min=0.0, soft_max=4.0, update=_on_probe_weight_option,
+        description="Multiplies this probe's raw weight before normalisation")
+
+
+def _modifier(deformer: AffineDeformer) -> bpy.types.Modifier | None:
+    obj = deformer.id_data
+    if not isinstance(obj, bpy.types.Object) or not deformer.uid:
+        return None
+    return nodes.find_modifier(obj, storage.offset_name(deformer.uid))
+
+
+def _mirrored_getter(flag: str):
+    def get(self: AffineDeformer) -> bool:
+        mod = _modifier(self)
+        return getattr(mod, flag) if mod is not None else bool(self.get(f"stored_{flag}", True))
+    return get
+
+
+def _mirrored_setter(flag: str):
+    def set_(self: AffineDeformer, value: bool) -> None:
+        self[f"stored_{flag}"] = bool(value)
+        mod = _modifier(self)
+        if mod is not None and getattr(mod, flag) != bool(value):
+            setattr(mod, flag, bool(value))
+    return set_
+
+
+class AffineDeformer(bpy.types.PropertyGroup):
+    """One deformer on the object (`name` comes from PropertyGroup)."""
+
+    uid: StringProperty(
+        name="ID", options={"HIDDEN"},
+        description="Stable short id used in the names of the deformer's mesh attributes")
+    kind: EnumProperty(
+        name="Kind", items=[("PROBE", "Probe", "Driven by the motion of probe objects"),
+                            ("CAGE", "Cage", "Driven by the faces of a cage mesh")], default="PROBE")
+    probes: CollectionProperty(type=AffineDeformerProbe)
+    active_probe_index: IntProperty(name="Active Probe", default=0, min=0)
+    cage: PointerProperty(name="Cage", type=bpy.types.Object, description="Cage mesh (cage deformers)")
+    weight_mode: EnumProperty(
+        name="Weights", default="INVERSE_DISTANCE", update=_on_weight_option,
+        items=[("INVERSE_DISTANCE", "Inverse Distance",
+                "Weight (Radius/distance)^Exponent to each probe at rest"),
+               ("FALLOFF", "Falloff", "Smooth falloff reaching zero at Radius from each probe at rest"),
+               ("VERTEX_GROUPS", "Vertex Groups",
+                "Painted weights from the vertex groups named after the probes"),
+               ])
+    radius: FloatProperty(
+        name="Radius", default=1.0, min=1e-6, soft_max=100.0, subtype="DISTANCE", unit="LENGTH",
+        update=_on_weight_option,
+        description="Falloff: where a probe's weight reaches zero. Inverse distance: where it is 1")
+    exponent: FloatProperty(
+        name="Exponent", default=2.0, min=0.01, soft_max=8.0, update=_on_weight_option,
+        description="Inverse distance power: larger values localise each probe's influence")
+    normalize: EnumProperty(
+        name="Normalize", default="SUM", update=_on_weight_option,
+        items=[("NONE", "None", "Use raw weights (where they are small the mesh stays put)"),
+               ("SUM", "Sum", "Weights of each vertex sum to 1: a motion shared by all probes is exact"),
+               ("SOFTMAX", "Softmax", "Softmax of the raw weights")])
+    strength: FloatProperty(
+        name="Strength", default=1.0, min=0.0, soft_max=1.0, max=10.0, subtype="FACTOR",
+        update=_on_evaluation_option,
+        description="Scales every weight (0 = rest shape)")
+    max_influences: IntProperty(
+        name="Max Influences", default=4, min=1, max=16, update=_on_weight_option,
+        description="Number of strongest controls kept per vertex")
+    blend_mode: EnumProperty(
+        name="Blend", default="AFFINE_LOG", update=_on_evaluation_option,
+        items=[("AFFINE_LOG", "Affine (Log)", "Blend in the Aff+(3) parameter space: no collapse"),
+               ("LINEAR", "Linear", "Blend the matrices linearly (for comparison)")])
+    show_viewport: BoolProperty(
+        name="Viewport", get=_mirrored_getter("show_viewport"), set=_mirrored_setter("show_viewport"),
+        description="Show the deformer in the viewport (mirrors the modifier's toggle)")
+    show_render: BoolProperty(
+        name="Render", get=_mirrored_getter("show_render"), set=_mirrored_setter("show_render"),
+        description="Use the deformer in renders (mirrors the modifier's toggle)")
+    bound_flag: BoolProperty(options={"HIDDEN"}, default=False)
+    is_bound: BoolProperty(
+        name="Bound", get=lambda self: self.bound_flag, description="Rest data and weights are stored")
+    status: StringProperty(name="Status", description="Last error or warning ('' when fine)")
+    bind_warning: StringProperty(options={"HIDDEN"}, description="Warning left by the last (re)weighting")
+    bound_vertex_count: IntProperty(name="Bound Vertices", default=0, min=0)
+    bind_generation: IntProperty(
+        options={"HIDDEN"}, default=0, description="Bumped at every (re)weighting: evaluation cache key")
+
+
+CLASSES = (AffineDeformerProbe, AffineDeformer)
+
+
+def register_properties() -> None:
+    bpy.types.Object.affine_deformers = CollectionProperty(type=AffineDeformer)
+    bpy.types.Object.affine_deformers_active_index = IntProperty(name="Active Deformer", default=0, min=0)
+
+
+def unregister_properties() -> None:
+    for name in ("affine_deformers_active_index", "affine_deformers"):
+        if hasattr(bpy.types.Object, name):
+            delattr(bpy.types.Object, name)

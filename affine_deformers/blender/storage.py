@@ -1,0 +1,150 @@
+"""Bind data and results as mesh attributes, so they are saved in the .blend (never Python globals).
+
+Per deformer with short id `uid`, on the target mesh:
+  `.affdef_<uid>_idx<k>`  INT   POINT  k-th influencing control of each vertex   (k < K)
+  `.affdef_<uid>_w<k>`    FLOAT POINT  its weight (strength not applied)
+  `affdef_<uid>_offset`   FLOAT_VECTOR POINT  deformed − rest, added by our Geometry Nodes modifier.
+All reads and writes go through foreach_get/foreach_set on numpy buffers (no loops over vertices).
+"""
+
+from __future__ import annotations
+
+import re
+
+import bpy
+import numpy as np
+
+
+class StorageError(Exception):
+    """Bind data on the mesh is missing or inconsistent (the message says what to do)."""
+
+
+def offset_name(uid: str) -> str:
+    return f"affdef_{uid}_offset"
+
+
+def index_name(uid: str, k: int) -> str:
+    return f".affdef_{uid}_idx{k}"
+
+
+def weight_name(uid: str, k: int) -> str:
+    return f".affdef_{uid}_w{k}"
+
+
+def _bind_pattern(uid: str) -> re.Pattern[str]:
+    return re.compile(rf"^\.affdef_{re.escape(uid)}_(idx|w)\d+$")
+
+
+def _position_attribute(mesh: bpy.types.Mesh) -> bpy.types.Attribute | None:
+    attr = mesh.attributes.get("position")
+    return attr if attr is not None and attr.data_type == "FLOAT_VECTOR" and attr.domain == "POINT" else None
+
+
+def read_positions(mesh: bpy.types.Mesh) -> np.ndarray:
+    """Rest positions (N, 3) float32, exactly as stored in the mesh."""
+    co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    attr = _position_attribute(mesh)
+    # The generic attribute is a plain array copy; MeshVertex.co goes through RNA per item (~40x slower).
+    if attr is not None:
+        attr.data.foreach_get("vector", co)
+    else:
+        mesh.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3)
+
+
+def write_positions(mesh: bpy.types.Mesh, positions: np.ndarray) -> None:
+    flat = np.ascontiguousarray(positions, dtype=np.float32).ravel()
+    attr = _position_attribute(mesh)
+    if attr is not None:
+        attr.data.foreach_set("vector", flat)
+    else:
+        mesh.vertices.foreach_set("co", flat)
+    mesh.update()
+
+
+def _point_attribute(mesh: bpy.types.Mesh, name: str, data_type: str) -> bpy.types.Attribute:
+    """The attribute `name` with the given type on the POINT domain, (re)created when it is not."""
+    attr = mesh.attributes.get(name)
+    if attr is not None and (attr.data_type != data_type or attr.domain != "POINT"):
+        mesh.attributes.remove(attr)
+        attr = None
+    if attr is None:
+        attr = mesh.attributes.new(name, data_type, "POINT")
+    return attr
+
+
+def remove_bind_data(mesh: bpy.types.Mesh, uid: str) -> None:
+    """Remove the weight attributes of deformer `uid` (the offset attribute stays)."""
+    pattern = _bind_pattern(uid)
+    for name in [a.name for a in mesh.attributes if pattern.match(a.name)]:
+        mesh.attributes.remove(mesh.attributes[name])
+
+
+def remove_all(mesh: bpy.types.Mesh, uid: str) -> None:
+    """Remove every attribute of deformer `uid`, offsets included: the mesh shows the rest shape."""
+    remove_bind_data(mesh, uid)
+    attr = mesh.attributes.get(offset_name(uid))
+    if attr is not None:
+        mesh.attributes.remove(attr)
+    mesh.update_tag()
+
+
+def write_weights(mesh: bpy.types.Mesh, uid: str, indices: np.ndarray, values: np.ndarray) -> None:
+    """Store sparse weights: indices (N, K) int, values (N, K) (stored as float32)."""
+    n = len(mesh.vertices)
+    if indices.shape != values.shape or indices.ndim != 2 or indices.shape[0] != n:
+        raise StorageError(f"weights of shape {indices.shape} do not match {n} vertices")
+    remove_bind_data(mesh, uid)
+    for k in range(indices.shape[1]):
+        column_i = np.ascontiguousarray(indices[:, k], dtype=np.int32)
+        column_w = np.ascontiguousarray(values[:, k], dtype=np.float32)
+        _point_attribute(mesh, index_name(uid, k), "INT").data.foreach_set("value", column_i)
+        _point_attribute(mesh, weight_name(uid, k), "FLOAT").data.foreach_set("value", column_w)
+
+
+def read_weights(mesh: bpy.types.Mesh, uid: str, n_controls: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse weights (indices (N, K) int32, values (N, K) float64) checked against `n_controls`."""
+    n = len(mesh.vertices)
+    columns_i, columns_w = [], []
+    k = 0
+    while (a_i := mesh.attributes.get(index_name(uid, k))) is not None:
+        a_w = mesh.attributes.get(weight_name(uid, k))
+        if a_w is None or a_i.data_type != "INT" or a_w.data_type != "FLOAT" or a_i.domain != "POINT":
+            raise StorageError("weight attributes are damaged: rebind the deformer")
+        column_i = np.empty(n, dtype=np.int32)
+        column_w = np.empty(n, dtype=np.float32)
+        a_i.data.foreach_get("value", column_i)
+        a_w.data.foreach_get("value", column_w)
+        columns_i.append(column_i)
+        columns_w.append(column_w)
+        k += 1
+    if k == 0:
+        raise StorageError("no bind data on the mesh: rebind the deformer")
+    indices = np.stack(columns_i, axis=1)
+    values = np.stack(columns_w, axis=1).astype(np.float64)
+    if indices.size and (indices.min() < 0 or indices.max() >= max(n_controls, 1)):
+        raise StorageError("weights refer to controls that no longer exist: rebind the deformer")
+    return indices, values
+
+
+def read_offsets(mesh: bpy.types.Mesh, uid: str) -> np.ndarray | None:
+    attr = mesh.attributes.get(offset_name(uid))
+    if attr is None or attr.data_type != "FLOAT_VECTOR" or attr.domain != "POINT":
+        return None
+    out = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    attr.data.foreach_get("vector", out)
+    return out.reshape(-1, 3)
+
+
+def write_offsets(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray) -> bool:
+    """Write offsets (N, 3) when they differ from the stored ones; True when something was written.
+
+    Skipping identical writes matters: a write tags the mesh, which triggers another depsgraph update.
+    """
+    offsets = np.ascontiguousarray(offsets, dtype=np.float32)
+    current = read_offsets(mesh, uid)
+    if current is not None and current.shape == offsets.shape and np.array_equal(current, offsets):
+        return False
+    _point_attribute(mesh, offset_name(uid), "FLOAT_VECTOR").data.foreach_set("vector", offsets.ravel())
+    mesh.update_tag()
+    return True

@@ -1,0 +1,558 @@
+"""The maps of the Aff+(3) parametrisation (Kaji & Ochiai; course notes section 8), batched.
+
+Every function takes arrays with any leading shape ``(...)`` and works in float64.
+
+Notation: ω ∈ R³ is a rotation vector, θ = |ω|, ω̂ = hat(ω) its skew matrix; u ∈ R³ the translation
+part of X = [[ω̂, u], [0, 0]] ∈ se(3); Y ∈ sym(3). The two maps are
+
+    φ(X, Y) = exp(X) · ι(exp(Y)),      ψ(A) = (log(A · ι(S)⁻¹), log S),  S = √(MᵀM),
+
+where M is the 3×3 part of A ∈ Aff+(3) and ι(B) = [[B, 0], [0, 1]].
+
+Closed forms used (θ-coefficients have series near θ = 0, see `_so3_coeffs`):
+
+    exp(ω̂)  = I + (sin θ/θ) ω̂ + ((1 − cos θ)/θ²) ω̂²                                (Rodrigues)
+    V(ω)     = I + ((1 − cos θ)/θ²) ω̂ + ((θ − sin θ)/θ³) ω̂²       exp(X) = [[exp(ω̂), V u], [0, 1]]
+    V(ω)⁻¹   = I − ½ ω̂ + (1/θ²)(1 − θ sin θ / (2(1 − cos θ))) ω̂²
+
+Functions of a symmetric 3×3 matrix (exp, log, √) are evaluated without eigenvectors: the eigenvalues
+come from the trigonometric solution of the characteristic cubic, and f(Y) is the quadratic that
+interpolates f at them, written in Newton form centred on the middle eigenvalue e₁ (ERRATA 2–4):
+
+    f(Y) = f(e₁) I + (f[e₁, e₀] − x f[e₁, e₀, e₂]) Z + f[e₁, e₀, e₂] Z²,   Z = Y − e₁ I,
+
+with x = e₀ − e₁ ≤ 0 ≤ y = e₂ − e₁. The second divided difference is a weighted *mean* of two
+expm1-type helpers (no cancellation, exact for repeated eigenvalues), and errors of the computed
+eigenvalues inside a cluster cancel: the interpolant only sees products of node errors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+__all__ = [
+    "hat",
+    "left_jacobian",
+    "left_jacobian_inv",
+    "matrices_from_params",
+    "params_from_matrices",
+    "params_from_xy",
+    "phi",
+    "polar",
+    "psi",
+    "se3_exp",
+    "se3_log",
+    "so3_exp",
+    "so3_log",
+    "spd_log",
+    "spd_sqrt",
+    "sym_eigvals",
+    "sym_exp",
+    "sym_from6",
+    "sym_to6",
+    "validate_affine",
+    "vee",
+    "xy_from_params",
+]
+
+#: Largest deviation of a transform's bottom row from (0, 0, 0, 1) that `validate_affine` accepts.
+#: Products with a numerically inverted 4×4 can leave ~1e-17 there; anything visible is a real error.
+BOTTOM_ROW_TOL = 1e-9
+
+_SQRT3 = float(np.sqrt(3.0))
+_EPS = float(np.finfo(np.float64).eps)
+
+
+# --------------------------------------------------------------------------------------------------
+# Input handling
+
+
+def _float_array(a: ArrayLike, tail: tuple[int, ...], name: str) -> FloatArray:
+    """`a` as a float64 array whose trailing shape is `tail`; ValueError naming `name` otherwise."""
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim < len(tail) or arr.shape[arr.ndim - len(tail) :] != tail:
+        raise ValueError(f"{name} must have shape (..., {', '.join(map(str, tail))}), got {arr.shape}")
+    return arr
+
+
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """a × b over the last axis (np.cross without its shape checks, for speed on small batches)."""
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
+
+
+def _horner(coeffs: tuple[float, ...], z: FloatArray) -> FloatArray:
+    """Σ coeffs[k] z^k."""
+    acc = np.full_like(z, coeffs[-1])
+    for c in coeffs[-2::-1]:
+        acc = acc * z + c
+    return acc
+
+
+# --------------------------------------------------------------------------------------------------
+# so(3)
+
+
+def hat(w: ArrayLike) -> FloatArray:
+    """The skew matrix ω̂ with ω̂ v = ω × v; (..., 3) -> (..., 3, 3)."""
+    w = _float_array(w, (3,), "w")
+    K = np.zeros((*w.shape[:-1], 3, 3))
+    K[..., 0, 1] = -w[..., 2]
+    K[..., 0, 2] = w[..., 1]
+    K[..., 1, 0] = w[..., 2]
+    K[..., 1, 2] = -w[..., 0]
+    K[..., 2, 0] = -w[..., 1]
+    K[..., 2, 1] = w[..., 0]
+    return K
+
+
+def vee(K: ArrayLike) -> FloatArray:
+    """Inverse of `hat`, applied to the skew part ½(K − Kᵀ); (..., 3, 3) -> (..., 3). vee(hat(ω)) == ω."""
+    K = _float_array(K, (3, 3), "K")
+    return 0.5 * np.stack(
+        [K[..., 2, 1] - K[..., 1, 2], K[..., 0, 2] - K[..., 2, 0], K[..., 1, 0] - K[..., 0, 1]], axis=-1
+    )
+
+
+# Below this angle the θ-coefficients switch to their Taylor series (truncation error < 1e-18).
+_SERIES_THETA = 0.2
+
+
+def _so3_coeffs(theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(sin θ/θ, (1 − cos θ)/θ², (θ − sin θ)/θ³), each accurate to a few ulps for every θ ≥ 0.
+
+    (1 − cos θ)/θ² = ½ (sin(θ/2)/(θ/2))² has no cancellation; θ − sin θ does, so the third uses its
+    series 1/6 − θ²/120 + θ⁴/5040 − θ⁶/362880 + θ⁸/39916800 for θ < 0.2.
+    """
+    small = theta < _SERIES_THETA
+    safe = np.where(theta > 0.0, theta, 1.0)
+    a = np.where(theta > 0.0, np.sin(safe) / safe, 1.0)
+    half = 0.5 * safe
+    sinc_half = np.where(theta > 0.0, np.sin(half) / half, 1.0)
+    b = 0.5 * sinc_half * sinc_half
+    t2 = theta * theta
+    c_series = _horner((1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800), t2)
+    c_direct = (safe - np.sin(safe)) / (safe * safe * safe)
+    c = np.where(small, c_series, c_direct)
+    return a, b, c
+
+
+def _jacobian_inv_coeff(theta: FloatArray) -> FloatArray:
+    """(1/θ²)(1 − θ sin θ / (2(1 − cos θ))) = (1 − (θ/2) cot(θ/2))/θ², the ω̂² coefficient of V⁻¹.
+
+    Series 1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600 + θ⁸/47900160 below θ = 0.2. Infinite at θ = 2π,
+    where V is singular (only reachable with a lifted rotation vector).
+    """
+    small = theta < _SERIES_THETA
+    safe = np.where(small, 1.0, theta)
+    half = 0.5 * safe
+    with np.errstate(divide="ignore", invalid="ignore"):
+        direct = (1.0 - half * np.cos(half) / np.sin(half)) / (safe * safe)
+    series = _horner((1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160), theta * theta)
+    return np.where(small, series, direct)
+
+
+def _norm3(w: FloatArray) -> FloatArray:
+    return np.sqrt(np.einsum("...i,...i->...", w, w))
+
+
+def so3_exp(w: ArrayLike) -> FloatArray:
+    """R = exp(ω̂) = I + (sin θ/θ) ω̂ + ((1 − cos θ)/θ²) ω̂² (Rodrigues); (..., 3) -> (..., 3, 3)."""
+    w = _float_array(w, (3,), "w")
+    a, b, _ = _so3_coeffs(_norm3(w))
+    K = hat(w)
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def so3_log(R: ArrayLike) -> FloatArray:
+    """Principal rotation vector ω (|ω| ≤ π) with exp(ω̂) = R; (..., 3, 3) -> (..., 3).
+
+    θ = atan2(|s|, (tr R − 1)/2) with s = vee(R) = sin θ · n, accurate over [0, π]. For θ ≤ π/2,
+    ω = (θ / sin θ) s (ratio → 1 at θ = 0). For θ > π/2 the skew part vanishes as θ → π, so the axis
+    is read from the symmetric part (R + Rᵀ)/2 − cos θ I = (1 − cos θ) n nᵀ (its largest column) and
+    its sign from s (ERRATA 6). At θ = π exactly both signs are valid; the one returned is arbitrary.
+    """
+    R = _float_array(R, (3, 3), "R")
+    s = vee(R)
+    sin_t = _norm3(s)
+    cos_t = np.clip(0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0), -1.0, 1.0)
+    theta = np.arctan2(sin_t, cos_t)
+
+    ratio = np.where(sin_t > 0.0, theta / np.where(sin_t > 0.0, sin_t, 1.0), 1.0)
+    w_skew = ratio[..., None] * s
+
+    sym = 0.5 * (R + np.swapaxes(R, -1, -2)) - cos_t[..., None, None] * np.eye(3)
+    k = np.argmax(np.diagonal(sym, axis1=-2, axis2=-1), axis=-1)
+    col = np.take_along_axis(sym, k[..., None, None], axis=-1)[..., 0]
+    col_norm = _norm3(col)
+    axis = col / np.where(col_norm > 0.0, col_norm, 1.0)[..., None]
+    sign = np.where(np.einsum("...i,...i->...", axis, s) < 0.0, -1.0, 1.0)
+    w_sym = (sign * theta)[..., None] * axis
+
+    return np.where((cos_t < 0.0)[..., None], w_sym, w_skew)
+
+
+def left_jacobian(w: ArrayLike) -> FloatArray:
+    """V(ω) = I + ((1 − cos θ)/θ²) ω̂ + ((θ − sin θ)/θ³) ω̂²; (..., 3) -> (..., 3, 3)."""
+    w = _float_array(w, (3,), "w")
+    _, b, c = _so3_coeffs(_norm3(w))
+    K = hat(w)
+    return np.eye(3) + b[..., None, None] * K + c[..., None, None] * (K @ K)
+
+
+def left_jacobian_inv(w: ArrayLike) -> FloatArray:
+    """V(ω)⁻¹ = I − ½ ω̂ + (1/θ²)(1 − θ sin θ/(2(1 − cos θ))) ω̂²; (..., 3) -> (..., 3, 3).
+
+    Valid for θ < 2π (V is singular at θ = 2π).
+    """
+    w = _float_array(w, (3,), "w")
+    d = _jacobian_inv_coeff(_norm3(w))
+    K = hat(w)
+    return np.eye(3) - 0.5 * K + d[..., None, None] * (K @ K)
+
+
+# --------------------------------------------------------------------------------------------------
+# se(3)
+
+
+def se3_exp(w: ArrayLike, u: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """exp([[ω̂, u], [0, 0]]) = [[R, t], [0, 1]] with R = exp(ω̂), t = V(ω) u (ERRATA 5).
+
+    t = u + ((1 − cos θ)/θ²) ω × u + ((θ − sin θ)/θ³) ω × (ω × u), so ω = 0 gives t = u exactly.
+    """
+    w = _float_array(w, (3,), "w")
+    u = _float_array(u, (3,), "u")
+    a, b, c = _so3_coeffs(_norm3(w))
+    K = hat(w)
+    R = np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
+    wu = _cross(w, u)
+    t = u + b[..., None] * wu + c[..., None] * _cross(w, wu)
+    return R, t
+
+
+def se3_log(R: ArrayLike, t: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """log([[R, t], [0, 1]]) = [[ω̂, u], [0, 0]] with ω = so3_log(R), u = V(ω)⁻¹ t (ERRATA 6).
+
+    u = t − ½ ω × t + d(θ) ω × (ω × t); a pure translation (R = I) gives u = t exactly.
+    """
+    R = _float_array(R, (3, 3), "R")
+    t = _float_array(t, (3,), "t")
+    w = so3_log(R)
+    d = _jacobian_inv_coeff(_norm3(w))
+    wt = _cross(w, t)
+    u = t - 0.5 * wt + d[..., None] * _cross(w, wt)
+    return w, u
+
+
+# --------------------------------------------------------------------------------------------------
+# sym(3): compact form, spectrum, matrix functions
+
+
+def sym_from6(y6: ArrayLike) -> FloatArray:
+    """(Yxx, Yyy, Yzz, Yxy, Yxz, Yyz) -> symmetric (..., 3, 3)."""
+    y6 = _float_array(y6, (6,), "y6")
+    xx, yy, zz, xy, xz, yz = np.moveaxis(y6, -1, 0)
+    return np.stack(
+        [np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)], axis=-2
+    )
+
+
+def sym_to6(Y: ArrayLike) -> FloatArray:
+    """Symmetric (..., 3, 3) -> (Yxx, Yyy, Yzz, Yxy, Yxz, Yyz); off-diagonals are averaged."""
+    Y = _float_array(Y, (3, 3), "Y")
+    return np.stack(
+        [
+            Y[..., 0, 0],
+            Y[..., 1, 1],
+            Y[..., 2, 2],
+            0.5 * (Y[..., 0, 1] + Y[..., 1, 0]),
+            0.5 * (Y[..., 0, 2] + Y[..., 2, 0]),
+            0.5 * (Y[..., 1, 2] + Y[..., 2, 1]),
+        ],
+        axis=-1,
+    )
+
+
+def _centred_spectrum(Y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(e₁, x, y): middle eigenvalue and offsets x = e₀ − e₁ ≤ 0 ≤ y = e₂ − e₁ of symmetric Y.
+
+    Trigonometric solution of the characteristic cubic on the traceless part B = Y − qI, q = tr Y/3,
+    scaled by p = √(tr(B²)/6): cos 3φ = det(B/p)/2, eigenvalues q + 2p cos(φ + 2πk/3). The offsets
+    come straight from the angle, x = −2√3 p sin φ and y = 2√3 p sin(π/3 − φ), so a tight cluster
+    is never formed as a difference of two large numbers. Exactly repeated eigenvalues (p = 0 or a
+    degenerate cubic) give exactly x = 0 or y = 0 where the arithmetic is exact.
+    """
+    y6 = sym_to6(Y)
+    q = (y6[..., 0] + y6[..., 1] + y6[..., 2]) / 3.0
+    b0, b1, b2 = y6[..., 0] - q, y6[..., 1] - q, y6[..., 2] - q
+    o01, o02, o12 = y6[..., 3], y6[..., 4], y6[..., 5]
+    p = np.sqrt((b0 * b0 + b1 * b1 + b2 * b2 + 2.0 * (o01 * o01 + o02 * o02 + o12 * o12)) / 6.0)
+    inv_p = 1.0 / np.where(p > 0.0, p, 1.0)
+    c0, c1, c2 = b0 * inv_p, b1 * inv_p, b2 * inv_p
+    d01, d02, d12 = o01 * inv_p, o02 * inv_p, o12 * inv_p
+    det = c0 * (c1 * c2 - d12 * d12) - d01 * (d01 * c2 - d12 * d02) + d02 * (d01 * d12 - c1 * d02)
+    r = np.clip(np.where(p > 0.0, 0.5 * det, 0.0), -1.0, 1.0)
+    ang = np.arccos(r) / 3.0
+    x = -2.0 * _SQRT3 * p * np.sin(ang)
+    y = 2.0 * _SQRT3 * p * np.sin(np.pi / 3.0 - ang)
+    e1 = q - (x + y) / 3.0
+    return e1, x, y
+
+
+def sym_eigvals(Y: ArrayLike) -> FloatArray:
+    """Eigenvalues of symmetric Y in ascending order, closed form; (..., 3, 3) -> (..., 3)."""
+    Y = _float_array(Y, (3, 3), "Y")
+    e1, x, y = _centred_spectrum(Y)
+    return np.stack([e1 + x, e1, e1 + y], axis=-1)
+
+
+def _exp_h1_h2(z: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """h1(z) = (eᶻ − 1)/z and h2(z) = (eᶻ − 1 − z)/z², with h2's series Σ zᵏ/(k+2)! for |z| < 0.1."""
+    small = np.abs(z) < 0.1
+    safe = np.where(small, 1.0, z)
+    direct = (np.expm1(safe) - safe) / (safe * safe)
+    series = _horner(tuple(1.0 / float(np.prod(np.arange(1, k + 3))) for k in range(11)), z)
+    h2 = np.where(small, series, direct)
+    return 1.0 + z * h2, h2
+
+
+def _log_l1_l2(z: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """L1(z) = log(1 + z)/z and L2(z) = (log(1 + z) − z)/z², series Σ (−1)^(k+1) zᵏ/(k+2) for |z| < 0.01."""
+    small = np.abs(z) < 0.01
+    safe = np.where(small, 1.0, z)
+    direct = (np.log1p(safe) - safe) / (safe * safe)
+    series = _horner(tuple((-1.0) ** (k + 1) / (k + 2) for k in range(9)), z)
+    l2 = np.where(small, series, direct)
+    return 1.0 + z * l2, l2
+
+
+def _weighted_second_difference(x: FloatArray, hx: FloatArray, y: FloatArray, hy: FloatArray) -> FloatArray:
+    """(y·h(y) − x·h(x))/(y − x) for x ≤ 0 ≤ y: a weighted mean of h(x), h(y), exact when x = y = 0."""
+    span = y - x
+    safe = np.where(span > 0.0, span, 1.0)
+    return np.where(span > 0.0, (y * hy - x * hx) / safe, 0.5 * (hx + hy))
+
+
+def _quadratic_in(Z: FloatArray, f0: FloatArray, f1: FloatArray, f2: FloatArray) -> FloatArray:
+    """f0 I + f1 Z + f2 Z² for symmetric Z, returned exactly symmetric."""
+    F = f0[..., None, None] * np.eye(3) + f1[..., None, None] * Z + f2[..., None, None] * (Z @ Z)
+    return 0.5 * (F + np.swapaxes(F, -1, -2))
+
+
+def sym_exp(Y: ArrayLike) -> FloatArray:
+    """exp(Y) of symmetric Y, eigenvector-free; (..., 3, 3) -> (..., 3, 3).
+
+    exp(Y) = e^{e₁} (I + (h1(x) − x g) Z + g Z²),  Z = Y − e₁ I,  g = (y h2(y) − x h2(x))/(y − x).
+    exp(0) is exactly I.
+    """
+    Y = _float_array(Y, (3, 3), "Y")
+    Ys = 0.5 * (Y + np.swapaxes(Y, -1, -2))
+    e1, x, y = _centred_spectrum(Ys)
+    h1x, h2x = _exp_h1_h2(x)
+    _, h2y = _exp_h1_h2(y)
+    g = _weighted_second_difference(x, h2x, y, h2y)
+    scale = np.exp(e1)
+    Z = Ys - e1[..., None, None] * np.eye(3)
+    return _quadratic_in(Z, scale, scale * (h1x - x * g), scale * g)
+
+
+def _spd_spectrum(S: FloatArray, name: str) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Centred spectrum of SPD S with the smallest eigenvalue kept positive; ValueError if not SPD."""
+    e1, x, y = _centred_spectrum(S)
+    if not np.all(np.isfinite(e1)):
+        raise ValueError(f"{name} has non-finite entries")
+    e0 = e1 + x
+    scale = np.maximum(np.abs(e1 + y), np.finfo(np.float64).tiny)
+    if np.any(e1 <= 0.0) or np.any(e0 <= -8.0 * _EPS * scale):
+        raise ValueError(f"{name} is not positive definite")
+    # The closed form resolves eigenvalues only to ~ε·‖S‖: a positive one below that may come out
+    # as ±0; keep it a positive number of that size so log/√ stay finite.
+    floor = _EPS * scale
+    x = np.where(e0 < floor, floor - e1, x)
+    return e1, x, y
+
+
+def spd_log(S: ArrayLike) -> FloatArray:
+    """log S of a symmetric positive definite S, eigenvector-free; (..., 3, 3) -> (..., 3, 3).
+
+    With ξ = x/e₁, η = y/e₁, Zn = (S − e₁ I)/e₁:
+    log S = log e₁ I + (L1(ξ) − ξ G) Zn + G Zn², G = (η L2(η) − ξ L2(ξ))/(η − ξ), where
+    L1(z) = log(1 + z)/z and L2(z) = (log(1 + z) − z)/z². Normwise relative accuracy is about
+    ε·κ(S) for ill-conditioned S (the quadratic form cancels along the small eigenvectors).
+    """
+    S = _float_array(S, (3, 3), "S")
+    Ss = 0.5 * (S + np.swapaxes(S, -1, -2))
+    e1, x, y = _spd_spectrum(Ss, "S")
+    xi, eta = x / e1, y / e1
+    l1x, l2x = _log_l1_l2(xi)
+    _, l2y = _log_l1_l2(eta)
+    G = _weighted_second_difference(xi, l2x, eta, l2y)
+    Zn = (Ss - e1[..., None, None] * np.eye(3)) / e1[..., None, None]
+    return _quadratic_in(Zn, np.log(e1), l1x - xi * G, G)
+
+
+def spd_sqrt(B: ArrayLike) -> FloatArray:
+    """√B of a symmetric positive definite B, eigenvector-free; (..., 3, 3) -> (..., 3, 3).
+
+    With r_i = √λ_i the divided differences of √ have no cancellation at all:
+    f[λ₁, λ₀] = 1/(r₀ + r₁),  f[λ₁, λ₀, λ₂] = −1/((r₀ + r₁)(r₁ + r₂)(r₀ + r₂)).
+    """
+    B = _float_array(B, (3, 3), "B")
+    Bs = 0.5 * (B + np.swapaxes(B, -1, -2))
+    e1, x, y = _spd_spectrum(Bs, "B")
+    r0, r1, r2 = np.sqrt(e1 + x), np.sqrt(e1), np.sqrt(e1 + y)
+    d1 = 1.0 / (r0 + r1)
+    d2 = -d1 / ((r1 + r2) * (r0 + r2))
+    Z = Bs - e1[..., None, None] * np.eye(3)
+    return _quadratic_in(Z, r1, d1 - x * d2, d2)
+
+
+# --------------------------------------------------------------------------------------------------
+# Polar split, validation, phi / psi
+
+
+def _polar_svd(M: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """(R, Vh, σ): M = U diag(σ) Vh, R = U Vh. Backward stable, unlike √(MᵀM) (which squares κ(M))."""
+    U, sigma, Vh = np.linalg.svd(M)
+    return U @ Vh, Vh, sigma, U
+
+
+def polar(M: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Polar split M = R·S, R orthogonal, S = √(MᵀM) symmetric positive semi-definite.
+
+    Computed from the SVD M = U Σ Vᵀ (R = U Vᵀ, S = V Σ Vᵀ): forming MᵀM would square the condition
+    number and lose half the digits of a strongly anisotropic M. R is a rotation when det M > 0.
+    """
+    M = _float_array(M, (3, 3), "M")
+    R, Vh, sigma, _ = _polar_svd(M)
+    S = np.swapaxes(Vh, -1, -2) @ (sigma[..., :, None] * Vh)
+    return R, 0.5 * (S + np.swapaxes(S, -1, -2))
+
+
+def _det3(M: FloatArray) -> FloatArray:
+    return (
+        M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
+        - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
+        + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0])
+    )
+
+
+def _where(flat_index: int, lead: tuple[int, ...]) -> str:
+    if len(lead) <= 1:
+        return f"{flat_index}"
+    return f"{flat_index} (index {tuple(int(i) for i in np.unravel_index(flat_index, lead))})"
+
+
+def validate_affine(A: ArrayLike, name: str = "transform") -> FloatArray:
+    """A as float64 (..., 4, 4) if every matrix is in Aff+(3); else ValueError naming the first bad one.
+
+    Rejected: non-finite entries, a bottom row other than (0, 0, 0, 1) (tolerance BOTTOM_ROW_TOL),
+    det of the 3×3 part ≤ 0 (mirrored or collapsed). The index is the flat index over the leading
+    axes (and the multi-index when there is more than one leading axis).
+    """
+    A = _float_array(A, (4, 4), name)
+    lead = A.shape[:-2]
+    flat = A.reshape(-1, 4, 4)
+    finite = np.isfinite(flat).all(axis=(1, 2))
+    bottom = np.abs(flat[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        det = _det3(flat[:, :3, :3])
+    bad = ~finite | ~(bottom <= BOTTOM_ROW_TOL) | ~(det > 0.0)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        where = _where(i, lead)
+        if not finite[i]:
+            raise ValueError(f"{name} {where} has non-finite entries (NaN or inf)")
+        if not bottom[i] <= BOTTOM_ROW_TOL:
+            raise ValueError(f"{name} {where} is not affine: bottom row {flat[i, 3].tolist()} != [0, 0, 0, 1]")
+        raise ValueError(
+            f"{name} {where} has determinant {det[i]:.6g} <= 0 (mirrored or collapsed); "
+            "only orientation-preserving transforms can be blended"
+        )
+    return A
+
+
+def psi(A: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """ψ(A) = (X, Y) = (log(A ι(S)⁻¹), log S), S = √(MᵀM); (..., 4, 4) -> ((..., 4, 4), (..., 3, 3)).
+
+    With the SVD M = U Σ Vᵀ: A ι(S)⁻¹ = [[U Vᵀ, t], [0, 1]] and Y = V log(Σ) Vᵀ, which is accurate to
+    ε·|log σ| even when M is strongly anisotropic. ω is on the principal branch |ω| ≤ π.
+    ValueError (naming the first bad index) unless every A is in Aff+(3).
+    """
+    A = validate_affine(A)
+    M = A[..., :3, :3]
+    t = A[..., :3, 3]
+    R, Vh, sigma, _ = _polar_svd(M)
+    log_sigma = np.log(sigma)
+    Y = np.swapaxes(Vh, -1, -2) @ (log_sigma[..., :, None] * Vh)
+    Y = 0.5 * (Y + np.swapaxes(Y, -1, -2))
+    w, u = se3_log(R, t)
+    X = np.zeros(A.shape)
+    X[..., :3, :3] = hat(w)
+    X[..., :3, 3] = u
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(Y))):
+        bad = ~(np.isfinite(X).all(axis=(-2, -1)) & np.isfinite(Y).all(axis=(-2, -1)))
+        i = int(np.argmax(bad.reshape(-1)))
+        raise ValueError(f"transform {_where(i, A.shape[:-2])} is too degenerate to take its logarithm")
+    return X, Y
+
+
+def phi(X: ArrayLike, Y: ArrayLike) -> FloatArray:
+    """φ(X, Y) = exp(X) ι(exp(Y)) = [[R(ω) exp(Y), V(ω) u], [0, 1]]; φ(0, 0) is exactly I.
+
+    X (..., 4, 4) in se(3) (its skew part and last column are read), Y (..., 3, 3) symmetric.
+    """
+    X = _float_array(X, (4, 4), "X")
+    Y = _float_array(Y, (3, 3), "Y")
+    R, t = se3_exp(vee(X[..., :3, :3]), X[..., :3, 3])
+    E = sym_exp(Y)
+    lead = np.broadcast_shapes(R.shape[:-2], E.shape[:-2])
+    A = np.zeros((*lead, 4, 4))
+    A[..., :3, :3] = R @ E
+    A[..., :3, 3] = t
+    A[..., 3, 3] = 1.0
+    return A
+
+
+# --------------------------------------------------------------------------------------------------
+# The 12-number layout (docs/DEVELOPING.md): ω (0:3), u (3:6), Y as (xx, yy, zz, xy, xz, yz) (6:12)
+
+
+def params_from_xy(X: ArrayLike, Y: ArrayLike) -> FloatArray:
+    """(X (..., 4, 4), Y (..., 3, 3)) -> P (..., 12)."""
+    X = _float_array(X, (4, 4), "X")
+    Y = _float_array(Y, (3, 3), "Y")
+    w = vee(X[..., :3, :3])
+    u = X[..., :3, 3]
+    y6 = sym_to6(Y)
+    lead = np.broadcast_shapes(w.shape[:-1], y6.shape[:-1])
+    return np.concatenate([np.broadcast_to(w, (*lead, 3)), np.broadcast_to(u, (*lead, 3)),
+                           np.broadcast_to(y6, (*lead, 6))], axis=-1)
+
+
+def xy_from_params(P: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """P (..., 12) -> (X (..., 4, 4), Y (..., 3, 3))."""
+    P = _float_array(P, (12,), "params")
+    X = np.zeros((*P.shape[:-1], 4, 4))
+    X[..., :3, :3] = hat(P[..., 0:3])
+    X[..., :3, 3] = P[..., 3:6]
+    return X, sym_from6(P[..., 6:12])
+
+
+def params_from_matrices(A: ArrayLike) -> FloatArray:
+    """ψ in the 12-number layout: A (..., 4, 4) -> P (..., 12). ValueError on invalid A."""
+    return params_from_xy(*psi(A))
+
+
+def matrices_from_params(P: ArrayLike) -> FloatArray:
+    """φ in the 12-number layout: P (..., 12) -> A (..., 4, 4)."""
+    return phi(*xy_from_params(P))

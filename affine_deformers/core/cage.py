@@ -1,0 +1,703 @@
+"""Cage faces → rest/current tetrahedra → per-face motion parameters; cage weights; cage checks.
+
+Topology comes as Blender's flat polygon arrays (`foreach_get` of loops.vertex_index,
+polygons.loop_start, polygons.loop_total), wrapped in `CageTopology`.
+
+Per-face motion (course notes 8.3.2 with ERRATA 9): every consecutive vertex triple (p0, p1, p2) of a
+face (n triples for an n-gon, n ≥ 4; one for a triangle) spans a tetrahedron with the apex
+
+    q = (p0 + p1 + p2)/3 + n/√|n|,   n = (p1 − p0) × (p2 − p0)    (offset length √(2·area)),
+
+so similarity transforms (rotation, uniform scale, translation) of the whole cage give every face
+exactly that transform. The triple's motion is the affine map taking the rest tetrahedron onto the
+current one, A_t = T_cur · T_rest⁻¹; with E = [p1 − p0, p2 − p0, n/√|n|] (3×3, det E = |n|^{3/2} > 0)
+its linear part is M = E_cur E_rest⁻¹ and its translation c_cur − M c_rest (c the triangle centroid).
+The face's parameters are the mean of ψ_params(A_t) over its triples, so they do not depend on how
+the polygon would be triangulated.
+
+Weights (ERRATA 10): inverse distance to the face polygon (exact point–triangle distance, minimum over
+the polygon's fan triangles), zero for faces whose outer half-space holds the vertex, top-K, rows
+normalised to 1; computed in chunks of vertices.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .aff3 import params_from_matrices
+from .unwrap import lift_params
+from .weights import normalize, top_k
+
+# A rest corner (consecutive triple) of an n-gon whose triangle area is below this fraction of the
+# face's largest corner triangle is skipped: a straight or nearly straight corner (e.g. a T-junction
+# vertex) has a needle tetrahedron that would turn any bending of the face into a huge stretch.
+STRAIGHT_CORNER_RATIO = 1e-2
+
+# A corner counts as collapsed when sin(corner angle) = |n|/(|e1||e2|) is below this.
+COLLAPSED_SIN = 1e-10
+
+# Points this close to a face plane (relative to the cage size) are not "outside" it, so a target
+# vertex lying on the cage surface keeps the face it lies on.
+HALF_SPACE_TOL = 1e-9
+
+# Distances are floored at this fraction of the cage size so a vertex on the cage gets a finite,
+# dominant weight from the faces it touches instead of 1/0.
+DISTANCE_FLOOR = 1e-6
+
+# Elements per (vertices × fan triangles) work array; a chunk's rows are split to stay below it.
+CHUNK_ELEMENTS = 1 << 17
+
+_MAX_LISTED = 10
+
+
+def _norm(v: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.einsum("...i,...i->...", v, v))
+
+
+def _list_indices(indices: np.ndarray) -> str:
+    shown = ", ".join(str(int(i)) for i in indices[:_MAX_LISTED])
+    return shown + (", ..." if len(indices) > _MAX_LISTED else "")
+
+
+# --- topology -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CageTopology:
+    """Polygons as Blender stores them: face f uses loop_vertex_indices[loop_start[f] :
+    loop_start[f] + loop_total[f]] in order (counter-clockwise seen from outside for outward faces).
+    Build with `from_arrays` (validates) or `from_polygons`."""
+
+    loop_vertex_indices: np.ndarray
+    loop_start: np.ndarray
+    loop_total: np.ndarray
+    n_vertices: int
+    _cache: dict = field(default_factory=dict, compare=False, repr=False)
+
+    @classmethod
+    def from_arrays(
+        cls,
+        loop_vertex_indices: np.ndarray,
+        loop_start: np.ndarray,
+        loop_total: np.ndarray,
+        n_vertices: int | None = None,
+    ) -> CageTopology:
+        """Validated topology; ValueError on malformed arrays (n_vertices bounds the indices)."""
+        loops = np.asarray(loop_vertex_indices)
+        start = np.asarray(loop_start)
+        total = np.asarray(loop_total)
+        for name, arr in (("loop_vertex_indices", loops), ("loop_start", start), ("loop_total", total)):
+            if arr.ndim != 1 or not (arr.size == 0 or np.issubdtype(arr.dtype, np.integer)):
+                raise ValueError(f"{name} must be a 1-D integer array, got {arr.dtype} {arr.shape}")
+        if start.shape != total.shape:
+            raise ValueError(f"loop_start and loop_total differ in length: {start.size} vs {total.size}")
+        if start.size == 0:
+            raise ValueError("the cage has no faces")
+        if np.any(total < 3):
+            bad = np.flatnonzero(total < 3)
+            raise ValueError(f"cage faces with fewer than 3 corners: {_list_indices(bad)}")
+        if np.any(start < 0) or np.any(start + total > loops.size):
+            raise ValueError("loop_start/loop_total point outside loop_vertex_indices")
+        if loops.size and loops.min() < 0:
+            raise ValueError("negative vertex index in loop_vertex_indices")
+        top = int(loops.max()) + 1 if loops.size else 0
+        if n_vertices is None:
+            n_vertices = top
+        elif top > n_vertices:
+            raise ValueError(f"loop_vertex_indices refers to vertex {top - 1} but the cage has {n_vertices}")
+        return cls(loops.astype(np.intp), start.astype(np.intp), total.astype(np.intp), int(n_vertices))
+
+    @classmethod
+    def from_polygons(cls, polygons: Sequence[Sequence[int]], n_vertices: int | None = None) -> CageTopology:
+        """Topology from a list of vertex-index lists (one per face)."""
+        total = np.array([len(p) for p in polygons], dtype=np.intp)
+        start = np.concatenate([[0], np.cumsum(total)[:-1]]).astype(np.intp)
+        loops = np.array([i for p in polygons for i in p], dtype=np.intp)
+        return cls.from_arrays(loops, start, total, n_vertices)
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.loop_total.size)
+
+    def _cached(self, key: str, build):  # type: ignore[no-untyped-def]
+        if key not in self._cache:
+            self._cache[key] = build()
+        return self._cache[key]
+
+    def _loop_columns(self, count: np.ndarray, columns: Sequence) -> tuple[np.ndarray, np.ndarray]:
+        """For each face f, `count[f]` rows j = 0..count−1; column c holds the vertex at loop position
+        columns[c](j) (mod n) of the face. Returns (vertex indices (R, len(columns)), face (R,))."""
+        face = np.repeat(np.arange(self.n_faces), count)
+        j = np.arange(face.size) - np.repeat(np.cumsum(count) - count, count)
+        start, n = self.loop_start[face], self.loop_total[face]
+        cols = [self.loop_vertex_indices[start + position(j) % n] for position in columns]
+        return np.stack(cols, axis=1), face
+
+    def corner_triples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(triples (T, 3) vertex indices, face (T,), weight (T,)): every consecutive triple
+        (v_j, v_j+1, v_j+2) of each n-gon (one for a triangle), weight 1/count per face."""
+
+        def build() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            count = np.where(self.loop_total == 3, 1, self.loop_total)
+            triples, face = self._loop_columns(count, (lambda j: j, lambda j: j + 1, lambda j: j + 2))
+            return triples, face, 1.0 / count[face]
+
+        return self._cached("triples", build)
+
+    def fan_triangles(self) -> tuple[np.ndarray, np.ndarray]:
+        """(triangles (Tf, 3), face (Tf,)): the fan (v0, v_j+1, v_j+2) of each face, grouped by face."""
+
+        def build() -> tuple[np.ndarray, np.ndarray]:
+            columns = (lambda j: 0 * j, lambda j: j + 1, lambda j: j + 2)
+            return self._loop_columns(self.loop_total - 2, columns)
+
+        return self._cached("fan", build)
+
+    def face_of_loop(self) -> np.ndarray:
+        return self._cached("face_of_loop", lambda: np.repeat(np.arange(self.n_faces), self.loop_total))
+
+    def directed_edges(self) -> np.ndarray:
+        """(E, 2) vertex pairs (v_j, v_j+1) of every face boundary, in loop order."""
+
+        def build() -> np.ndarray:
+            pairs, _ = self._loop_columns(self.loop_total, (lambda j: j, lambda j: j + 1))
+            return pairs
+
+        return self._cached("edges", build)
+
+
+def _check_points(points: np.ndarray, topology: CageTopology, name: str) -> np.ndarray:
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (V, 3), got {points.shape}")
+    if points.shape[0] < topology.n_vertices:
+        raise ValueError(
+            f"{name} has {points.shape[0]} vertices but the cage topology uses {topology.n_vertices}"
+        )
+    return points
+
+
+# --- face geometry ------------------------------------------------------------------------------
+
+
+def face_centroids(points: np.ndarray, topology: CageTopology) -> np.ndarray:
+    """Mean of each face's corner positions, (F, 3)."""
+    face = topology.face_of_loop()
+    p = points[topology.loop_vertex_indices]
+    sums = np.stack([np.bincount(face, p[:, k], topology.n_faces) for k in range(3)], axis=1)
+    return sums / topology.loop_total[:, None]
+
+
+def face_normals(points: np.ndarray, topology: CageTopology) -> np.ndarray:
+    """Newell normal of each face, (F, 3): Σ_j (v_j − c) × (v_j+1 − c) = 2·(vector area).
+
+    For a triangle this is exactly (b − a) × (c − a); for a non-planar n-gon it is the normal of the
+    best-fitting plane. Not normalised.
+    """
+    points = _check_points(points, topology, "points")
+    c = face_centroids(points, topology)
+    edges = topology.directed_edges()
+    face = topology.face_of_loop()
+    a = points[edges[:, 0]] - c[face]
+    b = points[edges[:, 1]] - c[face]
+    cr = np.cross(a, b)
+    return np.stack([np.bincount(face, cr[:, k], topology.n_faces) for k in range(3)], axis=1)
+
+
+def _corner_frames(points: np.ndarray, triples: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(E (T, 3, 3) columns [e1, e2, n/√|n|], centroid (T, 3), sin of the corner angle (T,))."""
+    p0, p1, p2 = (points[triples[:, k]] for k in range(3))
+    e1, e2 = p1 - p0, p2 - p0
+    n = np.cross(e1, e2)
+    area2 = _norm(n)
+    edge_product = _norm(e1) * _norm(e2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sin_corner = np.where(edge_product > 0.0, area2 / edge_product, 0.0)
+        h = n / np.sqrt(area2)[:, None]
+    E = np.stack([e1, e2, h], axis=2)
+    return E, (p0 + p1 + p2) / 3.0, sin_corner
+
+
+def _usable_rest_triples(rest: np.ndarray, topology: CageTopology) -> tuple[np.ndarray, np.ndarray]:
+    """(usable (T,) bool, weight (T,)): rest corners kept after dropping collapsed and (for n-gons)
+    nearly straight ones; weights renormalised to sum 1 per face over the kept corners."""
+    triples, face, _ = topology.corner_triples()
+    _, _, sin_corner = _corner_frames(rest, triples)
+    p0, p1, p2 = (rest[triples[:, k]] for k in range(3))
+    area2 = _norm(np.cross(p1 - p0, p2 - p0))
+    largest = np.zeros(topology.n_faces)
+    np.maximum.at(largest, face, np.where(np.isfinite(area2), area2, 0.0))
+    usable = np.isfinite(sin_corner) & (sin_corner > COLLAPSED_SIN)
+    is_ngon = topology.loop_total[face] > 3
+    usable &= ~is_ngon | (area2 >= STRAIGHT_CORNER_RATIO * largest[face])
+    kept = np.bincount(face, usable.astype(np.float64), topology.n_faces)
+    weight = np.where(usable, 1.0 / np.maximum(kept[face], 1.0), 0.0)
+    return usable, weight
+
+
+def corner_matrices(
+    rest: np.ndarray, current: np.ndarray, triples: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(A (T, 4, 4), ok (T,)): the affine map taking each rest corner tetrahedron onto the current one.
+
+    ok is False where either tetrahedron is collapsed (sin of the corner angle ≤ COLLAPSED_SIN) or the
+    result is non-finite or has det ≤ 0; those rows of A are the identity.
+    """
+    E_rest, c_rest, sin_rest = _corner_frames(rest, triples)
+    E_cur, c_cur, sin_cur = _corner_frames(current, triples)
+    ok = (sin_rest > COLLAPSED_SIN) & (sin_cur > COLLAPSED_SIN)
+    ok &= np.isfinite(E_rest).all(axis=(1, 2)) & np.isfinite(E_cur).all(axis=(1, 2))
+    ok &= np.isfinite(c_rest).all(axis=1) & np.isfinite(c_cur).all(axis=1)
+    A = np.broadcast_to(np.eye(4), (triples.shape[0], 4, 4)).copy()
+    if np.any(ok):
+        # M E_rest = E_cur  <=>  E_restᵀ Mᵀ = E_curᵀ
+        M = np.swapaxes(np.linalg.solve(np.swapaxes(E_rest[ok], 1, 2), np.swapaxes(E_cur[ok], 1, 2)), 1, 2)
+        A[ok, :3, :3] = M
+        A[ok, :3, 3] = c_cur[ok] - np.einsum("tij,tj->ti", M, c_rest[ok])
+    good = np.isfinite(A).all(axis=(1, 2)) & (np.linalg.det(A[:, :3, :3]) > 0.0)
+    ok &= good
+    A[~ok] = np.eye(4)
+    return A, ok
+
+
+@dataclass(frozen=True)
+class FaceMotions:
+    """Per-face motion of a cage. params (F, 12) in the docs/DEVELOPING.md layout, zero (the identity)
+    for invalid faces; valid (F,) bool; messages: human-readable summary of what was rejected."""
+
+    params: np.ndarray
+    valid: np.ndarray
+    messages: tuple[str, ...]
+
+
+def face_motions(
+    rest_points: np.ndarray,
+    current_points: np.ndarray,
+    topology: CageTopology,
+    *,
+    w_ref: np.ndarray | None = None,
+    pivot: np.ndarray | None = None,
+) -> FaceMotions:
+    """P_f = Σ_t (1/n_f) ψ_params(A_t) over the face's corner tetrahedra (see module docstring).
+
+    Corners are weighted 1/n, except that collapsed or nearly straight rest corners of n-gons are
+    skipped (weight shared among the others). A face is invalid — params 0, reported — when it has
+    no usable rest corner, or when a used corner is collapsed / non-finite in the current pose.
+
+    The rotation parts of a face's corners are first brought onto one branch: onto w_ref (3,) or
+    (F, 3) when given (e.g. from the cage object's rotation channels, unwrap.channel_rotvec; pivot
+    as in unwrap.se3_log_lifted), otherwise onto the branch of the face's first corner, so corners
+    near a half turn do not average to zero.
+    """
+    rest = _check_points(rest_points, topology, "rest_points")
+    cur = _check_points(current_points, topology, "current_points")
+    if rest.shape != cur.shape:
+        raise ValueError(f"rest and current cage differ in vertex count: {rest.shape[0]} vs {cur.shape[0]}")
+    F = topology.n_faces
+    triples, face, _ = topology.corner_triples()
+    usable, weight = _usable_rest_triples(rest, topology)
+    A, ok = corner_matrices(rest, cur, triples)
+
+    broken = np.zeros(F, dtype=bool)
+    np.logical_or.at(broken, face, usable & ~ok)
+    has_corner = np.bincount(face, usable.astype(np.float64), F) > 0
+    valid = has_corner & ~broken
+    use = usable & valid[face]
+
+    params_t = np.zeros((triples.shape[0], 12))
+    if np.any(use):
+        params_t[use] = params_from_matrices(A[use])
+        finite = np.isfinite(params_t).all(axis=1)
+        if not np.all(finite):
+            np.logical_and.at(valid, face, finite)
+            use &= valid[face]
+        if w_ref is None:
+            first = np.full(F, -1, dtype=np.intp)
+            idx = np.flatnonzero(use)[::-1]
+            first[face[idx]] = idx  # reversed assignment leaves the first used corner per face
+            ref = params_t[first[face], 0:3]
+        else:
+            ref = np.broadcast_to(np.asarray(w_ref, dtype=np.float64), (F, 3))[face]
+        piv = None if pivot is None else np.broadcast_to(np.asarray(pivot, dtype=np.float64), (F, 3))[face]
+        lifted = lift_params(params_t[use], ref[use], None if piv is None else piv[use])
+        params_t[use] = lifted
+
+    contrib = np.where(use[:, None], weight[:, None] * params_t, 0.0)
+    params = np.stack([np.bincount(face, contrib[:, k], F) for k in range(12)], axis=1)
+    params[~valid] = 0.0
+
+    messages: list[str] = []
+    no_rest = np.flatnonzero(~has_corner)
+    if no_rest.size:
+        messages.append(
+            f"{no_rest.size} cage face(s) have zero area in the rest pose and are ignored: "
+            f"{_list_indices(no_rest)}"
+        )
+    collapsed = np.flatnonzero(has_corner & ~valid)
+    if collapsed.size:
+        messages.append(
+            f"{collapsed.size} cage face(s) collapsed (zero area or non-finite) in the current pose and "
+            f"are ignored: {_list_indices(collapsed)}"
+        )
+    return FaceMotions(params=params, valid=valid, messages=tuple(messages))
+
+
+# --- distances and weights ----------------------------------------------------------------------
+
+
+def _inverse_or_zero(x: np.ndarray) -> np.ndarray:
+    ok = x > 0.0
+    return np.where(ok, 1.0 / np.where(ok, x, 1.0), 0.0)
+
+
+def _triangle_table(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-triangle constants for `_distance_sq_block` (coordinates already relative to an origin)."""
+    ab, ac = b - a, c - a
+    n = np.cross(ab, ac)
+    abab = np.einsum("ij,ij->i", ab, ab)
+    acac = np.einsum("ij,ij->i", ac, ac)
+    abac = np.einsum("ij,ij->i", ab, ac)
+    bc = ac - ab
+    gram = abab * acac - abac * abac
+    inv_gram = _inverse_or_zero(gram)
+    return {
+        "a": a,
+        "ab": ab,
+        "ac": ac,
+        "n": n,
+        "aa": np.einsum("ij,ij->i", a, a),
+        "ab_a": np.einsum("ij,ij->i", ab, a),
+        "ac_a": np.einsum("ij,ij->i", ac, a),
+        "n_a": np.einsum("ij,ij->i", n, a),
+        "abab": abab,
+        "acac": acac,
+        "abac": abac,
+        "bcbc": np.einsum("ij,ij->i", bc, bc),
+        "inv_abab": _inverse_or_zero(abab),
+        "inv_acac": _inverse_or_zero(acac),
+        "inv_bcbc": _inverse_or_zero(np.einsum("ij,ij->i", bc, bc)),
+        # barycentric (v, w) of the projection: v = cv1·d1 + cv2·d2 + v0, w = cw1·d1 + cw2·d2;
+        # v0 = −1 marks a degenerate triangle (no interior), so its projection never counts as inside.
+        "cv1": acac * inv_gram,
+        "cv2": -abac * inv_gram,
+        "cw1": -abac * inv_gram,
+        "cw2": abab * inv_gram,
+        "v0": np.where(gram > 0.0, 0.0, -1.0),
+        "inv_nn": _inverse_or_zero(np.einsum("ij,ij->i", n, n)),
+    }
+
+
+def _table_subset(table: dict[str, np.ndarray], idx: np.ndarray) -> dict[str, np.ndarray]:
+    return {key: value[idx] for key, value in table.items()}
+
+
+def _distance_sq_block(p: np.ndarray, tab: dict[str, np.ndarray]) -> np.ndarray:
+    """Exact squared distances (C, T) from points p (C, 3) to triangles (a, a + ab, a + ac).
+
+    If the projection of p onto the triangle's plane has barycentrics v, w ≥ 0, v + w ≤ 1 the
+    distance is the plane distance, (n·ap)²/|n|²; otherwise the closest point lies on an edge and the
+    distance is the smallest of the three point–segment distances |ap − t·e|², t = clamp(ap·e/|e|²).
+    Every dot product of p comes from one matrix product with [a | ab | ac | n]; the rest is
+    elementwise on (C, T) arrays. Degenerate triangles reduce to their edges (segments or points).
+    """
+    T = tab["a"].shape[0]
+    G = p @ np.concatenate([tab["a"], tab["ab"], tab["ac"], tab["n"]], axis=0).T
+    pa, d1, d2, pn = G[:, :T], G[:, T : 2 * T], G[:, 2 * T : 3 * T], G[:, 3 * T :]
+    d1 = d1 - tab["ab_a"]  # ab·ap
+    d2 = d2 - tab["ac_a"]  # ac·ap
+    ap2 = np.einsum("ij,ij->i", p, p)[:, None] - 2.0 * pa + tab["aa"]
+
+    def clamp01(x: np.ndarray) -> np.ndarray:  # np.clip's dispatch overhead is significant here
+        np.maximum(x, 0.0, out=x)
+        return np.minimum(x, 1.0, out=x)
+
+    t = clamp01(d1 * tab["inv_abab"])
+    edge = ap2 - t * (2.0 * d1 - t * tab["abab"])
+    t = clamp01(d2 * tab["inv_acac"])
+    np.minimum(edge, ap2 - t * (2.0 * d2 - t * tab["acac"]), out=edge)
+    bc_bp = (d2 - tab["abac"]) - (d1 - tab["abab"])  # (ac − ab)·(p − b)
+    bp2 = ap2 - 2.0 * d1 + tab["abab"]
+    t = clamp01(bc_bp * tab["inv_bcbc"])
+    np.minimum(edge, bp2 - t * (2.0 * bc_bp - t * tab["bcbc"]), out=edge)
+
+    v = d1 * tab["cv1"] + d2 * tab["cv2"] + tab["v0"]
+    w = d1 * tab["cw1"] + d2 * tab["cw2"]
+    inside = (v >= 0.0) & (w >= 0.0) & (v + w <= 1.0)
+    n_ap = pn - tab["n_a"]
+    plane = n_ap * n_ap * tab["inv_nn"]
+    return np.maximum(np.where(inside, plane, edge), 0.0)
+
+
+def point_triangle_distance_sq(
+    points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray
+) -> np.ndarray:
+    """Exact squared distance from each point (N, 3) to each triangle (a, b, c) (T, 3 each) -> (N, T).
+
+    Dense; for tests and small inputs (cage_weights works in chunks). Coordinates are taken relative
+    to the triangles' mean vertex, which keeps the expanded dot products well conditioned."""
+    a, b, c = (np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in (a, b, c))
+    origin = (a.mean(axis=0) + b.mean(axis=0) + c.mean(axis=0)) / 3.0 if a.size else np.zeros(3)
+    table = _triangle_table(a - origin, b - origin, c - origin)
+    return _distance_sq_block(np.asarray(points, dtype=np.float64).reshape(-1, 3) - origin, table)
+
+
+@dataclass(frozen=True)
+class _CageFields:
+    """What cage_weights needs of the rest cage, relative to `origin` (the mean vertex)."""
+
+    origin: np.ndarray
+    size: float
+    triangles: dict[str, np.ndarray]  # fan triangles, grouped by face
+    fan_face: np.ndarray  # (Tf,)
+    unit_normals: np.ndarray  # (F, 3), zero for a zero-area face
+    plane_offsets: np.ndarray  # (F,) unit normal · centroid
+    centers: np.ndarray  # (F, 3) bounding-sphere centres (vertex means)
+    radii: np.ndarray  # (F,) bounding-sphere radii
+
+    @classmethod
+    def build(cls, cage: np.ndarray, topology: CageTopology) -> _CageFields:
+        origin = cage.mean(axis=0)
+        local = cage - origin
+        size = float(np.ptp(cage, axis=0).max()) or 1.0
+        fan, fan_face = topology.fan_triangles()
+        triangles = _triangle_table(*(local[fan[:, k]] for k in range(3)))
+        normals = face_normals(local, topology)
+        length = _norm(normals)
+        unit = normals / np.where(length > 0.0, length, 1.0)[:, None]
+        centers = face_centroids(local, topology)
+        reach = _norm(local[topology.loop_vertex_indices] - centers[topology.face_of_loop()])
+        radii = np.zeros(topology.n_faces)
+        np.maximum.at(radii, topology.face_of_loop(), reach)
+        offsets = np.einsum("ij,ij->i", unit, centers)
+        return cls(origin, size, triangles, fan_face, unit, offsets, centers, radii)
+
+    def candidate_faces(self, p: np.ndarray, k: int, half_space: bool) -> np.ndarray:
+        """Faces (bool mask) that can be among the k nearest allowed faces of any point of p (C, 3).
+
+        With q, ρ the centre and radius of the points' bounding sphere and (s_f, r_f) the faces',
+        every point is within |q − s_f| + ρ + r_f of face f. Faces whose half-space holds the whole
+        sphere are allowed for every point, so the k-th smallest of those bounds, τ, bounds every
+        point's k-th nearest allowed distance; a face with |q − s_f| − r_f − ρ > τ is then farther
+        than that from every point. Without k such faces all faces are returned.
+        """
+        q = 0.5 * (p.min(axis=0) + p.max(axis=0))
+        rho = float(_norm(p - q).max())
+        dq = _norm(self.centers - q)
+        if half_space:
+            safe = (self.unit_normals @ q - self.plane_offsets) + rho <= HALF_SPACE_TOL * self.size
+        else:
+            safe = np.ones(dq.shape, dtype=bool)
+        if np.count_nonzero(safe) < k:
+            return np.ones(dq.shape, dtype=bool)
+        upper = (dq + self.radii + rho)[safe]
+        tau = np.partition(upper, k - 1)[k - 1]
+        slack = 1e-9 * self.size  # rounding of the bounds
+        return dq - self.radii - rho <= tau + slack
+
+
+def _morton_order(p: np.ndarray) -> np.ndarray:
+    """Permutation sorting points along a Z-order curve (10 bits per axis), so consecutive chunks are
+    spatially compact and candidate_faces can prune."""
+    lo = p.min(axis=0)
+    span = float(np.ptp(p, axis=0).max()) or 1.0
+    cells = np.clip(((p - lo) / span * 1023.0).astype(np.int64), 0, 1023)
+
+    def spread(x: np.ndarray) -> np.ndarray:
+        x = (x | (x << 16)) & 0x030000FF
+        x = (x | (x << 8)) & 0x0300F00F
+        x = (x | (x << 4)) & 0x030C30C3
+        return (x | (x << 2)) & 0x09249249
+
+    code = spread(cells[:, 0]) | (spread(cells[:, 1]) << 1) | (spread(cells[:, 2]) << 2)
+    return np.argsort(code, kind="stable")
+
+
+def polygon_distance_sq(points: np.ndarray, cage_points: np.ndarray, topology: CageTopology) -> np.ndarray:
+    """Squared distance (N, F) from points to each face polygon: minimum over its fan triangles. Dense."""
+    cage = _check_points(cage_points, topology, "cage_points")
+    fields = _CageFields.build(cage, topology)
+    starts = np.flatnonzero(np.r_[True, fields.fan_face[1:] != fields.fan_face[:-1]])
+    d2 = _distance_sq_block(np.asarray(points, dtype=np.float64) - fields.origin, fields.triangles)
+    return np.minimum.reduceat(d2, starts, axis=1)
+
+
+def _chunk_weights(
+    p: np.ndarray, fields: _CageFields, k: int, exponent: float, half_space: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """(face indices (C, k), normalised weights (C, k)) for points p relative to fields.origin."""
+    faces_mask = fields.candidate_faces(p, k, half_space)
+    tri = np.flatnonzero(faces_mask[fields.fan_face])
+    tri_face = fields.fan_face[tri]
+    starts = np.flatnonzero(np.r_[True, tri_face[1:] != tri_face[:-1]])
+    faces = tri_face[starts]
+    table = _table_subset(fields.triangles, tri)
+    floor_sq = (DISTANCE_FLOOR * fields.size) ** 2
+    indices = np.empty((p.shape[0], k), dtype=np.int32)
+    values = np.empty((p.shape[0], k))
+    rows = max(1, CHUNK_ELEMENTS // max(tri.size, 1))
+    for lo in range(0, p.shape[0], rows):
+        pb = p[lo : lo + rows]
+        d2 = np.minimum.reduceat(_distance_sq_block(pb, table), starts, axis=1)
+        d2 = np.maximum(d2, floor_sq)
+        w = 1.0 / d2 if exponent == 2.0 else d2 ** (-0.5 * exponent)
+        if half_space:
+            outside = (pb @ fields.unit_normals[faces].T - fields.plane_offsets[faces]) > (
+                HALF_SPACE_TOL * fields.size
+            )
+            cut = np.where(outside, 0.0, w)
+            # A vertex outside every face's half-space (only possible outside an open or broken
+            # cage, where all faces are candidates) keeps plain inverse-distance weights.
+            keep_all = ~np.any(cut > 0.0, axis=1)
+            w = np.where(keep_all[:, None], w, cut)
+        cols, vals = top_k(w, k)
+        idx = faces[cols]
+        idx = np.where(vals > 0.0, idx, idx[:, :1])  # zero-weight slots point at the row's best face
+        indices[lo : lo + rows] = idx
+        values[lo : lo + rows] = normalize(vals, "SUM")
+    return indices, values
+
+
+def cage_weights(
+    points: np.ndarray,
+    cage_points: np.ndarray,
+    topology: CageTopology,
+    *,
+    exponent: float = 2.0,
+    half_space: bool = True,
+    k: int = 8,
+    chunk_size: int = 32,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse cage weights: (indices (N, K) int32, values (N, K) float64), K = min(k, F), rows sum to 1.
+
+    w_f(v) = d_f(v)^(−exponent), d_f the exact distance from v to face f's polygon (minimum over its
+    fan triangles), floored at DISTANCE_FLOOR × cage size. With half_space (ERRATA 10), w_f = 0 where
+    v is in the outer half-space of f: N̂_f·(v − c_f) > HALF_SPACE_TOL × cage size (N_f the Newell
+    normal, c_f the face centroid). A vertex cut off from every face (outside an open or broken
+    cage) falls back to plain inverse distance, so no row is zero. The K largest weights per vertex
+    are kept (weights.top_k; zero-weight slots repeat the row's first index) and renormalised.
+
+    Vertices are processed in spatially sorted chunks of chunk_size; per chunk only faces that can
+    reach some vertex's top K are measured (`_CageFields.candidate_faces`), so memory is
+    O(chunk · faces). The result does not depend on chunk_size, except which of several faces
+    exactly tied at the K-th weight is kept.
+    """
+    cage = _check_points(cage_points, topology, "cage_points")
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    if not (np.all(np.isfinite(points)) and np.all(np.isfinite(cage))):
+        raise ValueError("points or cage contain non-finite coordinates")
+    if not exponent > 0.0:
+        raise ValueError(f"exponent must be positive, got {exponent}")
+    if k < 1 or chunk_size < 1:
+        raise ValueError(f"k and chunk_size must be at least 1, got {k} and {chunk_size}")
+    K = min(int(k), topology.n_faces)
+    N = points.shape[0]
+    indices = np.zeros((N, K), dtype=np.int32)
+    values = np.zeros((N, K), dtype=np.float64)
+    if N == 0:
+        return indices, values
+    fields = _CageFields.build(cage, topology)
+    local = points - fields.origin
+    order = _morton_order(local)
+    for lo in range(0, N, chunk_size):
+        rows = order[lo : lo + chunk_size]
+        indices[rows], values[rows] = _chunk_weights(local[rows], fields, K, exponent, half_space)
+    return indices, values
+
+
+# --- validation ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CageReport:
+    """Result of `check_cage`. problems is empty when the cage can be bound."""
+
+    n_vertices: int
+    n_faces: int
+    boundary_edges: int
+    nonmanifold_edges: int
+    misoriented_edges: int
+    degenerate_faces: np.ndarray
+    signed_volume: float
+    problems: tuple[str, ...]
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+def signed_volume(points: np.ndarray, topology: CageTopology) -> float:
+    """Σ over fan triangles of a·(b × c)/6 (positive for a closed cage with outward normals)."""
+    points = _check_points(points, topology, "points")
+    fan, _ = topology.fan_triangles()
+    origin = points.mean(axis=0)
+    a, b, c = (points[fan[:, k]] - origin for k in range(3))
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def check_cage(points: np.ndarray, topology: CageTopology) -> CageReport:
+    """Structured check that the cage is closed, manifold, consistently oriented, outward and has
+    no zero-area faces. Never raises for geometric problems (only for malformed arrays)."""
+    points = _check_points(points, topology, "cage points")
+    problems: list[str] = []
+    if not np.all(np.isfinite(points)):
+        problems.append("cage has non-finite vertex coordinates")
+
+    edges = topology.directed_edges()
+    self_loops = int(np.count_nonzero(edges[:, 0] == edges[:, 1]))
+    lo, hi = np.minimum(edges[:, 0], edges[:, 1]), np.maximum(edges[:, 0], edges[:, 1])
+    key = lo.astype(np.int64) * max(topology.n_vertices, 1) + hi
+    forward = edges[:, 0] < edges[:, 1]
+    uniq, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    n_forward = np.bincount(inverse, forward.astype(np.int64), uniq.size)
+    boundary = int(np.count_nonzero(counts == 1))
+    nonmanifold = int(np.count_nonzero(counts > 2))
+    misoriented = int(np.count_nonzero((counts == 2) & (n_forward != 1)))
+    if self_loops:
+        problems.append(f"cage has {self_loops} face corner(s) repeating a vertex (zero-length edges)")
+    if boundary:
+        problems.append(f"cage is open: {boundary} boundary edges (every edge must be shared by two faces)")
+    if nonmanifold:
+        problems.append(f"cage is non-manifold: {nonmanifold} edges are shared by more than two faces")
+    if misoriented:
+        problems.append(
+            f"cage normals are inconsistent: {misoriented} edges join faces of opposite orientation "
+            "(recalculate normals outside)"
+        )
+
+    finite = bool(np.all(np.isfinite(points)))
+    normals = face_normals(points, topology) if finite else np.zeros((topology.n_faces, 3))
+    extent = float(np.ptp(points, axis=0).max()) if points.size else 0.0
+    degenerate = np.flatnonzero(~(_norm(normals) > 1e-12 * extent * extent))
+    if degenerate.size:
+        problems.append(f"cage has {degenerate.size} zero-area face(s): {_list_indices(degenerate)}")
+
+    volume = signed_volume(points, topology) if np.all(np.isfinite(points)) else float("nan")
+    if not (boundary or nonmanifold or misoriented) and np.isfinite(volume):
+        if volume < 0.0:
+            problems.append("cage is inside-out (normals point inward): flip normals")
+        elif not volume > (1e-12 * extent) ** 3:
+            problems.append("cage encloses no volume (flat or collapsed)")
+    return CageReport(
+        n_vertices=topology.n_vertices,
+        n_faces=topology.n_faces,
+        boundary_edges=boundary,
+        nonmanifold_edges=nonmanifold,
+        misoriented_edges=misoriented,
+        degenerate_faces=degenerate,
+        signed_volume=volume,
+        problems=tuple(problems),
+    )
+
+
+def validate_cage(points: np.ndarray, topology: CageTopology) -> CageReport:
+    """`check_cage`, raising ValueError with every problem found (one per line) unless the cage is a
+    closed, consistently and outward oriented surface without zero-area faces."""
+    report = check_cage(points, topology)
+    if not report.ok:
+        raise ValueError("; ".join(report.problems))
+    return report

@@ -1,0 +1,607 @@
+"""The per-vertex kernel: v ↦ φ(Σ_k w_k P_idx(k)) v, vectorised over vertices (ERRATA 1).
+
+Parameters follow docs/DEVELOPING.md: P = (ω, u, Y₆) ∈ R¹²; for a point v
+
+    v' = R(ω) · exp(Y) v + V(ω) u.
+
+The kernel never forms a 3×3 matrix per vertex. It works on structure-of-arrays rows (12, n) of a
+chunk of n vertices, in preallocated scratch rows, with in-place ufuncs:
+
+* blend: the sparse weights of the chunk are scattered into a dense (m, n) block and multiplied by the
+  (12, m) parameter table (one BLAS call), or gathered row by row when m is large;
+* exp(Y) v = e^{e₁} (v + α Z v + β Z² v), Z = Y − e₁ I, from the closed-form spectrum of Y and the
+  divided differences of aff3 (e₁ middle eigenvalue, x = e₀ − e₁, y = e₂ − e₁);
+* R w + V u = cos θ w + A u + ω × (A w + B u) + (B ω·w + C ω·u) ω with A = sin θ/θ,
+  B = (1 − cos θ)/θ², C = (θ − sin θ)/θ³ (R = cos θ I + A ω̂ + B ωωᵀ, V = A I + B ω̂ + C ωωᵀ).
+
+Trigonometric functions are Taylor polynomials on reduced ranges (numpy's float64 sin/cos are scalar
+code, ~10× slower than a multiply-add sweep): sin(θ/4)/(θ/4) and cos(θ/4) as polynomials in θ²/16 for
+θ ≤ 2π, then double-angle formulas; rows with θ > 2π (lifted, multi-turn blends) fall back to np.sin.
+The eigen-angle a = arccos(r)/3 ∈ [0, π/3] uses the same sinc polynomial.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .aff3 import params_from_matrices
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int32]
+
+__all__ = [
+    "DeformKernel",
+    "blend_linear_sparse",
+    "blend_params",
+    "deform_points",
+    "deform_points_params",
+]
+
+#: Vertices per chunk: 40-odd scratch rows of this length stay in a core's L2 cache.
+DEFAULT_CHUNK = 16384
+#: Above this many controls the blend gathers parameter rows instead of a dense (m, chunk) product.
+DENSE_BLEND_MAX_CONTROLS = 48
+
+# The quarter-angle polynomials are used for θ ≤ 1.8π, where cos(θ/4) = √(1 − sin²(θ/4)) ≥ 0.15 is
+# well conditioned; larger θ (lifted rotations past ±324°) take the np.sin/np.cos fallback.
+_POLY_MAX_S = (1.8 * math.pi) ** 2
+_TINY = np.finfo(np.float64).tiny
+_SQRT3 = math.sqrt(3.0)
+
+# Taylor coefficients in z = x² of sin(x)/x = Σ (−z)^k/(2k+1)!; degree 10 keeps the truncation below
+# 2e-17 for x ≤ 0.45π (the quarter angle of θ ≤ 1.8π).
+_SINC_COEFFS = tuple((-1.0) ** k / math.factorial(2 * k + 1) for k in range(11))
+# For the eigen-angle a ≤ π/3: degree 9 keeps the truncation of sin(a)/a below 1e-17.
+_SINC_EIG_COEFFS = _SINC_COEFFS[:10]
+# Clamps that replace series branches (see the error bounds where they are used).
+_C_CLAMP_S = 1e-14
+_H2_CLAMP = 1e-5
+
+
+def _horner(out: FloatArray, coeffs: tuple[float, ...], z: FloatArray) -> FloatArray:
+    """out = Σ coeffs[k] z^k (in place; out must not alias z)."""
+    np.multiply(z, coeffs[-1], out=out)
+    for c in coeffs[-2:0:-1]:
+        out += c
+        out *= z
+    out += coeffs[0]
+    return out
+
+
+class _Rows:
+    """Float64 rows of one padded length in a single buffer, reused between calls.
+
+    The row stride is the chunk length plus one cache line: with power-of-two chunks, rows 64 KiB
+    apart alias in the L1 cache (same address bits below 4 KiB), and a ufunc reading one row while
+    writing another then runs up to 4× slower.
+    """
+
+    PAD = 8
+
+    def __init__(self, n_rows: int, length: int) -> None:
+        self.stride = length + self.PAD
+        self.buf = np.empty((n_rows, self.stride))
+        self._next = 0
+
+    def block(self, n: int, count: int) -> FloatArray:
+        """The next `count` rows, trimmed to n, as one (count, n) view."""
+        rows = self.buf[self._next : self._next + count, :n]
+        self._next += count
+        return rows
+
+    def take(self, n: int, count: int) -> list[FloatArray]:
+        return list(self.block(n, count))
+
+    def reset(self) -> None:
+        self._next = 0
+
+
+_N_ROWS = 48  # 12 parameters + 3 points + 3 results + scratch
+
+
+class DeformKernel:
+    """Reusable per-vertex kernel with its scratch buffers (not thread-safe: one per thread).
+
+    `deform(points, params, indices, values, out)` computes v' = φ(Σ_k values[v,k] params[indices[v,k]]) v.
+    """
+
+    def __init__(self, chunk_size: int = DEFAULT_CHUNK) -> None:
+        if chunk_size < 1:
+            raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+        self.chunk_size = int(chunk_size)
+        self._rows = _Rows(_N_ROWS, self.chunk_size)
+        self._dense: FloatArray = np.empty(0)
+        self._arange = np.arange(self.chunk_size, dtype=np.intp)
+
+    def _param_rows(self, n: int) -> FloatArray:
+        """The (12, n) parameter rows of the current chunk."""
+        return self._rows.buf[0:12, :n]
+
+    def _point_rows(self, n: int) -> FloatArray:
+        return self._rows.buf[12:15, :n]
+
+    def _result_rows(self, n: int) -> FloatArray:
+        return self._rows.buf[15:18, :n]
+
+    def _scratch(self) -> _Rows:
+        self._rows._next = 18
+        return self._rows
+
+    # ------------------------------------------------------------------------------------------
+    # public entry points
+
+    def deform(
+        self,
+        points: ArrayLike,
+        params: ArrayLike,
+        indices: ArrayLike,
+        values: ArrayLike,
+        out: FloatArray | None = None,
+    ) -> FloatArray:
+        """Sparse hot path; see `deform_points_params`."""
+        pts, table, idx, val, out = _check_sparse(points, params, indices, values, out, 12, "params")
+        if not table.any():
+            # Every control at rest: the exact input, so "probes at rest ⇒ mesh unchanged" holds bit
+            # for bit (the general path gives the same values but may turn −0.0 into +0.0).
+            if out is not pts:
+                np.copyto(out, pts)
+            return out
+        table_t = np.ascontiguousarray(table.T)
+        for lo in range(0, pts.shape[0], self.chunk_size):
+            hi = min(lo + self.chunk_size, pts.shape[0])
+            n = hi - lo
+            P = self._param_rows(n)
+            self._blend_sparse(table_t, idx[lo:hi], val[lo:hi], P)
+            self._apply_chunk(pts[lo:hi], P, out[lo:hi])
+        return out
+
+    def deform_dense(self, points: ArrayLike, params: ArrayLike, weights: ArrayLike) -> FloatArray:
+        """v' = φ(Σ_i weights[v, i] params[i]) v with dense weights (N, m)."""
+        pts = _check_points(points)
+        table = _check_table(params, 12, "params")
+        W = np.asarray(weights, dtype=np.float64)
+        if W.shape != (pts.shape[0], table.shape[0]):
+            raise ValueError(f"weights must have shape {(pts.shape[0], table.shape[0])}, got {W.shape}")
+        if not np.all(np.isfinite(W)):
+            raise ValueError("weights contain non-finite values")
+        out = np.empty_like(pts)
+        table_t = np.ascontiguousarray(table.T)
+        for lo in range(0, pts.shape[0], self.chunk_size):
+            hi = min(lo + self.chunk_size, pts.shape[0])
+            P = self._param_rows(hi - lo)
+            np.matmul(table_t, W[lo:hi].T, out=P)
+            self._apply_chunk(pts[lo:hi], P, out[lo:hi])
+        return out
+
+    def blend(self, table: ArrayLike, indices: ArrayLike, values: ArrayLike) -> FloatArray:
+        """Σ_k values[v, k] table[indices[v, k]] for every row v -> (N, c) (c = table columns)."""
+        tab = np.asarray(table, dtype=np.float64)
+        if tab.ndim != 2:
+            raise ValueError(f"table must have shape (m, c), got {tab.shape}")
+        idx, val = _check_indices(indices, values, None, tab.shape[0])
+        N = idx.shape[0]
+        res = np.empty((N, tab.shape[1]))
+        tab_t = np.ascontiguousarray(tab.T)
+        for lo in range(0, N, self.chunk_size):
+            hi = min(lo + self.chunk_size, N)
+            buf = np.empty((tab.shape[1], hi - lo))
+            self._blend_sparse(tab_t, idx[lo:hi], val[lo:hi], buf)
+            res[lo:hi] = buf.T
+        return res
+
+    # ------------------------------------------------------------------------------------------
+    # blend
+
+    def _blend_sparse(self, table_t: FloatArray, idx: IntArray, val: FloatArray, P: FloatArray) -> None:
+        """P (c, n) = table_t (c, m) · W (m, n), W the chunk's sparse weights made dense."""
+        m = table_t.shape[1]
+        n, K = idx.shape
+        if m <= DENSE_BLEND_MAX_CONTROLS:
+            stride = self._rows.stride
+            if self._dense.size < m * stride:
+                self._dense = np.empty(m * stride)
+            flat = self._dense[: m * stride]
+            dense = flat.reshape(m, stride)[:, :n]
+            dense.fill(0.0)
+            cols = self._arange[:n]
+            for k in range(K):
+                # Each k hits every column once, so `+=` is exact even when a vertex lists a control
+                # twice (in different slots).
+                pos = idx[:, k] * stride
+                pos += cols
+                flat[pos] += val[:, k]
+            np.matmul(table_t, dense, out=P)
+        else:
+            gathered = np.empty_like(P)
+            np.take(table_t, idx[:, 0], axis=1, out=P)
+            P *= val[:, 0]
+            for k in range(1, K):
+                np.take(table_t, idx[:, k], axis=1, out=gathered)
+                gathered *= val[:, k]
+                P += gathered
+
+    # ------------------------------------------------------------------------------------------
+    # the per-vertex map
+
+    def _apply_chunk(self, pts: FloatArray, P: FloatArray, out: FloatArray) -> None:
+        """out (n, 3) = φ(P) pts for blended parameters P (12, n) (structure of arrays)."""
+        n = P.shape[1]
+        V = self._point_rows(n)
+        np.copyto(V, pts.T)
+        v0, v1, v2 = V[0], V[1], V[2]
+        sc = self._scratch()
+        mul, add, sub = np.multiply, np.add, np.subtract
+        w0, w1, w2, u0, u1, u2 = P[0], P[1], P[2], P[3], P[4], P[5]
+        yxx, yyy, yzz, yxy, yxz, yyz = P[6], P[7], P[8], P[9], P[10], P[11]
+        q, b0, b1, b2, p2, p, det, t0, t1, x, y, h2x, h2y = sc.take(n, 13)
+
+        # ---- spectrum of Y: q = tr/3, B = Y − qI, p = √(tr B²/6), cos 3a = det B/(2p³) -----------
+        add(yxx, yyy, out=q)
+        q += yzz
+        q *= 1.0 / 3.0
+        sub(yxx, q, out=b0)
+        sub(yyy, q, out=b1)
+        sub(yzz, q, out=b2)
+        # det B = b0 b1 b2 + 2 xy xz yz − b0 yz² − b1 xz² − b2 xy²;  6 p² = Σ b² + 2 Σ off²
+        mul(b0, b1, out=det)
+        det *= b2
+        mul(yxy, yxz, out=t0)
+        t0 *= yyz
+        t0 += t0
+        det += t0
+        mul(b0, b0, out=p2)
+        for bi, oi in ((b0, yyz), (b1, yxz), (b2, yxy)):
+            mul(oi, oi, out=t0)
+            mul(bi, t0, out=t1)
+            det -= t1
+            t0 += t0
+            p2 += t0
+        mul(b1, b1, out=t0)
+        p2 += t0
+        mul(b2, b2, out=t0)
+        p2 += t0
+        p2 *= 1.0 / 6.0
+        np.sqrt(p2, out=p)
+        # r = det B/(2p³); a zero spread gives det = 0 and r = 0 (the floor only avoids 0/0).
+        mul(p2, p, out=t1)
+        t1 += t1
+        np.maximum(t1, _TINY, out=t1)
+        r = t0
+        np.divide(det, t1, out=r)
+        np.minimum(r, 1.0, out=r)
+        np.maximum(r, -1.0, out=r)
+        ang = det
+        np.arccos(r, out=ang)
+        ang *= 1.0 / 3.0
+        # sin a from its polynomial; cos a = √(1 − sin² a) ≥ ½ (a ≤ π/3), well conditioned;
+        # sin(π/3 − a) = (√3/2) cos a − ½ sin a.
+        mul(ang, ang, out=t1)
+        _horner(x, _SINC_EIG_COEFFS, t1)
+        x *= ang
+        mul(x, x, out=t1)
+        np.subtract(1.0, t1, out=t1)
+        np.sqrt(t1, out=t1)
+        mul(t1, 0.5 * _SQRT3, out=y)
+        mul(x, 0.5, out=t1)
+        y -= t1
+        # x = e0 − e1 = −2√3 p sin a ≤ 0,  y = e2 − e1 = 2√3 p sin(π/3 − a) ≥ 0
+        p *= -2.0 * _SQRT3
+        x *= p
+        np.negative(p, out=p)
+        y *= p
+        e1 = q
+        add(x, y, out=t1)
+        t1 *= 1.0 / 3.0
+        e1 -= t1
+
+        # ---- exp(Y) v = E (v + α Z v + g Z² v), Z = Y − e1 I ------------------------------------
+        # g = (y h2(y) − x h2(x))/(y − x) ≥ 0 is a weighted mean of h2 values (no cancellation);
+        # α = h1(x) − x g = 1 + x (h2(x) − g). h2 = (eᶻ − 1 − z)/z² is evaluated at z clamped away
+        # from 0 (x ≤ −c, y ≥ c, c = _H2_CLAMP): the interpolant then still matches e^y at y and 1
+        # at 0 exactly, and misses eˣ by x²·|h2(−c) − h2(x)| ≤ c³/3 ≈ 3e-16. Unclamped, the
+        # direct formula's relative error ε/|z| is harmless for the same reason (it is multiplied
+        # by z²), so no series branch is needed.
+        np.minimum(x, -_H2_CLAMP, out=t0)
+        _h2_direct(t0, h2x, t1)
+        np.maximum(y, _H2_CLAMP, out=t0)
+        _h2_direct(t0, h2y, t1)
+        g = p2
+        mul(y, h2y, out=g)
+        mul(x, h2x, out=t0)
+        g -= t0
+        sub(y, x, out=t0)
+        np.maximum(t0, _TINY, out=t0)
+        g /= t0
+        alpha = h2x
+        alpha -= g
+        alpha *= x
+        alpha += 1.0
+        E = p
+        np.exp(e1, out=E)
+        alpha *= E
+        g *= E
+        z0, z1, z2 = b0, b1, b2
+        sub(yxx, e1, out=z0)
+        sub(yyy, e1, out=z1)
+        sub(yzz, e1, out=z2)
+        zv0, zv1, zv2, zzv0, zzv1, zzv2 = sc.take(n, 6)
+        _sym_matvec(z0, z1, z2, yxy, yxz, yyz, v0, v1, v2, zv0, zv1, zv2, t0)
+        _sym_matvec(z0, z1, z2, yxy, yxz, yyz, zv0, zv1, zv2, zzv0, zzv1, zzv2, t0)
+        ew0, ew1, ew2 = zv0, zv1, zv2  # exp(Y) v, in place of Z v
+        for ew, vi, zzvi in ((ew0, v0, zzv0), (ew1, v1, zzv1), (ew2, v2, zzv2)):
+            ew *= alpha
+            mul(zzvi, g, out=t0)
+            ew += t0
+            mul(vi, E, out=t0)
+            ew += t0
+
+        # ---- θ-coefficients from s = θ² (quarter angle: x_q = θ/4) --------------------------------
+        s, zq, A, B, C, cth = zzv0, zzv1, zzv2, q, p2, y
+        mul(w0, w0, out=s)
+        mul(w1, w1, out=t0)
+        s += t0
+        mul(w2, w2, out=t0)
+        s += t0
+        mul(s, 1.0 / 16.0, out=zq)
+        sinc_q = x
+        _horner(sinc_q, _SINC_COEFFS, zq)  # sin(θ/4)/(θ/4)
+        # tq = sin²(θ/4); cos(θ/4) = √(1 − tq), conditioned for θ ≤ 1.8π (beyond: exact fallback)
+        tq = h2y
+        mul(sinc_q, sinc_q, out=tq)
+        tq *= zq
+        sh = sinc_q
+        np.subtract(1.0, tq, out=t0)
+        np.sqrt(t0, out=t0)
+        sh *= t0  # sin(θ/2)/(θ/2)
+        mul(tq, -2.0, out=t0)
+        t0 += 1.0  # cos(θ/2)
+        mul(sh, t0, out=A)  # sin θ/θ
+        mul(sh, sh, out=B)
+        B *= 0.5  # (1 − cos θ)/θ²
+        mul(B, s, out=cth)
+        np.subtract(1.0, cth, out=cth)  # cos θ
+        # C = (θ − sin θ)/θ³ = (1 − A)/θ². It only enters as C (ω·u) ω, of size ≤ C θ² |u|, so the
+        # direct formula's error ε/θ² costs ε|u| there; below θ² = _C_CLAMP_S the term itself is
+        # < 2e-15 |u| (and is 0 at θ = 0), so a series branch buys nothing.
+        np.maximum(s, _C_CLAMP_S, out=t0)
+        np.subtract(1.0, A, out=C)
+        C /= t0
+        if (s > _POLY_MAX_S).any():
+            _exact_rotation_coeffs(s, A, B, C, cth)
+
+        # ---- v' = cos θ w + A u + ω × (A w + B u) + (B ω·w + C ω·u) ω,  w = exp(Y) v ---------------
+        m0, m1, m2 = zzv0, h2x, h2y  # s, alpha and tq are no longer needed
+        k = z0
+        mul(w0, ew0, out=k)
+        mul(w1, ew1, out=t0)
+        k += t0
+        mul(w2, ew2, out=t0)
+        k += t0
+        k *= B
+        mul(w0, u0, out=t1)
+        mul(w1, u1, out=t0)
+        t1 += t0
+        mul(w2, u2, out=t0)
+        t1 += t0
+        t1 *= C
+        k += t1
+        for mi, ewi, ui in ((m0, ew0, u0), (m1, ew1, u1), (m2, ew2, u2)):
+            mul(ewi, A, out=mi)
+            mul(ui, B, out=t0)
+            mi += t0
+        O = self._result_rows(n)
+        for Oi, wa, mb, wb, ma, ewi, ui, wi in (
+            (O[0], w1, m2, w2, m1, ew0, u0, w0),
+            (O[1], w2, m0, w0, m2, ew1, u1, w1),
+            (O[2], w0, m1, w1, m0, ew2, u2, w2),
+        ):
+            mul(wa, mb, out=Oi)
+            mul(wb, ma, out=t0)
+            Oi -= t0
+            mul(ewi, cth, out=t0)
+            Oi += t0
+            mul(ui, A, out=t0)
+            Oi += t0
+            mul(wi, k, out=t0)
+            Oi += t0
+        np.copyto(out, O.T)
+
+
+def _h2_direct(z: FloatArray, out: FloatArray, tmp: FloatArray) -> None:
+    """out = (eᶻ − 1 − z)/z² for z bounded away from 0."""
+    np.expm1(z, out=out)
+    out -= z
+    np.multiply(z, z, out=tmp)
+    out /= tmp
+
+
+def _sym_matvec(
+    a00: FloatArray,
+    a11: FloatArray,
+    a22: FloatArray,
+    a01: FloatArray,
+    a02: FloatArray,
+    a12: FloatArray,
+    v0: FloatArray,
+    v1: FloatArray,
+    v2: FloatArray,
+    o0: FloatArray,
+    o1: FloatArray,
+    o2: FloatArray,
+    tmp: FloatArray,
+) -> None:
+    """(o0, o1, o2) = A v for symmetric A given by its six component rows."""
+    for oi, d, oa, va, ob, vb, vi in (
+        (o0, a00, a01, v1, a02, v2, v0),
+        (o1, a11, a01, v0, a12, v2, v1),
+        (o2, a22, a02, v0, a12, v1, v2),
+    ):
+        np.multiply(d, vi, out=oi)
+        np.multiply(oa, va, out=tmp)
+        oi += tmp
+        np.multiply(ob, vb, out=tmp)
+        oi += tmp
+
+
+def _exact_rotation_coeffs(s: FloatArray, A: FloatArray, B: FloatArray, C: FloatArray, cth: FloatArray) -> None:
+    """Recompute the θ-coefficients with np.sin/np.cos where θ² > _POLY_MAX_S (lifted rotations)."""
+    big = np.flatnonzero(s > _POLY_MAX_S)
+    theta = np.sqrt(s[big])
+    sin_t = np.sin(theta)
+    half = np.sin(0.5 * theta) / (0.5 * theta)
+    A[big] = sin_t / theta
+    B[big] = 0.5 * half * half
+    C[big] = (theta - sin_t) / (theta * s[big])
+    cth[big] = np.cos(theta)
+
+
+# ----------------------------------------------------------------------------------------------
+# argument checks
+
+
+def _check_points(points: ArrayLike) -> FloatArray:
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise ValueError("points contain non-finite coordinates")
+    return pts
+
+
+def _check_table(table: ArrayLike, width: int, name: str) -> FloatArray:
+    tab = np.asarray(table, dtype=np.float64)
+    if tab.ndim != 2 or tab.shape[1] != width:
+        raise ValueError(f"{name} must have shape (m, {width}), got {tab.shape}")
+    if not np.all(np.isfinite(tab)):
+        bad = int(np.argmax(~np.isfinite(tab).all(axis=1)))
+        raise ValueError(f"{name} row {bad} has non-finite values")
+    return tab
+
+
+def _check_indices(
+    indices: ArrayLike, values: ArrayLike, n_points: int | None, m: int
+) -> tuple[IntArray, FloatArray]:
+    idx = np.asarray(indices)
+    val = np.asarray(values, dtype=np.float64)
+    if idx.ndim != 2 or val.shape != idx.shape:
+        raise ValueError(f"indices and values must both have shape (N, K), got {idx.shape} and {val.shape}")
+    if n_points is not None and idx.shape[0] != n_points:
+        raise ValueError(f"indices have {idx.shape[0]} rows for {n_points} points")
+    if not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(f"indices must be integers, got {idx.dtype}")
+    if idx.size and (int(idx.min()) < 0 or int(idx.max()) >= m):
+        raise ValueError(f"indices must lie in [0, {m}), got [{int(idx.min())}, {int(idx.max())}]")
+    if not np.all(np.isfinite(val)):
+        raise ValueError("weight values contain non-finite entries")
+    return idx.astype(np.intp, copy=False), val
+
+
+def _check_sparse(
+    points: ArrayLike,
+    table: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    out: FloatArray | None,
+    width: int,
+    name: str,
+) -> tuple[FloatArray, FloatArray, IntArray, FloatArray, FloatArray]:
+    pts = _check_points(points)
+    tab = _check_table(table, width, name)
+    idx, val = _check_indices(indices, values, pts.shape[0], tab.shape[0])
+    if out is None:
+        out = np.empty_like(pts)
+    elif out.shape != pts.shape or out.dtype != np.float64:
+        raise ValueError(f"out must be a float64 array of shape {pts.shape}")
+    return pts, tab, idx, val, out
+
+
+# ----------------------------------------------------------------------------------------------
+# module-level API (docs/DEVELOPING.md)
+
+_local = threading.local()
+
+
+def _kernel() -> DeformKernel:
+    k = getattr(_local, "kernel", None)
+    if k is None:
+        k = _local.kernel = DeformKernel()
+    return k
+
+
+def deform_points_params(
+    points: ArrayLike,
+    params: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    out: FloatArray | None = None,
+) -> FloatArray:
+    """Sparse hot path: v' = φ(p_v) v with p_v = Σ_k values[v, k] · params[indices[v, k]].
+
+    points (N, 3), params (m, 12) (layout of docs/DEVELOPING.md), indices (N, K) integer in [0, m),
+    values (N, K) (unused slots: value 0, any valid index). Returns (N, 3) float64 (`out` if given;
+    it may be `points` itself). All-zero params return the input bit for bit.
+    """
+    return _kernel().deform(points, params, indices, values, out)
+
+
+def blend_params(params: ArrayLike, indices: ArrayLike, values: ArrayLike) -> FloatArray:
+    """The per-vertex blended parameters Σ_k values[v, k] params[indices[v, k]] -> (N, 12)."""
+    return _kernel().blend(params, indices, values)
+
+
+def deform_points(points: ArrayLike, transforms: ArrayLike, weights: ArrayLike) -> FloatArray:
+    """Script contract: (N, 3) = φ(Σ_i weights[v, i] ψ(transforms[i])) v for each row v of points.
+
+    transforms (m, 4, 4) in Aff+(3) (ValueError naming the first bad one), weights (N, m) dense.
+    """
+    table = params_from_matrices(np.asarray(transforms, dtype=np.float64))
+    if table.ndim != 2:
+        raise ValueError(f"transforms must have shape (m, 4, 4), got {np.shape(transforms)}")
+    return _kernel().deform_dense(points, table, weights)
+
+
+def blend_linear_sparse(
+    points: ArrayLike,
+    transforms: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    out: FloatArray | None = None,
+) -> FloatArray:
+    """'LINEAR' comparison mode: v' = (Σ_k w_k A_idx(k) + (1 − Σ_k w_k) I) v = v + Σ_k w_k (A_idx(k) − I) v.
+
+    The identity carries the leftover weight, so zero weight means "stays put", as in the affine mode.
+    transforms (m, 4, 4) must be finite with bottom rows (0, 0, 0, 1); any determinant is accepted.
+    """
+    T = np.asarray(transforms, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ValueError(f"transforms must have shape (m, 4, 4), got {T.shape}")
+    D = (T[:, :3, :] - np.eye(3, 4)).reshape(T.shape[0], 12)  # row-major (3, 4) offsets from identity
+    kernel = _kernel()
+    pts, table, idx, val, out = _check_sparse(points, D, indices, values, out, 12, "transforms")
+    if not table.any():
+        if out is not pts:
+            np.copyto(out, pts)
+        return out
+    table_t = np.ascontiguousarray(table.T)
+    for lo in range(0, pts.shape[0], kernel.chunk_size):
+        hi = min(lo + kernel.chunk_size, pts.shape[0])
+        Dv = kernel._param_rows(hi - lo)
+        kernel._blend_sparse(table_t, idx[lo:hi], val[lo:hi], Dv)
+        V = kernel._point_rows(hi - lo)
+        np.copyto(V, pts[lo:hi].T)
+        O = kernel._result_rows(hi - lo)
+        tmp = kernel._scratch().take(hi - lo, 1)[0]
+        for i in range(3):
+            np.multiply(Dv[4 * i], V[0], out=O[i])
+            np.multiply(Dv[4 * i + 1], V[1], out=tmp)
+            O[i] += tmp
+            np.multiply(Dv[4 * i + 2], V[2], out=tmp)
+            O[i] += tmp
+            O[i] += Dv[4 * i + 3]
+            O[i] += V[i]
+        np.copyto(out[lo:hi], O.T)
+    return out

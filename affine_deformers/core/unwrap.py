@@ -1,0 +1,430 @@
+"""Continuous choice of the rotation-log branch (ERRATA 8).
+
+The principal logarithm returns a rotation vector w with |w| = θ ∈ [0, π]. Every rotation vector of
+the same rotation lies on the line through w: w + 2πk·ŵ (k ∈ ℤ; k = -1 is the axis flip w - 2πŵ). A
+control turned past 180° must keep the branch that its motion went through, or the blend flips. The
+branch is chosen here from a *reference* rotation vector that is a function of the current frame
+alone (the control's own rotation channels, unwrapped along the straight channel path from rest to
+current), so a render farm evaluating any frame in a fresh process gets the same answer.
+
+Contents:
+- `lift_rotvec(w, w_ref)`: the lift of w nearest the reference.
+- `se3_log_lifted(R, t, w_ref)` / `lift_params(P, w_ref)`: the se(3) log on the lifted branch
+  (u = V(w)⁻¹ t recomputed; V is singular at |w| = 2πk, handled by a damped inverse, see below).
+- `euler_to_matrix`, `quaternion_to_matrix`, `axis_angle_to_matrix`, `channels_to_matrix`: Blender's
+  rotation channels → 3×3 rotation matrices.
+- `channel_rotvec(mode, rest, current)`: the reference rotation vector of R(current)·R(rest)ᵀ.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .aff3 import left_jacobian, se3_log, so3_log
+
+TWO_PI = 2.0 * np.pi
+
+# Below this principal angle the axis w/|w| is rounding noise (float32 matrices from Blender give
+# |w| ~ 1e-7 for an exact 360° turn), so a lift takes the reference's axis instead. The lifted vector
+# then represents the rotation only up to an error of |w| <= AXIS_TOL radians.
+AXIS_TOL = 1e-5
+
+# Tikhonov damping of V(w)⁻¹ in the rotation plane (dimensionless; V's in-plane gain is
+# |z| = 2|sin(θ/2)|/θ). The reproduction error of t is λ²/(|z|² + λ²) of the part of t that the pivot
+# does not explain, i.e. < 1e-10 of it wherever |z| > 1e-3, and u stays below |t|/(2λ) at |z| = 0.
+DAMPING = 1e-8
+
+EULER_ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
+ROTATION_MODES = (*EULER_ORDERS, "QUATERNION", "AXIS_ANGLE")
+
+# Bound on the number of path samples per call (about 7000 turns at the default step).
+MAX_PATH_SAMPLES = 65536
+
+
+def _norm(v: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.einsum("...i,...i->...", v, v))
+
+
+def lift_rotvec(w: np.ndarray, w_ref: np.ndarray, *, axis_tol: float = AXIS_TOL) -> np.ndarray:
+    """Rotation vector of the same rotation as w on the branch nearest the reference.
+
+    Candidates are w + 2πk·ŵ, k ∈ ℤ, i.e. the points at signed distance θ + 2πk along ŵ; the one
+    nearest w_ref is the one whose position is nearest s = ŵ·w_ref, k = round((s − θ)/2π). When k = 0
+    the input is returned bitwise unchanged; that holds whenever |w_ref − w| < π, in particular for
+    w_ref = 0 (no channel information) and for a principal w_ref of the same rotation.
+
+    When |w| < axis_tol the axis of w is not trustworthy and the reference's axis n is used:
+    w + 2πk·n (exact up to |w|; see AXIS_TOL). If w_ref is zero too, w is returned.
+
+    w, w_ref: (..., 3), broadcast against each other. Returns (..., 3) float64.
+    """
+    w = np.asarray(w, dtype=np.float64)
+    w_ref = np.asarray(w_ref, dtype=np.float64)
+    w, w_ref = np.broadcast_arrays(w, w_ref)
+    theta = _norm(w)
+    ref_len = _norm(w_ref)
+    use_ref_axis = (theta < axis_tol) & (ref_len > 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        own_axis = w / np.where(theta > 0.0, theta, 1.0)[..., None]
+        ref_axis = w_ref / np.where(ref_len > 0.0, ref_len, 1.0)[..., None]
+    axis = np.where(use_ref_axis[..., None], ref_axis, own_axis)
+    position = np.einsum("...i,...i->...", w, axis)
+    target = np.einsum("...i,...i->...", w_ref, axis)
+    turns = np.rint((target - position) / TWO_PI)
+    turns = np.where(np.isfinite(turns), turns, 0.0)
+    lifted = w + (TWO_PI * turns)[..., None] * axis
+    return np.where((turns != 0.0)[..., None], lifted, w)
+
+
+def _damped_translation_log(
+    w: np.ndarray, t: np.ndarray, pivot: np.ndarray, damping: float
+) -> np.ndarray:
+    """u with V(w)·u ≈ t for rotation vectors with |w| ≥ π (lifted branches), never inf or NaN.
+
+    V(w) is the identity along n = w/θ and, in the rotation plane, multiplication by the complex number
+    z = (sin θ + i(1 − cos θ))/θ (i ≙ n×). |z| = 2|sin(θ/2)|/θ vanishes at θ = 2πk: there exp(X) moves
+    points only along the axis, so an in-plane translation has no exact preimage and the in-plane u is
+    not determined by (R, t) at all. We centre the solution on the prior u₀ = c × w, the twist that
+    turns about the pivot c (V(w)u₀ = (I − R)c exactly, for any θ), and solve the remainder
+    r = t − V(w)u₀ with the Tikhonov inverse conj(z)/(|z|² + λ²) in the plane:
+
+        u = u₀ + n(n·r) + (a·r_⊥ − b·n×r_⊥)/(a² + b² + λ²),   a = sin θ/θ, b = (1 − cos θ)/θ.
+
+    A control that turns about its pivot thus gets the exact, continuous u = c × w through 2πk; any
+    other in-plane translation is reproduced except within |z| ≲ λ of the singular angles.
+    """
+    theta = _norm(w)
+    theta_safe = np.where(theta > 0.0, theta, 1.0)
+    n = w / theta_safe[..., None]
+    a = np.sin(theta) / theta_safe
+    b = (1.0 - np.cos(theta)) / theta_safe
+    u0 = np.cross(pivot, w)
+    v_u0 = a[..., None] * u0 + b[..., None] * np.cross(n, u0)
+    r = t - v_u0
+    r_axial = np.einsum("...i,...i->...", n, r)[..., None] * n
+    r_plane = r - r_axial
+    gain = 1.0 / (a * a + b * b + damping * damping)
+    u_plane = gain[..., None] * (a[..., None] * r_plane - b[..., None] * np.cross(n, r_plane))
+    return u0 + r_axial + u_plane
+
+
+def _lift_se3(
+    w_p: np.ndarray,
+    u_p: np.ndarray,
+    t: np.ndarray,
+    w_ref: np.ndarray,
+    pivot: np.ndarray | None,
+    damping: float,
+    axis_tol: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    w = lift_rotvec(w_p, w_ref, axis_tol=axis_tol)
+    moved = np.any(w != w_p, axis=-1)
+    if not np.any(moved):
+        return w, np.array(u_p, dtype=np.float64, copy=True)
+    c = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=np.float64)
+    c = np.broadcast_to(c, w.shape)
+    u = np.array(u_p, dtype=np.float64, copy=True)
+    u[moved] = _damped_translation_log(w[moved], t[moved], c[moved], damping)
+    return w, u
+
+
+def se3_log_lifted(
+    R: np.ndarray,
+    t: np.ndarray,
+    w_ref: np.ndarray,
+    pivot: np.ndarray | None = None,
+    *,
+    damping: float = DAMPING,
+    axis_tol: float = AXIS_TOL,
+) -> tuple[np.ndarray, np.ndarray]:
+    """se(3) log of (R, t) on the branch whose rotation vector is nearest w_ref.
+
+    Returns (w, u) with w = lift_rotvec(log R, w_ref) and u = V(w)⁻¹ t, so exp([[ŵ, u], [0, 0]])
+    reproduces (R, t) (exp is 2π-periodic in the rotation angle). Where the lift is a no-op the
+    result is exactly aff3.se3_log(R, t). On lifted branches V(w) becomes singular at |w| = 2πk; u is
+    then the damped solution described in `_damped_translation_log`, centred on a turn about `pivot`
+    (default: the origin of the frame of R, t; pass the control's origin in that frame).
+
+    R (..., 3, 3), t (..., 3), w_ref (..., 3), pivot (..., 3) or None.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    w_p, u_p = se3_log(R, t)
+    w_ref = np.broadcast_to(np.asarray(w_ref, dtype=np.float64), w_p.shape)
+    return _lift_se3(w_p, u_p, t, w_ref, pivot, damping, axis_tol)
+
+
+def lift_params(
+    params: np.ndarray,
+    w_ref: np.ndarray,
+    pivot: np.ndarray | None = None,
+    *,
+    damping: float = DAMPING,
+    axis_tol: float = AXIS_TOL,
+) -> np.ndarray:
+    """Move 12-number parameters (docs/DEVELOPING.md layout) to the branch nearest w_ref.
+
+    Slices 0:3 (ω) are lifted, 3:6 (u) recomputed for the same translation t = V(ω_principal)·u,
+    6:12 (log S) are untouched. Rows whose lift is a no-op are returned bitwise unchanged.
+    params (..., 12), w_ref (..., 3), pivot (..., 3) or None. Returns a new array.
+    """
+    params = np.asarray(params, dtype=np.float64)
+    if params.shape[-1:] != (12,):
+        raise ValueError(f"params must have a last axis of 12, got shape {params.shape}")
+    w_p = params[..., 0:3]
+    u_p = params[..., 3:6]
+    w_ref = np.broadcast_to(np.asarray(w_ref, dtype=np.float64), w_p.shape)
+    t = np.einsum("...ij,...j->...i", left_jacobian(w_p), u_p)
+    w, u = _lift_se3(w_p, u_p, t, w_ref, pivot, damping, axis_tol)
+    out = params.copy()
+    out[..., 0:3] = w
+    out[..., 3:6] = u
+    return out
+
+
+# --- Blender rotation channels -> matrices ------------------------------------------------------
+
+
+def _axis_rotation(axis: int, angle: np.ndarray) -> np.ndarray:
+    """Right-handed rotation by `angle` about coordinate axis 0/1/2, shape (..., 3, 3)."""
+    c, s = np.cos(angle), np.sin(angle)
+    i, j = (axis + 1) % 3, (axis + 2) % 3
+    out = np.zeros((*np.shape(angle), 3, 3))
+    out[..., axis, axis] = 1.0
+    out[..., i, i] = c
+    out[..., j, j] = c
+    out[..., j, i] = s
+    out[..., i, j] = -s
+    return out
+
+
+def euler_to_matrix(angles: np.ndarray, order: str = "XYZ") -> np.ndarray:
+    """Blender Euler rotation: angles (..., 3) = (x, y, z) in radians, order e.g. 'XYZ'.
+
+    The first letter is applied first: 'XYZ' gives Rz(z)·Ry(y)·Rx(x).
+    """
+    if order not in EULER_ORDERS:
+        raise ValueError(f"unknown Euler order {order!r}; expected one of {', '.join(EULER_ORDERS)}")
+    angles = np.asarray(angles, dtype=np.float64)
+    if angles.shape[-1:] != (3,):
+        raise ValueError(f"Euler angles must have a last axis of 3, got shape {angles.shape}")
+    axes = ["XYZ".index(letter) for letter in order]
+    out = _axis_rotation(axes[0], angles[..., axes[0]])
+    for axis in axes[1:]:
+        out = _axis_rotation(axis, angles[..., axis]) @ out
+    return out
+
+
+def _unit_quaternion(q: np.ndarray) -> np.ndarray:
+    """q/|q|; Blender reads a zero quaternion as (0, 1, 0, 0)."""
+    length = _norm(q)
+    zero = ~(length > 0.0)
+    unit = q / np.where(zero, 1.0, length)[..., None]
+    return np.where(zero[..., None], np.array([0.0, 1.0, 0.0, 0.0]), unit)
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation of the quaternion (w, x, y, z), normalised first (..., 4) -> (..., 3, 3).
+
+    Like Blender's object transform, a zero quaternion is read as (0, 1, 0, 0) (180° about X).
+    """
+    q = np.asarray(q, dtype=np.float64)
+    if q.shape[-1:] != (4,):
+        raise ValueError(f"quaternions must have a last axis of 4, got shape {q.shape}")
+    q = _unit_quaternion(q)
+    w, x, y, z = (q[..., i] for i in range(4))
+    out = np.empty((*q.shape[:-1], 3, 3))
+    out[..., 0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    out[..., 0, 1] = 2.0 * (x * y - w * z)
+    out[..., 0, 2] = 2.0 * (x * z + w * y)
+    out[..., 1, 0] = 2.0 * (x * y + w * z)
+    out[..., 1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    out[..., 1, 2] = 2.0 * (y * z - w * x)
+    out[..., 2, 0] = 2.0 * (x * z - w * y)
+    out[..., 2, 1] = 2.0 * (y * z + w * x)
+    out[..., 2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    return out
+
+
+def axis_angle_to_matrix(axis_angle: np.ndarray) -> np.ndarray:
+    """Rotation of Blender's axis-angle channels (angle, x, y, z) (..., 4) -> (..., 3, 3).
+
+    The axis is normalised; a zero axis gives the identity, as in Blender.
+    """
+    axis_angle = np.asarray(axis_angle, dtype=np.float64)
+    if axis_angle.shape[-1:] != (4,):
+        raise ValueError(f"axis-angle channels must have a last axis of 4, got shape {axis_angle.shape}")
+    angle = axis_angle[..., 0]
+    axis = axis_angle[..., 1:4]
+    length = _norm(axis)
+    zero = ~(length > 0.0)
+    n = axis / np.where(zero, 1.0, length)[..., None]
+    angle = np.where(zero, 0.0, angle)
+    c, s = np.cos(angle), np.sin(angle)
+    K = np.zeros((*n.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -n[..., 2], n[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = n[..., 2], -n[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -n[..., 1], n[..., 0]
+    eye = np.broadcast_to(np.eye(3), K.shape)
+    return eye + s[..., None, None] * K + (1.0 - c)[..., None, None] * (K @ K)
+
+
+def channels_to_matrix(mode: str, channels: np.ndarray) -> np.ndarray:
+    """Rotation matrix of Blender rotation channels in `mode` (an Euler order, 'QUATERNION' or
+    'AXIS_ANGLE'); channels (..., 3) for Euler, (..., 4) otherwise."""
+    if mode == "QUATERNION":
+        return quaternion_to_matrix(channels)
+    if mode == "AXIS_ANGLE":
+        return axis_angle_to_matrix(channels)
+    return euler_to_matrix(channels, mode)
+
+
+# --- reference rotation vectors from channels ---------------------------------------------------
+
+
+def _quaternion_path_rotvec(rest: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Closed form for the normalised straight 4D path from q0 to q1.
+
+    q(s)/|q(s)| runs monotonically along the minor great arc from q̂0 to q̂1, so q̂(s)·q̂0* =
+    (cos φ(s), sin φ(s)·n) with a fixed unit n and φ from 0 to α = angle(q̂0, q̂1) ∈ [0, π]: the
+    continuous rotation vector along the path is 2φ·n, ending at 2α·n (up to a full 2π turn).
+    A path through the zero quaternion (q1 = −c·q0) has no defined axis and gives 0.
+    """
+    q0, q1 = _unit_quaternion(rest), _unit_quaternion(current)
+    # q1 ⊗ conj(q0)
+    w0, v0 = q0[..., 0], q0[..., 1:]
+    w1, v1 = q1[..., 0], q1[..., 1:]
+    real = w1 * w0 + np.einsum("...i,...i->...", v1, v0)
+    vec = w0[..., None] * v1 - w1[..., None] * v0 - np.cross(v1, v0)
+    sin_half = _norm(vec)
+    half = np.arctan2(sin_half, real)
+    ok = sin_half > 1e-12
+    scale = np.where(ok, 2.0 * half / np.where(ok, sin_half, 1.0), 0.0)
+    return scale[..., None] * vec
+
+
+def _path_samples_euler(rest: np.ndarray, current: np.ndarray, max_step: float) -> np.ndarray:
+    """Sample parameters s (m, N+1) with every step changing the rotation by < max_step.
+
+    The geodesic distance is bi-invariant, so d(R(e), R(e')) ≤ Σ|Δe_i| for Euler angles.
+    """
+    total = np.abs(current - rest).sum(axis=-1)
+    steps = int(np.floor(total.max(initial=0.0) / max_step)) + 1
+    _check_samples(steps)
+    return np.broadcast_to(np.linspace(0.0, 1.0, steps + 1), (rest.shape[0], steps + 1))
+
+
+def _check_samples(steps: int) -> None:
+    if steps > MAX_PATH_SAMPLES:
+        raise ValueError(
+            f"rotation channels change by too many turns to unwrap ({steps} path samples needed, "
+            f"limit {MAX_PATH_SAMPLES}); reduce the rotation values"
+        )
+
+
+def _path_samples_axis_angle(rest: np.ndarray, current: np.ndarray, max_step: float) -> np.ndarray:
+    """Sample parameters s (m, N) for the straight path in (angle, axis) channel space.
+
+    d(R(a, n), R(a', n')) ≤ |a − a'| + 2·∠(n, n'). The angle is linear in s; the normalised axis runs
+    monotonically along the minor arc between the end axes but not uniformly in s, so the grid is the
+    union of a uniform grid (angle steps < max_step/2) and the s values where the axis has turned by
+    equal fractions of the arc (axis steps < max_step/4).
+    """
+    m = rest.shape[0]
+    x0, x1 = rest[:, 1:], current[:, 1:]
+    n_angle = int(np.floor(np.abs(current[:, 0] - rest[:, 0]).max(initial=0.0) / (0.5 * max_step))) + 1
+    len0, len1 = _norm(x0), _norm(x1)
+    cross = _norm(np.cross(x0, x1))
+    dot = np.einsum("ij,ij->i", x0, x1)
+    both = (len0 > 0.0) & (len1 > 0.0)
+    arc = np.where(both, np.arctan2(cross, dot), 0.0)
+    n_axis = int(np.floor(2.0 * arc.max(initial=0.0) / (0.5 * max_step))) + 1
+    _check_samples(n_angle + n_axis)
+    uniform = np.broadcast_to(np.linspace(0.0, 1.0, n_angle + 1), (m, n_angle + 1))
+    beta = arc[:, None] * np.linspace(0.0, 1.0, n_axis + 1)[None, :]
+    # Point on the chord x0 + s(x1 − x0) whose direction is at angle β from x0 (in their plane).
+    sb, cb = np.sin(beta), np.cos(beta)
+    denom = cross[:, None] * cb - sb * (dot - len0 * len0)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_axis = sb * (len0 * len0)[:, None] / denom
+    s_axis = np.where(np.isfinite(s_axis) & both[:, None], np.clip(s_axis, 0.0, 1.0), 0.0)
+    return np.sort(np.concatenate([uniform, s_axis], axis=1), axis=1)
+
+
+def _unwrap_sampled(mode: str, rest: np.ndarray, current: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Follow R(c(s))·R(rest)ᵀ along the samples s (m, N), lifting each step against the previous."""
+    r_rest = channels_to_matrix(mode, rest)
+    lifted = np.zeros((rest.shape[0], 3))
+    block = 512
+    for start in range(1, s.shape[1], block):
+        s_blk = s[:, start : start + block]
+        chans = rest[:, None, :] + s_blk[..., None] * (current - rest)[:, None, :]
+        rel = channels_to_matrix(mode, chans) @ np.swapaxes(r_rest, -1, -2)[:, None]
+        principal = so3_log(rel)
+        for j in range(principal.shape[1]):
+            lifted = lift_rotvec(principal[:, j], lifted)
+    return lifted
+
+
+def _channel_rotvec_one_mode(mode: str, rest: np.ndarray, current: np.ndarray, max_step: float) -> np.ndarray:
+    width = 3 if mode in EULER_ORDERS else 4
+    if mode not in ROTATION_MODES:
+        raise ValueError(f"unknown rotation mode {mode!r}; expected one of {', '.join(ROTATION_MODES)}")
+    if rest.shape[-1] != width or current.shape[-1] != width:
+        raise ValueError(
+            f"rotation mode {mode} needs {width} channels, got {rest.shape[-1]} and {current.shape[-1]}"
+        )
+    if not (np.all(np.isfinite(rest)) and np.all(np.isfinite(current))):
+        raise ValueError("rotation channels contain non-finite values")
+    if mode == "QUATERNION":
+        return _quaternion_path_rotvec(rest, current)
+    if mode == "AXIS_ANGLE":
+        s = _path_samples_axis_angle(rest, current, max_step)
+    else:
+        s = _path_samples_euler(rest, current, max_step)
+    return _unwrap_sampled(mode, rest, current, s)
+
+
+def channel_rotvec(
+    mode: str | Sequence[str],
+    rest: np.ndarray,
+    current: np.ndarray,
+    *,
+    max_step: float = np.pi / 4,
+) -> np.ndarray:
+    """Reference rotation vector of R(current)·R(rest)ᵀ from rotation channels alone.
+
+    The relative rotation is followed along the straight path in channel space from rest to current,
+    sampled so that consecutive relative rotations differ by less than max_step, each step's principal
+    log lifted against the previous one. Deterministic: it depends on the two channel sets only.
+    Euler z going 0 → 400° gives 400° about z; axis-angle 0 → 720° gives 720°; a quaternion path
+    (straight in 4D, normalised, q and −q taken literally) gives up to one full turn (closed form).
+
+    mode: one Blender rotation mode for all rows ('XYZ', ..., 'ZYX', 'QUATERNION', 'AXIS_ANGLE'), or a
+    sequence of modes, one per row (then rest/current are (m, 4) with Euler rows using the first 3).
+    rest, current: (..., 3) for Euler, (..., 4) for quaternion (w, x, y, z) and axis-angle
+    (angle, x, y, z), radians. Returns (..., 3), in the frame the channels rotate in (the parent).
+    """
+    rest = np.asarray(rest, dtype=np.float64)
+    current = np.asarray(current, dtype=np.float64)
+    if rest.shape != current.shape:
+        raise ValueError(f"rest and current channels differ in shape: {rest.shape} vs {current.shape}")
+    if not max_step > 0.0:
+        raise ValueError("max_step must be positive")
+    lead = rest.shape[:-1]
+    rest2 = rest.reshape(-1, rest.shape[-1])
+    cur2 = current.reshape(-1, current.shape[-1])
+    if isinstance(mode, str):
+        out = _channel_rotvec_one_mode(mode, rest2, cur2, max_step)
+        return out.reshape(*lead, 3)
+    modes = np.asarray(mode, dtype=object).reshape(-1)
+    if modes.shape[0] != rest2.shape[0]:
+        raise ValueError(f"got {modes.shape[0]} rotation modes for {rest2.shape[0]} channel rows")
+    out = np.zeros((rest2.shape[0], 3))
+    for one in sorted(set(modes.tolist())):
+        rows = np.flatnonzero(modes == one)
+        width = 3 if one in EULER_ORDERS else 4
+        out[rows] = _channel_rotvec_one_mode(one, rest2[rows, :width], cur2[rows, :width], max_step)
+    return out.reshape(*lead, 3)

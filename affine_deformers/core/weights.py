@@ -1,0 +1,245 @@
+"""Per-vertex weights: distance kernels, falloff, normalisation and top-K sparsification in chunks.
+
+The deformer needs, per vertex, the K strongest controls and their weights: `(indices (N, K) int32,
+values (N, K) float64)`. Those are built chunk by chunk from any function that returns a dense
+(chunk, m) weight block (`sparse_from_blocks`), so peak memory is O(N·K + chunk·m) however many
+controls there are; the probe builder (`probe_weights`) and the painted-weights converter
+(`top_k_dense`) are thin layers over it, and the cage code can pass its own distance function.
+
+Kernels (d = distance to a control's rest position):
+
+* inverse distance  w = (r / max(d, d_min))^p — finite and dominant on top of a control;
+* smooth falloff    w = (1 − (d/R)²)^q for d < R, exactly 0 for d ≥ R (C^{q−1} at R, smooth at 0).
+
+Normalisation of the kept K weights of a row: 'NONE' (as is), 'SUM' (divide by the row sum; all-zero
+rows stay zero), 'SOFTMAX' (exp(w − max w) over the row's positive entries, summing to 1; zero
+entries stay zero, so a falloff's locality survives).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int32]
+BlockFn = Callable[[int, int], ArrayLike]
+
+__all__ = [
+    "NORMALIZE_MODES",
+    "WEIGHT_MODES",
+    "inverse_distance",
+    "normalize",
+    "probe_weights",
+    "smooth_falloff",
+    "sparse_from_blocks",
+    "top_k",
+    "top_k_dense",
+]
+
+NORMALIZE_MODES = ("NONE", "SUM", "SOFTMAX")
+WEIGHT_MODES = ("INVERSE_DISTANCE", "FALLOFF", "VERTEX_GROUPS")
+
+#: Dense block size (chunk · m entries) processed at a time by `sparse_from_blocks`.
+BLOCK_ELEMENTS = 1 << 18
+#: Default distance floor of `inverse_distance`, relative to its reference distance r.
+MIN_DISTANCE_FRACTION = 1e-6
+
+
+def inverse_distance(
+    distances: ArrayLike, exponent: float = 2.0, reference: float = 1.0, min_distance: float | None = None
+) -> FloatArray:
+    """w = (reference / max(d, min_distance))^exponent.
+
+    The floor (default MIN_DISTANCE_FRACTION · reference) keeps a vertex sitting on a control finite,
+    with a weight that dominates every other control after normalisation.
+    """
+    if not exponent > 0.0:
+        raise ValueError(f"exponent must be positive, got {exponent}")
+    if not reference > 0.0:
+        raise ValueError(f"reference distance must be positive, got {reference}")
+    floor = MIN_DISTANCE_FRACTION * reference if min_distance is None else float(min_distance)
+    if not floor > 0.0:
+        raise ValueError(f"min_distance must be positive, got {min_distance}")
+    d = np.maximum(np.asarray(distances, dtype=np.float64), floor)
+    return (reference / d) ** exponent
+
+
+def smooth_falloff(distances: ArrayLike, radius: float, power: int = 2) -> FloatArray:
+    """w = (1 − (d/R)²)^power for d < R, exactly 0 for d ≥ R; 1 at d = 0.
+
+    power = 2 is C¹ at R, power = 3 is C². As a function of position it is smooth at the centre too
+    (it depends on d², so there is no cusp under the control).
+    """
+    if not radius > 0.0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    if power < 1:
+        raise ValueError(f"power must be at least 1, got {power}")
+    x2 = (np.asarray(distances, dtype=np.float64) / radius) ** 2
+    return np.where(x2 < 1.0, (1.0 - np.minimum(x2, 1.0)) ** power, 0.0)
+
+
+def normalize(W: ArrayLike, mode: str = "SUM", temperature: float = 1.0) -> FloatArray:
+    """Row-wise normalisation of non-negative weights (..., m); see the module docstring.
+
+    'SOFTMAX' uses exp((w − max w)/temperature) over the positive entries of each row.
+    """
+    W = np.asarray(W, dtype=np.float64)
+    if mode == "NONE":
+        return W.copy()
+    if mode == "SUM":
+        total = W.sum(axis=-1, keepdims=True)
+        ok = total > 0.0
+        return np.where(ok, W / np.where(ok, total, 1.0), 0.0)
+    if mode == "SOFTMAX":
+        if not temperature > 0.0:
+            raise ValueError(f"temperature must be positive, got {temperature}")
+        positive = W > 0.0
+        top = np.max(np.where(positive, W, -np.inf), axis=-1, keepdims=True)
+        top = np.where(np.isfinite(top), top, 0.0)
+        e = np.where(positive, np.exp((np.where(positive, W, top) - top) / temperature), 0.0)
+        total = e.sum(axis=-1, keepdims=True)
+        return np.where(total > 0.0, e / np.where(total > 0.0, total, 1.0), 0.0)
+    raise ValueError(f"normalize mode must be one of {NORMALIZE_MODES}, got {mode!r}")
+
+
+def top_k(W: ArrayLike, k: int) -> tuple[IntArray, FloatArray]:
+    """The k largest entries of each row of W (n, m) -> (indices (n, K) int32, values (n, K)), K = min(k, m).
+
+    Rows are ordered by value (descending), ties by control index, so the result depends on the row
+    alone (chunking cannot change it).
+    """
+    W = np.asarray(W, dtype=np.float64)
+    if W.ndim != 2:
+        raise ValueError(f"weights must have shape (n, m), got {W.shape}")
+    if k < 1:
+        raise ValueError(f"k must be at least 1, got {k}")
+    n, m = W.shape
+    K = min(int(k), m)
+    if K < m:
+        part = np.argpartition(-W, K - 1, axis=1)[:, :K]
+    else:
+        part = np.broadcast_to(np.arange(m), (n, m))
+    # Sort the kept candidates by (−value, index) so ties resolve the same way in every chunk.
+    part = np.sort(part, axis=1)
+    vals = np.take_along_axis(W, part, axis=1)
+    order = np.argsort(-vals, axis=1, kind="stable")
+    idx = np.take_along_axis(part, order, axis=1).astype(np.int32)
+    return idx, np.take_along_axis(vals, order, axis=1)
+
+
+def sparse_from_blocks(
+    n_points: int,
+    n_controls: int,
+    block: BlockFn,
+    k: int,
+    normalize_mode: str = "SUM",
+    chunk_size: int | None = None,
+    temperature: float = 1.0,
+) -> tuple[IntArray, FloatArray]:
+    """Build sparse top-K weights from `block(lo, hi)` -> dense non-negative (hi − lo, n_controls).
+
+    Each chunk's block is reduced to its K = min(k, n_controls) largest entries, which are then
+    normalised ('SUM' renormalises over the kept K, so rows still sum to 1). Peak memory is
+    O(n_points · K + chunk · n_controls); the result does not depend on chunk_size.
+    ValueError if a block has the wrong shape, negative or non-finite entries.
+    """
+    if normalize_mode not in NORMALIZE_MODES:
+        raise ValueError(f"normalize mode must be one of {NORMALIZE_MODES}, got {normalize_mode!r}")
+    if n_controls < 1:
+        raise ValueError("at least one control is needed")
+    if k < 1:
+        raise ValueError(f"k must be at least 1, got {k}")
+    K = min(int(k), n_controls)
+    chunk = int(chunk_size) if chunk_size else max(1, BLOCK_ELEMENTS // n_controls)
+    if chunk < 1:
+        raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+    indices = np.zeros((n_points, K), dtype=np.int32)
+    values = np.zeros((n_points, K), dtype=np.float64)
+    for lo in range(0, n_points, chunk):
+        hi = min(lo + chunk, n_points)
+        W = np.asarray(block(lo, hi), dtype=np.float64)
+        if W.shape != (hi - lo, n_controls):
+            raise ValueError(f"weight block for rows {lo}:{hi} has shape {W.shape}, "
+                             f"expected {(hi - lo, n_controls)}")
+        if not np.all(np.isfinite(W)):
+            raise ValueError(f"weights for rows {lo}:{hi} contain non-finite values")
+        if np.any(W < 0.0):
+            raise ValueError(f"weights for rows {lo}:{hi} contain negative values")
+        idx, val = top_k(W, K)
+        indices[lo:hi] = idx
+        values[lo:hi] = normalize(val, normalize_mode, temperature)
+    return indices, values
+
+
+def top_k_dense(
+    W: ArrayLike, k: int, normalize: str = "SUM", chunk_size: int | None = None
+) -> tuple[IntArray, FloatArray]:
+    """Dense painted weights (N, m) -> sparse (indices (N, K) int32, values (N, K)), normalised."""
+    W = np.asarray(W, dtype=np.float64)
+    if W.ndim != 2:
+        raise ValueError(f"weights must have shape (N, m), got {W.shape}")
+    return sparse_from_blocks(W.shape[0], W.shape[1], lambda lo, hi: W[lo:hi], k, normalize, chunk_size)
+
+
+def probe_weights(
+    points: ArrayLike,
+    centers: ArrayLike,
+    *,
+    mode: str = "INVERSE_DISTANCE",
+    radius: float = 1.0,
+    exponent: float = 2.0,
+    normalize: str = "SUM",
+    k: int = 4,
+    scales: ArrayLike | None = None,
+    dense: ArrayLike | None = None,
+    chunk_size: int | None = None,
+) -> tuple[IntArray, FloatArray]:
+    """Sparse probe weights for points (N, 3) and probe rest positions centers (m, 3).
+
+    mode 'INVERSE_DISTANCE': (radius/d)^exponent (radius is the reference distance, d floored);
+    'FALLOFF': smooth_falloff(d, radius) (exactly 0 at and beyond radius); 'VERTEX_GROUPS': the
+    dense painted weights `dense` (N, m) (negative paint is clamped to 0). `scales` (m,) multiplies
+    each probe's weight before the top-K selection. Returns (indices (N, K) int32, values (N, K)).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    ctr = np.asarray(centers, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+    if ctr.ndim != 2 or ctr.shape[1] != 3 or ctr.shape[0] < 1:
+        raise ValueError(f"centers must have shape (m, 3) with m ≥ 1, got {ctr.shape}")
+    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(ctr))):
+        raise ValueError("points or probe positions contain non-finite coordinates")
+    m = ctr.shape[0]
+    scale = np.ones(m) if scales is None else np.asarray(scales, dtype=np.float64)
+    if scale.shape != (m,) or not np.all(np.isfinite(scale)) or np.any(scale < 0.0):
+        raise ValueError(f"scales must be {m} finite non-negative numbers")
+
+    if mode == "VERTEX_GROUPS":
+        if dense is None:
+            raise ValueError("mode 'VERTEX_GROUPS' needs the dense painted weights")
+        D = np.asarray(dense, dtype=np.float64)
+        if D.shape != (pts.shape[0], m):
+            raise ValueError(f"painted weights must have shape {(pts.shape[0], m)}, got {D.shape}")
+        if not np.all(np.isfinite(D)):
+            raise ValueError("painted weights contain non-finite values")
+
+        def block(lo: int, hi: int) -> FloatArray:
+            return np.maximum(D[lo:hi], 0.0) * scale
+
+    elif mode in ("INVERSE_DISTANCE", "FALLOFF"):
+        if not radius > 0.0:
+            raise ValueError(f"radius must be positive, got {radius}")
+
+        def block(lo: int, hi: int) -> FloatArray:
+            diff = pts[lo:hi, None, :] - ctr[None, :, :]
+            d = np.sqrt(np.einsum("nmi,nmi->nm", diff, diff))
+            if mode == "FALLOFF":
+                return smooth_falloff(d, radius) * scale
+            return inverse_distance(d, exponent, radius) * scale
+
+    else:
+        raise ValueError(f"weight mode must be one of {WEIGHT_MODES}, got {mode!r}")
+    return sparse_from_blocks(pts.shape[0], m, block, k, normalize, chunk_size)

@@ -1,0 +1,345 @@
+"""Our deformers inside Blender, driven like a user would: install the built .zip, run the add operators.
+
+The per-update time is measured from outside (`common.time_updates`), so it contains everything an artist
+waits for: the depsgraph pass that moves the control, our @persistent handler, and Blender's
+re-evaluation of the Geometry Nodes modifier that adds our offsets.
+
+The split of that time comes from `Instrument`:
+- the handler total is measured by wrapping our entries in `bpy.app.handlers` (exact, no cooperation
+  needed); whole update − handler = Blender's own work (depsgraph passes, Geometry Nodes);
+- inside the handler, if `blender/evaluate.py` exposes a `TIMINGS` dict of cumulative seconds per stage,
+  those numbers are used; otherwise the layer's stage functions listed in `STAGE_POINTS` (reading the
+  controls' transforms, reading rest positions and weights, ψ, the per-vertex kernel, writing the
+  offsets) are wrapped for the duration of a case, and the rest of the handler is reported as glue.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import bpy
+import numpy as np
+from native import Rig, move_cage_vertex, move_object
+
+REPO = "user_default"
+EXT_ID = "affine_deformers"
+PKG = f"bl_ext.{REPO}.{EXT_ID}"
+INNER = f"{PKG}.affine_deformers"
+
+PROBE_OP = "object.affine_probe_deformer_add"
+CAGE_OP = "object.affine_cage_deformer_add"
+BIND_OP = "object.affine_deformer_bind"
+
+# Where the stages of our handler live, for the split when the layer keeps no counters of its own:
+# (module under the package, function or Class.method, stage). Missing names are skipped; whatever is not
+# covered shows up as "glue" (handler − covered stages).
+STAGE_POINTS = (
+    ("blender.kinds", "*.current_motions", "read"),  # every kind class registered in kinds.KINDS
+    ("blender.storage", "read_positions", "read mesh"),
+    ("blender.storage", "read_weights", "read mesh"),
+    ("blender.evaluate", "motions_to_params", "psi"),
+    ("core.aff3", "params_from_matrices", "psi"),
+    ("core.deform", "deform_points_params", "kernel"),
+    ("core.deform", "blend_linear_sparse", "kernel"),
+    ("core.deform", "deform_points", "kernel"),
+    ("blender.storage", "write_offsets", "write"),
+)
+
+
+# --------------------------------------------------------------------------------------------------
+# Installing and finding the extension
+
+
+def install(zip_path: Path) -> str | None:
+    """Install and enable the built extension; None (with a printed reason) when that is impossible."""
+    if not zip_path.is_file():
+        print(f"[ours] {zip_path} not found — run `make build` first; our side is skipped")
+        return None
+    result = bpy.ops.extensions.package_install_files(
+        filepath=str(zip_path), repo=REPO, enable_on_install=True
+    )
+    if "FINISHED" not in result or PKG not in sys.modules:
+        print(f"[ours] installing {zip_path.name} failed ({result}); our side is skipped")
+        return None
+    return PKG
+
+
+def operator_exists(idname: str) -> bool:
+    category, name = idname.split(".")
+    try:
+        getattr(getattr(bpy.ops, category), name).get_rna_type()
+    except (KeyError, AttributeError):
+        return False
+    return True
+
+
+def call_operator(idname: str, active: bpy.types.Object, selected: list[bpy.types.Object], **props):
+    """Run an object operator as if `active` were active and `selected` selected (works in background)."""
+    category, name = idname.split(".")
+    op = getattr(getattr(bpy.ops, category), name)
+    accepted = set(op.get_rna_type().properties.keys())
+    kwargs = {k: v for k, v in props.items() if k in accepted}
+    view_layer = bpy.context.view_layer
+    for ob in view_layer.objects:
+        ob.select_set(ob in selected)
+    view_layer.objects.active = active
+    with bpy.context.temp_override(
+        active_object=active,
+        object=active,
+        selected_objects=selected,
+        selected_editable_objects=selected,
+    ):
+        result = op(**kwargs)
+    if "FINISHED" not in result:
+        raise RuntimeError(f"{idname} returned {result}")
+    return result
+
+
+def _enum_ids(owner: bpy.types.bpy_struct, prop: str) -> list[str]:
+    rna = owner.bl_rna.properties.get(prop)
+    return [item.identifier for item in rna.enum_items] if rna is not None and rna.type == "ENUM" else []
+
+
+def _smooth_mode(deformer: bpy.types.bpy_struct) -> str | None:
+    """The weight mode closest to the Hook modifier's Smooth falloff, if the property group has one."""
+    ids = _enum_ids(deformer, "weight_mode")
+    for wanted in ("SMOOTH", "FALLOFF"):
+        for ident in ids:
+            if wanted in ident:
+                return ident
+    return None
+
+
+# --------------------------------------------------------------------------------------------------
+# Building our rigs
+
+
+@dataclass
+class OurRig(Rig):
+    deformer_index: int = 0
+    settings: dict[str, object] = field(default_factory=dict)
+
+
+def probe_rig(target: bpy.types.Object, empties: list[bpy.types.Object], radius: float) -> OurRig:
+    """Our probe deformer on `target` driven by `empties`, smooth falloff of `radius` where available.
+
+    bind_seconds is the add operator (it binds at once) plus any re-weighting the settings cause.
+    """
+    t0 = time.perf_counter()
+    call_operator(PROBE_OP, target, [target, *empties], radius=radius)
+    index = len(target.affine_deformers) - 1
+    deformer = target.affine_deformers[index]
+    generation = getattr(deformer, "bind_generation", None)
+    changed = False
+    mode = _smooth_mode(deformer)
+    if mode is not None and deformer.weight_mode != mode:
+        deformer.weight_mode = mode  # re-weights from the stored rest data
+        changed = True
+    if hasattr(deformer, "radius") and abs(deformer.radius - radius) > 1e-6:
+        deformer.radius = radius
+        changed = True
+    reweighted = generation is not None and getattr(deformer, "bind_generation", None) != generation
+    if changed and not reweighted and operator_exists(BIND_OP):
+        # This layer does not re-weight on property changes: bind again (nothing has moved yet).
+        call_operator(BIND_OP, target, [target], index=index)
+    bind = time.perf_counter() - t0
+    bpy.context.view_layer.update()
+    settings = {
+        k: getattr(deformer, k)
+        for k in ("weight_mode", "radius", "normalize", "max_influences", "blend_mode", "strength")
+        if hasattr(deformer, k)
+    }
+    return OurRig(
+        target,
+        move_object(empties[0]),
+        time.perf_counter() - t0,
+        bind_seconds=bind,
+        deformer_index=index,
+        settings=settings,
+    )
+
+
+def cage_rig(target: bpy.types.Object, cage: bpy.types.Object) -> OurRig:
+    """Our cage deformer on `target` with `cage`; bind_seconds = the add operator (it binds at once)."""
+    t0 = time.perf_counter()
+    call_operator(CAGE_OP, target, [target, cage])
+    bind = time.perf_counter() - t0
+    bpy.context.view_layer.update()
+    index = len(target.affine_deformers) - 1
+    return OurRig(
+        target, move_cage_vertex(cage), time.perf_counter() - t0, bind_seconds=bind, deformer_index=index
+    )
+
+
+_BIND_ATTR = re.compile(r"^\.affdef_(?P<uid>.+)_(?P<kind>idx|w)(?P<k>\d+)$")
+
+
+def bound_weights(target: bpy.types.Object, empties: list[bpy.types.Object]) -> np.ndarray | None:
+    """Dense (N, m) weights our bind stored on the mesh (top-K attributes), columns in `empties` order.
+
+    None when the attributes are not where DEVELOPING.md says they are; the caller then falls back to
+    the analytic smooth falloff.
+    """
+    me = target.data
+    found: dict[str, dict[str, dict[int, str]]] = {}
+    for attr in me.attributes:
+        m = _BIND_ATTR.match(attr.name)
+        if m:
+            found.setdefault(m["uid"], {}).setdefault(m["kind"], {})[int(m["k"])] = attr.name
+    if len(found) != 1:
+        return None
+    (parts,) = found.values()
+    ks = sorted(parts.get("idx", {}))
+    if not ks or ks != sorted(parts.get("w", {})):
+        return None
+    deformer = target.affine_deformers[len(target.affine_deformers) - 1]
+    probe_objects = [p.object for p in deformer.probes]
+    column = {i: empties.index(ob) for i, ob in enumerate(probe_objects) if ob in empties}
+    n = len(me.vertices)
+    if not probe_objects:
+        return None
+    cols = np.array([column.get(i, -1) for i in range(len(probe_objects))])
+    dense = np.zeros((n, len(empties)))
+    idx_buf = np.empty(n, np.int32)
+    w_buf = np.empty(n, np.float32)
+    for k in ks:
+        me.attributes[parts["idx"][k]].data.foreach_get("value", idx_buf)
+        me.attributes[parts["w"][k]].data.foreach_get("value", w_buf)
+        valid = (idx_buf >= 0) & (idx_buf < len(probe_objects))
+        c = np.where(valid, cols[np.clip(idx_buf, 0, len(probe_objects) - 1)], -1)
+        ok = c >= 0
+        np.add.at(dense, (np.flatnonzero(ok), c[ok]), w_buf[ok])
+    return dense
+
+
+# --------------------------------------------------------------------------------------------------
+# Splitting the per-update time
+
+
+class Instrument:
+    """Per-rep stage timings of our handler; see the module docstring for where each number comes from."""
+
+    def __init__(self) -> None:
+        self.acc: dict[str, float] = {}
+        self._handler_patches: list[tuple[list, int, Callable]] = []
+        self._func_patches: list[tuple[object, str, Callable]] = []
+        self._depth = 0
+        self.layer_timings: dict | None = None
+        self.source = "none"
+
+    # -- patching ---------------------------------------------------------------------------------
+    def __enter__(self) -> Instrument:
+        self._wrap_handlers()
+        evaluate = sys.modules.get(f"{INNER}.blender.evaluate")
+        timings = getattr(evaluate, "TIMINGS", None) if evaluate is not None else None
+        if isinstance(timings, dict):
+            self.layer_timings = timings
+            self.source = "layer counters (evaluate.TIMINGS)"
+        else:
+            self._wrap_stages()
+            self.source = "the layer's stage functions, wrapped by the benchmark"
+        self.reset()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for handler_list, pos, original in reversed(self._handler_patches):
+            handler_list[pos] = original
+        for owner, name, original in reversed(self._func_patches):
+            setattr(owner, name, original)
+        self._handler_patches.clear()
+        self._func_patches.clear()
+
+    def _timer(self, stage: str, fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            if self._depth:
+                return fn(*args, **kwargs)
+            self._depth += 1
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.acc[stage] = self.acc.get(stage, 0.0) + time.perf_counter() - t0
+                self._depth -= 1
+
+        return wrapper
+
+    def _wrap_handlers(self) -> None:
+        for handler_list in (bpy.app.handlers.depsgraph_update_post, bpy.app.handlers.frame_change_post):
+            for pos, fn in enumerate(list(handler_list)):
+                if (getattr(fn, "__module__", None) or "").startswith(PKG):
+
+                    def wrapper(*args, _fn=fn):
+                        t0 = time.perf_counter()
+                        try:
+                            return _fn(*args)
+                        finally:
+                            self.acc["handler"] = self.acc.get("handler", 0.0) + time.perf_counter() - t0
+
+                    self._handler_patches.append((handler_list, pos, fn))
+                    handler_list[pos] = wrapper
+
+    def _wrap_stages(self) -> None:
+        """Wrap each STAGE_POINTS entry wherever our modules hold a reference to it."""
+        functions: dict[int, tuple[Callable, str]] = {}
+        for modname, attr, stage in STAGE_POINTS:
+            mod = sys.modules.get(f"{INNER}.{modname}")
+            if mod is None:
+                continue
+            if attr.startswith("*."):
+                method = attr[2:]
+                kinds = getattr(mod, "KINDS", {})
+                for cls in {type(k) for k in kinds.values()}:
+                    fn = cls.__dict__.get(method)
+                    if callable(fn):
+                        self._func_patches.append((cls, method, fn))
+                        setattr(cls, method, self._timer(stage, fn))
+                continue
+            fn = getattr(mod, attr, None)
+            if callable(fn):
+                functions.setdefault(id(fn), (fn, stage))
+        wrappers = {key: self._timer(stage, fn) for key, (fn, stage) in functions.items()}
+        for modname, mod in list(sys.modules.items()):
+            if not modname.startswith(INNER) or mod is None:
+                continue
+            for name, value in list(vars(mod).items()):
+                entry = functions.get(id(value))
+                if entry is not None and value is entry[0]:
+                    self._func_patches.append((mod, name, value))
+                    setattr(mod, name, wrappers[id(value)])
+
+    # -- reading ----------------------------------------------------------------------------------
+    def reset(self) -> None:
+        self.acc = {}
+        if self.layer_timings is not None:
+            for key, value in self.layer_timings.items():
+                if isinstance(value, float | int) and not isinstance(value, bool):
+                    self.layer_timings[key] = type(value)(0)
+
+    def stages(self) -> dict[str, float]:
+        """Seconds per stage since the last reset ('handler' = our whole handler)."""
+        out = dict(self.acc)
+        if self.layer_timings is not None:
+            for key, value in self.layer_timings.items():
+                if isinstance(value, float):
+                    out[key] = value
+        elif "handler" in out:
+            covered = sum(v for k, v in out.items() if k != "handler")
+            out["glue"] = max(out["handler"] - covered, 0.0)
+        return out
+
+    def record(self, samples, total_key: str = "total") -> None:
+        """Append this rep's stage times to `samples.extra` and start the next rep from zero."""
+        stages = self.stages()
+        stages[total_key] = samples.seconds[-1]
+        if "handler" in stages:
+            stages["Blender re-evaluation"] = max(samples.seconds[-1] - stages["handler"], 0.0)
+        for key, value in stages.items():
+            samples.extra.setdefault(key, []).append(value)
+        self.reset()

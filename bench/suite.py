@@ -1,0 +1,389 @@
+"""The benchmark cases (a) probes vs Hook/Armature, (b) cage vs Mesh Deform, (c) scaling — and the report.
+
+Imported by run.py once bpy is up. Every method runs alone in a fresh scene on the same procedural mesh;
+see common.time_updates for what one timed update contains.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+import traceback
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import common
+import native
+import ours
+from common import Samples, Table, fmt_ms, fmt_ratio
+
+
+@dataclass(frozen=True)
+class Plan:
+    reps: int
+    warmup: int
+    a_verts: int
+    b_verts: int
+    cage_grid: tuple[int, int]  # UV-sphere cage (segments, rings): 32 × 32 → 1024 faces
+    precision: int  # Mesh Deform precision
+    c_verts: tuple[int, ...]
+    c_probes: tuple[int, ...]
+    radius: float = 1.0  # falloff radius on the unit sphere; the same for every method and probe count
+    cage_radius: float = 1.25
+
+
+FULL = Plan(
+    reps=15,
+    warmup=3,
+    a_verts=130_000,
+    b_verts=130_000,
+    cage_grid=(32, 32),
+    precision=5,
+    c_verts=(10_000, 130_000, 500_000, 1_000_000),
+    c_probes=(1, 8, 64),
+)
+# Smoke-test sizes: the whole run takes a few seconds (Mesh Deform binds at precision 4 here, because
+# precision 5 alone costs seconds even on a tiny mesh).
+QUICK = Plan(
+    reps=3,
+    warmup=1,
+    a_verts=3_000,
+    b_verts=2_000,
+    cage_grid=(16, 16),
+    precision=4,
+    c_verts=(2_000, 8_000),
+    c_probes=(1, 8),
+)
+
+STAGES = (
+    ("read", "read transforms"),
+    ("read mesh", "read rest + weights"),
+    ("psi", "ψ"),
+    ("kernel", "kernel"),
+    ("write", "write"),
+    ("glue", "other"),
+    ("handler", "= handler"),
+    ("Blender re-evaluation", "Blender"),
+    ("total", "= total"),
+)
+
+
+@dataclass
+class Report:
+    tables: list[Table] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)  # anything here makes the run exit with status 1
+    split_rows: list[tuple[str, Samples]] = field(default_factory=list)
+
+
+def n_vertices(n_target: int) -> int:
+    segments, rings = common.sphere_grid_for(n_target)
+    return segments * (rings - 1) + 2
+
+
+# --------------------------------------------------------------------------------------------------
+# Measuring one rig
+
+
+def measure(rig: native.Rig, plan: Plan, label: str, report: Report, instrument=None) -> Samples:
+    """Time `rig`, then check that the timed passes were enough (one more pass must change nothing)."""
+    hooks = {}
+    if instrument is not None:
+        hooks = {"before_rep": instrument.reset, "after_rep": instrument.record}
+    samples = common.time_updates(rig.move, rig.target, plan.reps, warmup=plan.warmup, **hooks)
+    settled = common.evaluated_positions(rig.target)
+    common.settle()
+    samples.unsettled = not (common.evaluated_positions(rig.target) == settled).all()
+    if instrument is not None:
+        samples.extra_source = instrument.source
+    flag = validity(samples)
+    if flag:
+        report.problems.append(f"{label}: {flag} — its time does not cover a real update")
+    print(f"  {label:<44} {fmt_ms(samples.median):>9}  {flag}", flush=True)
+    return samples
+
+
+def validity(samples: Samples | None) -> str:
+    if samples is None:
+        return ""
+    notes = []
+    if samples.stale:
+        notes.append(f"{samples.stale}/{len(samples.seconds)} updates changed nothing")
+    if samples.unsettled:
+        notes.append("result still changing after the timed passes")
+    return "; ".join(notes)
+
+
+def run_ours_probes(
+    plan: Plan, n_target: int, n_probes: int, label: str, report: Report
+) -> tuple[Samples | None, ours.OurRig | None, object]:
+    """(samples, rig, dense weights or None) for our probe deformer; the scene is cleared afterwards."""
+    try:
+        target = common.sphere_object("Target", n_target)
+        empties = native.add_empties(common.probe_sites(n_probes))
+        rig = ours.probe_rig(target, empties, plan.radius)
+        weights = ours.bound_weights(target, empties)
+        with ours.Instrument() as inst:
+            samples = measure(rig, plan, label, report, inst)
+        return samples, rig, weights
+    except Exception as exc:  # a broken layer must not hide the native numbers
+        traceback.print_exc()
+        report.problems.append(f"{label}: {type(exc).__name__}: {exc}")
+        return None, None, None
+    finally:
+        common.clear_scene()
+
+
+def run_native(
+    plan: Plan, n_target: int, n_probes: int, kind: str, label: str, report: Report, weights=None
+) -> Samples:
+    target = common.sphere_object("Target", n_target)
+    sites = common.probe_sites(n_probes)
+    if kind == "hook":
+        rig = native.hooks(target, native.add_empties(sites), plan.radius)
+    else:
+        if weights is None:
+            weights = common.smooth_falloff(common.rest_positions(target), sites, plan.radius)
+        rig = native.armature(target, sites, weights)
+    samples = measure(rig, plan, label, report)
+    common.clear_scene()
+    return samples
+
+
+def _iqr(s: Samples | None) -> str:
+    if s is None:
+        return "—"
+    lo, hi = s.spread()
+    return f"{fmt_ms(lo)} – {fmt_ms(hi)}"
+
+
+def _median(s: Samples | None) -> float:
+    return s.median if s is not None else math.nan
+
+
+# --------------------------------------------------------------------------------------------------
+# (a) (b) (c)
+
+
+def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
+    m = 8
+    n = n_vertices(plan.a_verts)
+    print(f"(a) {m} probes on a UV sphere of {n:,} vertices, falloff radius {plan.radius}", flush=True)
+    mine = rig = weights = None
+    if have_ours and ours.operator_exists(ours.PROBE_OP):
+        mine, rig, weights = run_ours_probes(plan, plan.a_verts, m, f"ours: {m} probes", report)
+        if mine is not None:
+            report.split_rows.append((f"(a) {m} probes, {n:,} verts", mine))
+    else:
+        report.notes.append(f"(a) `{ours.PROBE_OP}` is not registered: only the native side was timed")
+    hooks = run_native(plan, plan.a_verts, m, "hook", f"Hook ×{m}, Smooth falloff", report)
+    arm = run_native(
+        plan, plan.a_verts, m, "armature", f"Armature {m} bones, Preserve Volume", report, weights
+    )
+
+    t = Table(
+        f"(a) {m} probes, {n:,} vertices: one update after moving one control",
+        ["method", "median", "IQR", "ours ÷ native", "check"],
+    )
+    if mine is not None:
+        t.add("Affine probes (ours)", fmt_ms(mine.median), _iqr(mine), "1.00×", validity(mine))
+    for name, s in ((f"Hook ×{m}, Smooth, same radius", hooks), (f"Armature ×{m}, Preserve Volume", arm)):
+        t.add(name, fmt_ms(s.median), _iqr(s), fmt_ratio(_median(mine), s.median), validity(s))
+    source = "our bind weights (read back from the mesh)" if weights is not None else "analytic smooth falloff"
+    t.notes.append(f"Armature vertex groups: {source}, quantised to 1/{native.WEIGHT_LEVELS}")
+    if rig is not None:
+        settings = ", ".join(f"{k} {v}" for k, v in rig.settings.items())
+        t.notes.append(f"ours: {settings}; add + bind took {fmt_ms(rig.bind_seconds)}")
+    report.tables.append(t)
+
+
+def part_b(plan: Plan, have_ours: bool, report: Report) -> None:
+    seg, rings = plan.cage_grid
+    n = n_vertices(plan.b_verts)
+
+    def build():
+        target = common.sphere_object("Target", plan.b_verts)
+        cage = common.link_object("Cage", common.uv_sphere_mesh("Cage", seg, rings, plan.cage_radius))
+        cage.display_type = "WIRE"
+        return target, cage
+
+    target, cage = build()
+    faces = len(cage.data.polygons)
+    print(f"(b) cage of {faces} faces around {n:,} vertices", flush=True)
+    mine = rig_ours = None
+    if have_ours and ours.operator_exists(ours.CAGE_OP):
+        try:
+            rig_ours = ours.cage_rig(target, cage)
+            with ours.Instrument() as inst:
+                mine = measure(rig_ours, plan, "ours: cage", report, inst)
+            report.split_rows.append((f"(b) cage of {faces} faces, {n:,} verts", mine))
+        except Exception as exc:
+            traceback.print_exc()
+            report.problems.append(f"ours: cage: {type(exc).__name__}: {exc}")
+        common.clear_scene()
+        target, cage = build()
+    else:
+        report.notes.append(f"(b) `{ours.CAGE_OP}` is not registered yet: our cage side was skipped")
+        print(f"  ours: {ours.CAGE_OP} is not registered yet — skipped", flush=True)
+    rig_md = native.mesh_deform(target, cage, plan.precision)
+    print(f"  Mesh Deform bind, precision {plan.precision}: {fmt_ms(rig_md.bind_seconds)}", flush=True)
+    md = measure(rig_md, plan, f"Mesh Deform, precision {plan.precision}", report)
+    common.clear_scene()
+
+    t = Table(
+        f"(b) cage of {faces} faces around {n:,} vertices",
+        ["method", "update", "IQR", "ours ÷ native", "bind", "bind ours ÷ native", "check"],
+    )
+    ours_bind = rig_ours.bind_seconds if (rig_ours is not None and mine is not None) else math.nan
+    if mine is not None:
+        t.add("Affine cage (ours)", fmt_ms(mine.median), _iqr(mine), "1.00×", fmt_ms(ours_bind), "1.00×",
+              validity(mine))
+    t.add(
+        f"Mesh Deform, precision {plan.precision}",
+        fmt_ms(md.median),
+        _iqr(md),
+        fmt_ratio(_median(mine), md.median),
+        fmt_ms(rig_md.bind_seconds),
+        fmt_ratio(ours_bind, rig_md.bind_seconds),
+        validity(md),
+    )
+    t.notes.append("the control moved is one cage vertex; bind = one run of the bind (ours: the add operator)")
+    report.tables.append(t)
+
+
+def part_c(plan: Plan, have_ours: bool, report: Report) -> None:
+    have = have_ours and ours.operator_exists(ours.PROBE_OP)
+    t = Table(
+        "(c) scaling: one update, vertices × probes (ours vs Hook modifiers)",
+        ["vertices", "probes", "ours", "ours ns/vertex", "ours kernel", "Hooks", "ours ÷ Hooks", "check"],
+    )
+    print("(c) scaling", flush=True)
+    for n_target in plan.c_verts:
+        n = n_vertices(n_target)
+        for m in plan.c_probes:
+            mine = None
+            if have:
+                mine, _, _ = run_ours_probes(plan, n_target, m, f"ours: {n:,} verts, {m} probes", report)
+                if mine is not None:
+                    report.split_rows.append((f"(c) {m} probes, {n:,} verts", mine))
+            hooks = run_native(plan, n_target, m, "hook", f"Hook ×{m}: {n:,} verts", report)
+            t.add(
+                f"{n:,}",
+                m,
+                fmt_ms(_median(mine)),
+                f"{mine.median / n * 1e9:.0f}" if mine is not None else "—",
+                fmt_ms(mine.extra_median("kernel")) if mine is not None else "—",
+                fmt_ms(hooks.median),
+                fmt_ratio(_median(mine), hooks.median),
+                "; ".join(x for x in (validity(mine), validity(hooks)) if x),
+            )
+    t.notes.append("same falloff radius for every probe count, so more probes overlap more: Hooks pay for "
+                   "every hook at every vertex, ours for the top-K influences only")
+    if not have:
+        t.notes.append(f"`{ours.PROBE_OP}` is not registered: only the Hook side was timed")
+    report.tables.append(t)
+
+
+def split_table(rows: list[tuple[str, Samples]]) -> Table:
+    present = {k for _, s in rows for k in s.extra}
+    stages = [(k, label) for k, label in STAGES if k in present]
+    stages += [(k, k) for k in sorted(present - {k for k, _ in STAGES})]
+    t = Table(
+        "Where our update time goes (median per stage; medians need not add up exactly)",
+        ["case", *[label for _, label in stages]],
+    )
+    for label, s in rows:
+        t.add(label, *[fmt_ms(s.extra_median(k)) for k, _ in stages])
+    sources = sorted({s.extra_source for _, s in rows if s.extra_source})
+    t.notes.append("handler = our bpy.app.handlers entries, timed by wrapping them (both passes)")
+    t.notes.append(f"stages inside the handler: {'; '.join(sources) or 'n/a'}; other = handler − stages")
+    t.notes.append("Blender = whole update − handler: both depsgraph passes, Geometry Nodes applying offsets")
+    return t
+
+
+# --------------------------------------------------------------------------------------------------
+# Running and reporting
+
+
+def run(ns: argparse.Namespace) -> int:
+    plan = QUICK if ns.quick else FULL
+    if ns.reps:
+        plan = replace(plan, reps=ns.reps)
+    info_before = common.machine_info()
+    if ns.zip is None:
+        print("[ours] no dist/affine_deformers-*.zip — run `make build`; our side is skipped")
+        have_ours = False
+    else:
+        have_ours = ours.install(ns.zip) is not None
+
+    report = Report()
+    t0 = time.perf_counter()
+    for part, fn in (("a", part_a), ("b", part_b), ("c", part_c)):
+        if part in ns.parts:
+            fn(plan, have_ours, report)
+    if report.split_rows:
+        report.tables.append(split_table(report.split_rows))
+    elapsed = time.perf_counter() - t0
+    info_after = common.machine_info()
+
+    print()
+    for table in report.tables:
+        print(table.text(), end="\n\n")
+    for note in report.notes:
+        print(f"note: {note}")
+    print(
+        f"machine: {info_after['cpu']}, {info_after['cores']} cores; bpy {info_after['bpy']}, "
+        f"numpy {info_after['numpy']}; load average before {info_before['load']}, "
+        f"after {info_after['load']}; {elapsed:.0f} s"
+    )
+    if ns.markdown:
+        write_markdown(ns.markdown, plan, report, info_before, info_after, elapsed, quick=ns.quick)
+        print(f"wrote {ns.markdown}")
+    for problem in report.problems:
+        print(f"PROBLEM: {problem}")
+    return 1 if report.problems else 0
+
+
+def write_markdown(
+    path: Path, plan: Plan, report: Report, before: dict, after: dict, elapsed: float, quick: bool
+) -> None:
+    command = "python bench/run.py" + (" --quick" if quick else "") + f" --markdown {path.name}"
+    lines = [
+        "# Benchmarks: Affine Deformers vs Blender's native deformers",
+        "",
+        f"Generated by `make bench` / `{command}`; do not edit by hand, re-run on a quiet machine.",
+        "",
+        "## What is measured",
+        "",
+        "One interactive update: move one control (an Empty, a pose bone or one cage vertex; a different",
+        "small translation + rotation each time), then `view_layer.update()` twice. The first pass moves",
+        "the control and runs our `depsgraph_update_post` handler, which writes the offsets into a mesh",
+        "attribute; the second pass re-evaluates the Geometry Nodes modifier that adds them (for native",
+        "modifiers the second pass finds nothing to do). After every repetition the evaluated vertex",
+        "positions are read back (untimed) and must differ from the previous repetition's, and after the",
+        "last one a third pass must change nothing; column *check* is empty when both hold.",
+        "",
+        f"Median of {plan.reps} repetitions after {plan.warmup} warm-up ones; IQR = 25th – 75th percentile.",
+        "Every method runs alone in a fresh scene of the same bpy process, on the same procedurally built",
+        "UV sphere (radius 1). Probes sit on a Fibonacci lattice on its surface; the falloff radius is",
+        f"{plan.radius} for every method. Ratios are ours ÷ native: below 1 means we are faster.",
+        "",
+        "## Machine",
+        "",
+        f"- CPU: {after['cpu']}, {after['cores']} cores (shared with other work)",
+        f"- bpy {after['bpy']}, numpy {after['numpy']}, Python {after['python']}, "
+        f"OPENBLAS_CORETYPE={after['OPENBLAS_CORETYPE']}",
+        f"- date: {after['date']}; the run took {elapsed:.0f} s",
+        f"- load average (1, 5, 15 min) before: {before['load']}; after: {after['load']}",
+        "",
+        "## Results",
+        "",
+    ]
+    for table in report.tables:
+        lines += [table.markdown(), ""]
+    extra = report.notes + [f"**problem**: {p}" for p in report.problems]
+    if extra:
+        lines += ["## Notes", "", *[f"- {n}" for n in extra], ""]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines), encoding="utf-8")

@@ -1,0 +1,201 @@
+"""Blender-level test set-up: install the BUILT extension .zip into an isolated user directory and drive
+it like a user does (operators, frame changes, file save/load), with the bpy module in-process and, for
+renders / fresh-process loads / Blender 4.2 LTS, in subprocesses.
+
+BLENDER_USER_RESOURCES must be set before bpy is imported, so this module sets it at import time.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+import sys
+import tempfile
+import textwrap
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+USER_DIR = Path(tempfile.mkdtemp(prefix="affdef_user_"))
+os.environ["BLENDER_USER_RESOURCES"] = str(USER_DIR)
+
+import bpy  # noqa: E402  (must follow BLENDER_USER_RESOURCES)
+
+ADDON = "bl_ext.user_default.affine_deformers"
+PACKAGE = f"{ADDON}.affine_deformers"
+SUBPROCESS_TIMEOUT = 300
+
+
+def _package_sources() -> list[Path]:
+    files = [ROOT / "__init__.py", ROOT / "blender_manifest.toml"]
+    return files + sorted((ROOT / "affine_deformers").rglob("*.py"))
+
+
+def _fresh_zip() -> Path:
+    """dist/affine_deformers-*.zip when it is newer than every packaged source; else a fresh build in
+    a temporary directory (never test stale code, never race other builds writing dist/)."""
+    newest = max(p.stat().st_mtime for p in _package_sources() if p.exists())
+    built = sorted((ROOT / "dist").glob("affine_deformers-*.zip"))
+    if built and built[-1].stat().st_mtime >= newest:
+        return built[-1]
+    out = Path(tempfile.mkdtemp(prefix="affdef_build_"))
+    subprocess.run([sys.executable, str(ROOT / "tools" / "build_extension.py"), "--output-dir", str(out)],
+                   check=True, cwd=ROOT, capture_output=True, timeout=SUBPROCESS_TIMEOUT)
+    return sorted(out.glob("affine_deformers-*.zip"))[-1]
+
+
+@pytest.fixture(scope="session")
+def extension_zip() -> Path:
+    return _fresh_zip()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def installed(extension_zip: Path) -> SimpleNamespace:
+    """Install + enable the zip once; save the preferences so read_homefile keeps it enabled."""
+    result = bpy.ops.extensions.package_install_files(
+        filepath=str(extension_zip), repo="user_default", enable_on_install=True)
+    assert result == {"FINISHED"}
+    assert ADDON in {a.module for a in bpy.context.preferences.addons}
+    bpy.ops.wm.save_userpref()
+    return SimpleNamespace(
+        core=importlib.import_module(f"{PACKAGE}.core"),
+        aff3=importlib.import_module(f"{PACKAGE}.core.aff3"),
+        deform=importlib.import_module(f"{PACKAGE}.core.deform"),
+        evaluate=importlib.import_module(f"{PACKAGE}.blender.evaluate"),
+        storage=importlib.import_module(f"{PACKAGE}.blender.storage"),
+        zip=extension_zip,
+        addon=ADDON,
+        package=PACKAGE,
+    )
+
+
+@pytest.fixture(autouse=True)
+def clean_scene(installed):
+    """An empty scene per test, with the extension still enabled and registered."""
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert ADDON in {a.module for a in bpy.context.preferences.addons}
+    assert hasattr(bpy.types.Object, "affine_deformers")
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 20
+    scene.frame_set(1)
+    yield scene
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def uv_sphere(segments: int = 32, rings: int = 16, radius: float = 1.0, location=(0.0, 0.0, 0.0)):
+    bpy.ops.mesh.primitive_uv_sphere_add(segments=segments, ring_count=rings, radius=radius,
+                                         location=location)
+    return bpy.context.active_object
+
+
+def grid_cube(cuts: int = 10, size: float = 2.0, name: str = "Cube"):
+    """A cube with `cuts` cuts per edge (6·(cuts+1)² faces), centred at the origin."""
+    import bmesh
+
+    mesh = bpy.data.meshes.new(name)
+    bm = bmesh.new()
+    bmesh.ops.create_cube(bm, size=size)
+    bmesh.ops.subdivide_edges(bm, edges=bm.edges[:], cuts=cuts, use_grid_fill=True)
+    bm.to_mesh(mesh)
+    bm.free()
+    obj = bpy.data.objects.new(name, mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    return obj
+
+
+def empty(name: str, location=(0.0, 0.0, 0.0)):
+    obj = bpy.data.objects.new(name, None)
+    obj.location = location
+    bpy.context.scene.collection.objects.link(obj)
+    return obj
+
+
+def add_probe_deformer(target, probes, **options):
+    """Run the add operator like a script does, then set options (weights recompute live)."""
+    with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, *probes]):
+        assert bpy.ops.object.affine_probe_deformer_add() == {"FINISHED"}
+    deformer = target.affine_deformers[len(target.affine_deformers) - 1]
+    for key, value in options.items():
+        setattr(deformer, key, value)
+    return deformer
+
+
+def run_op(op, obj, **kwargs):
+    with bpy.context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
+        return op(**kwargs)
+
+
+def evaluated_positions(obj) -> np.ndarray:
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    mesh = obj.evaluated_get(depsgraph).data
+    co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3)
+
+
+def rest_positions(obj) -> np.ndarray:
+    co = np.empty(len(obj.data.vertices) * 3, dtype=np.float32)
+    obj.data.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3)
+
+
+def dense_weights(obj, deformer) -> np.ndarray:
+    """(N, m) weights rebuilt from the stored `.affdef_<uid>_idx<k>` / `_w<k>` attributes."""
+    n, m = len(obj.data.vertices), len(deformer.probes)
+    dense = np.zeros((n, m))
+    k = 0
+    while (a_i := obj.data.attributes.get(f".affdef_{deformer.uid}_idx{k}")) is not None:
+        a_w = obj.data.attributes[f".affdef_{deformer.uid}_w{k}"]
+        idx = np.empty(n, dtype=np.int32)
+        w = np.empty(n, dtype=np.float32)
+        a_i.data.foreach_get("value", idx)
+        a_w.data.foreach_get("value", w)
+        np.add.at(dense, (np.arange(n), idx), w)
+        k += 1
+    assert k > 0, "no stored weights"
+    return dense
+
+
+def local_motion(target, probe, rest_matrix) -> np.ndarray:
+    """A = C · C_rest⁻¹ with C = target_world⁻¹ · probe_world, independently of the add-on (float64)."""
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    tw = np.array(target.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
+    pw = np.array(probe.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
+    current = np.linalg.inv(tw) @ pw
+    return current @ np.linalg.inv(np.array(rest_matrix, dtype=np.float64).reshape(4, 4))
+
+
+def run_blender(script: str, python: str | None = None, env_extra: dict | None = None,
+                timeout: float = SUBPROCESS_TIMEOUT) -> subprocess.CompletedProcess:
+    """Run `script` in a fresh bpy process (default: this interpreter, the shared user directory where
+    the extension is installed). The script must enable the add-on itself (`enable_addon()` prelude)."""
+    prelude = textwrap.dedent(f"""
+        import bpy
+        import addon_utils
+        def enable_addon():
+            mod = addon_utils.enable({ADDON!r}, default_set=True)
+            assert mod is not None and hasattr(bpy.types.Object, "affine_deformers"), "add-on not enabled"
+    """)
+    env = {**os.environ, "BLENDER_USER_RESOURCES": str(USER_DIR), **(env_extra or {})}
+    proc = subprocess.run([python or sys.executable, "-c", prelude + textwrap.dedent(script)],
+                          env=env, capture_output=True, text=True, timeout=timeout)
+    if proc.returncode != 0:
+        raise AssertionError(f"subprocess failed ({proc.returncode}):\n"
+                             f"{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}")
+    return proc
+
+
+@pytest.fixture
+def bl() -> SimpleNamespace:
+    """Helper functions for driving Blender in tests."""
+    return SimpleNamespace(
+        uv_sphere=uv_sphere, grid_cube=grid_cube, empty=empty, add_probe_deformer=add_probe_deformer,
+        run_op=run_op, evaluated_positions=evaluated_positions, rest_positions=rest_positions,
+        dense_weights=dense_weights, local_motion=local_motion, run_blender=run_blender,
+    )

@@ -1,0 +1,143 @@
+"""Bad input never crashes and never corrupts the mesh: each case gives a clear message, the mesh data
+is untouched and the evaluated mesh shows the exact rest shape; fixing the input recovers."""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+import pytest
+
+
+@pytest.fixture
+def rig(bl):
+    target = bl.uv_sphere(segments=24, rings=12)
+    probes = [bl.empty("Alpha", (0.0, 0.0, 1.0)), bl.empty("Beta", (0.0, 0.0, -1.0))]
+    deformer = bl.add_probe_deformer(target, probes)
+    rest = bl.rest_positions(target).copy()
+    probes[1].rotation_euler.x = 0.7  # a live deformation that the bad input must switch off
+    assert np.abs(bl.evaluated_positions(target) - rest).max() > 0.05
+    return target, probes, deformer, rest
+
+
+def _assert_intact(bl, target, rest):
+    assert np.array_equal(bl.rest_positions(target), rest), "mesh data must never change"
+    assert np.array_equal(bl.evaluated_positions(target), rest), "evaluated mesh must show the rest shape"
+
+
+def test_deleted_probe(bl, rig):
+    target, probes, deformer, rest = rig
+    bpy.data.objects.remove(probes[0], do_unlink=True)
+    _assert_intact(bl, target, rest)
+    assert "Probe 'Alpha' was deleted" in deformer.status
+    assert deformer.probes[0].object is None
+
+
+def test_probe_deleted_from_the_scene_but_kept_by_the_pointer(bl, rig):
+    target, probes, deformer, rest = rig
+    with bpy.context.temp_override(selected_objects=[probes[0]], active_object=probes[0], object=probes[0]):
+        bpy.ops.object.delete()
+    _assert_intact(bl, target, rest)
+    assert "Probe 'Alpha' is not in any scene" in deformer.status
+
+
+def test_probe_scaled_to_zero(bl, rig):
+    target, probes, deformer, rest = rig
+    probes[0].scale = (0.0, 0.0, 0.0)
+    _assert_intact(bl, target, rest)
+    assert "Probe 'Alpha'" in deformer.status and "scaled to zero" in deformer.status
+    probes[0].scale = (1.0, 1.0, 1.0)  # fixing the input recovers without rebinding
+    assert np.abs(bl.evaluated_positions(target) - rest).max() > 0.05
+    assert deformer.status == ""
+
+
+def test_probe_mirrored(bl, rig):
+    target, probes, deformer, rest = rig
+    probes[1].scale = (-1.0, 1.0, 1.0)
+    _assert_intact(bl, target, rest)
+    assert "Probe 'Beta'" in deformer.status and "mirrored" in deformer.status
+
+
+def test_nan_in_a_probe_matrix(bl, rig):
+    target, probes, deformer, rest = rig
+    probes[0].location.y = float("nan")
+    _assert_intact(bl, target, rest)
+    assert "Probe 'Alpha'" in deformer.status and "non-finite" in deformer.status
+
+
+def test_topology_changed_after_bind(bl, rig):
+    import bmesh
+
+    target, _probes, deformer, _rest = rig
+    bm = bmesh.new()
+    bm.from_mesh(target.data)
+    bmesh.ops.subdivide_edges(bm, edges=bm.edges[:8], cuts=1)
+    bm.to_mesh(target.data)
+    bm.free()
+    target.data.update()
+    changed_rest = bl.rest_positions(target).copy()
+    assert len(changed_rest) != deformer.bound_vertex_count
+    _assert_intact(bl, target, changed_rest)
+    assert "topology changed" in deformer.status and "rebind" in deformer.status
+    assert bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=0) == {"FINISHED"}
+    assert deformer.status == "" and deformer.bound_vertex_count == len(changed_rest)
+
+
+def test_non_mesh_target(bl):
+    bpy.ops.curve.primitive_bezier_curve_add()
+    curve = bpy.context.active_object
+    points = [tuple(p.co) for p in curve.data.splines[0].bezier_points]
+    probe = bl.empty("P")
+    with (bpy.context.temp_override(active_object=curve, object=curve, selected_objects=[curve, probe]),
+          pytest.raises(RuntimeError, match="not a mesh")):
+        bpy.ops.object.affine_probe_deformer_add()
+    assert len(curve.affine_deformers) == 0 and len(curve.modifiers) == 0
+    assert [tuple(p.co) for p in curve.data.splines[0].bezier_points] == points
+    # a deformer item put on a curve by a script: a message at evaluation, no exception
+    curve.affine_deformers.add().probes.add().object = probe
+    bpy.context.scene.frame_set(2)
+    assert "is not a mesh" in curve.affine_deformers[0].status
+    assert [tuple(p.co) for p in curve.data.splines[0].bezier_points] == points
+
+
+def test_no_active_object(bl):
+    with (bpy.context.temp_override(active_object=None, object=None, selected_objects=[]),
+          pytest.raises(RuntimeError, match="No active object")):
+        bpy.ops.object.affine_probe_deformer_add()
+
+
+def test_bad_deformer_index(bl, rig):
+    target, *_ = rig
+    with pytest.raises(RuntimeError, match="no affine deformer #3"):
+        bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=3)
+
+
+def test_binding_a_zero_scaled_probe_is_refused_and_rolled_back(bl):
+    target = bl.uv_sphere()
+    probe = bl.empty("Flat")
+    probe.scale = (1.0, 0.0, 1.0)
+    with (bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, probe]),
+          pytest.raises(RuntimeError, match="Probe 'Flat' has a zero scale")):
+        bpy.ops.object.affine_probe_deformer_add()
+    assert len(target.affine_deformers) == 0 and len(target.modifiers) == 0
+    assert not [a.name for a in target.data.attributes if "affdef" in a.name]
+
+
+def test_an_unexpected_exception_is_contained(bl, rig, installed, monkeypatch):
+    """A bug in a kind must not escape the frame / depsgraph handlers: status + rest shape."""
+    import importlib
+
+    target, probes, deformer, rest = rig
+    kinds = importlib.import_module(f"{installed.package}.blender.kinds")
+
+    def broken(*_args, **_kwargs):
+        raise ZeroDivisionError("simulated bug")
+
+    monkeypatch.setattr(kinds.ProbeKind, "current_motions", broken)
+    probes[0].location.x = 0.3
+    bpy.context.scene.frame_set(2)
+    _assert_intact(bl, target, rest)
+    assert deformer.status.startswith("Internal error (ZeroDivisionError: simulated bug)")
+    monkeypatch.undo()
+    probes[0].location.x = 0.2
+    assert np.abs(bl.evaluated_positions(target) - rest).max() > 0.05
+    assert deformer.status == ""

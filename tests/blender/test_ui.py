@@ -1,0 +1,110 @@
+"""The panel, lists and menu draw without error in every state, and everything they reference exists.
+
+Background bpy has no windows, so drawing goes through a recording layout that checks each property
+against the data's RNA and each operator (and the operator properties set on it) against bpy.ops.
+"""
+
+from __future__ import annotations
+
+import importlib
+from types import SimpleNamespace
+
+import bpy
+import pytest
+
+
+class _OperatorProps:
+    def __init__(self, idname: str) -> None:
+        module, name = idname.split(".")
+        rna = getattr(getattr(bpy.ops, module), name).get_rna_type()
+        object.__setattr__(self, "_names", set(rna.properties.keys()))
+
+    def __setattr__(self, key: str, value) -> None:
+        assert key in self._names, f"operator has no property {key!r}"
+        object.__setattr__(self, key, value)
+
+
+class RecordingLayout:
+    """Accepts the UILayout calls the add-on makes, validating their targets."""
+
+    def __init__(self, log: list) -> None:
+        self.log = log
+
+    def _child(self, *_args, **_kwargs) -> RecordingLayout:
+        return RecordingLayout(self.log)
+
+    row = column = box = split = _child
+
+    def prop(self, data, name: str, **_kwargs) -> None:
+        assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
+        getattr(data, name)
+        self.log.append(("prop", name))
+
+    def operator(self, idname: str, **_kwargs) -> _OperatorProps:
+        self.log.append(("operator", idname))
+        return _OperatorProps(idname)
+
+    def label(self, text: str = "", **_kwargs) -> None:
+        self.log.append(("label", text))
+
+    def template_list(self, list_type, _list_id, data, prop, active_data, active_prop, **_kwargs) -> None:
+        assert hasattr(bpy.types, list_type), list_type
+        assert prop in data.bl_rna.properties and active_prop in active_data.bl_rna.properties
+        self.log.append(("list", prop))
+
+    def menu(self, idname: str, **_kwargs) -> None:
+        assert hasattr(bpy.types, idname), idname
+        self.log.append(("menu", idname))
+
+    def separator(self, **_kwargs) -> None:
+        pass
+
+
+@pytest.fixture
+def panels(installed):
+    return importlib.import_module(f"{installed.package}.blender.panels")
+
+
+def _draw_panel(panels, obj) -> list:
+    log: list = []
+    panel = SimpleNamespace(layout=RecordingLayout(log))
+    context = SimpleNamespace(object=obj, active_object=obj)
+    assert panels.AFFINE_PT_deformers.poll(context)
+    panels.AFFINE_PT_deformers.draw(panel, context)
+    return log
+
+
+def test_panel_draws_in_every_state(bl, panels):
+    target = bl.uv_sphere()
+    log = _draw_panel(panels, target)
+    assert log == [("list", "affine_deformers"), ("operator", "object.affine_probe_deformer_add")]
+    probes = [bl.empty("A"), bl.empty("B", (0, 0, 1))]
+    deformer = bl.add_probe_deformer(target, probes)
+    for mode in ("INVERSE_DISTANCE", "FALLOFF", "VERTEX_GROUPS"):
+        deformer.weight_mode = mode
+        log = _draw_panel(panels, target)
+        assert (("prop", "radius") in log) == (mode != "VERTEX_GROUPS")
+        assert (("prop", "exponent") in log) == (mode == "INVERSE_DISTANCE")
+        assert ("operator", "object.affine_deformer_apply") in log
+    probes[0].scale = (0, 0, 0)
+    bpy.context.evaluated_depsgraph_get()
+    log = _draw_panel(panels, target)
+    status_lines = " ".join(text for kind, text in log if kind == "label")
+    assert "Probe 'A' is scaled to zero" in status_lines
+
+    for item in target.affine_deformers:
+        panels.AFFINE_UL_deformers.draw_item(None, None, RecordingLayout([]), None, item, 0, None, "")
+        for probe in item.probes:
+            panels.AFFINE_UL_probes.draw_item(None, None, RecordingLayout([]), None, probe, 0, None, "")
+
+
+def test_menu_draws(panels):
+    log: list = []
+    menu = SimpleNamespace(layout=RecordingLayout(log))
+    panels.AFFINE_MT_object.draw(menu, None)
+    panels.draw_object_menu(menu, None)
+    assert ("operator", "object.affine_probe_deformer_add") in log and ("menu", "AFFINE_MT_object") in log
+
+
+def test_panel_hidden_for_non_mesh(bl, panels):
+    assert not panels.AFFINE_PT_deformers.poll(SimpleNamespace(object=bl.empty("E")))

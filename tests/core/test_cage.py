@@ -1,0 +1,444 @@
+"""Cage geometry (core/cage.py): corner tetrahedra and face motions, distances, weights, validation."""
+
+from __future__ import annotations
+
+import itertools
+import re
+
+import numpy as np
+import pytest
+
+from affine_deformers.core.aff3 import matrices_from_params, so3_exp
+from affine_deformers.core.cage import (
+    CageTopology,
+    check_cage,
+    face_motions,
+    face_normals,
+    point_triangle_distance_sq,
+    polygon_distance_sq,
+    validate_cage,
+)
+from affine_deformers.core.cage import cage_weights as _cage_weights
+
+CUBE_POINTS = np.array(list(itertools.product([0, 1], repeat=3)), dtype=float)[:, ::-1] - 0.5
+# vertex i has (x, y, z) bits (i & 1, i >> 1 & 1, i >> 2 & 1): 0 (0,0,0) 1 (1,0,0) 2 (0,1,0) 3 (1,1,0) ...
+CUBE_FACES = [
+    [0, 2, 3, 1],  # bottom, −z
+    [4, 5, 7, 6],  # top, +z
+    [0, 1, 5, 4],  # front, −y
+    [2, 6, 7, 3],  # back, +y
+    [0, 4, 6, 2],  # left, −x
+    [1, 3, 7, 5],  # right, +x
+]
+TOP, BOTTOM = 1, 0
+
+
+def cube() -> tuple[np.ndarray, CageTopology]:
+    return CUBE_POINTS.copy(), CageTopology.from_polygons(CUBE_FACES)
+
+
+def mixed_prism() -> tuple[np.ndarray, CageTopology]:
+    """Pentagonal prism: two pentagons, four quads and one side split into two triangles."""
+    ang = 2 * np.pi * np.arange(5) / 5
+    ring = np.stack([np.cos(ang), np.sin(ang) * 0.8, np.zeros(5)], axis=1)
+    points = np.concatenate([ring - np.array([0.0, 0.0, 0.6]), ring + np.array([0.1, 0.0, 0.7])])
+    faces = [[4, 3, 2, 1, 0], [5, 6, 7, 8, 9]]
+    for i in range(4):
+        j = (i + 1) % 5
+        faces.append([i, j, j + 5, i + 5])
+    faces += [[4, 0, 5], [4, 5, 9]]
+    return points, CageTopology.from_polygons(faces)
+
+
+def similarity(angle: float, axis, scale: float, shift) -> np.ndarray:
+    axis = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    G = np.eye(4)
+    G[:3, :3] = scale * so3_exp(angle * axis)
+    G[:3, 3] = shift
+    return G
+
+
+def apply(G: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ G[:3, :3].T + G[:3, 3]
+
+
+def cage_weights(*args, **kwargs):  # type: ignore[no-untyped-def]
+    indices, values = _cage_weights(*args, **kwargs)
+    assert indices.dtype == np.int32 and values.dtype == np.float64
+    assert np.all(np.isfinite(values)) and np.all(values >= 0.0)
+    np.testing.assert_allclose(values.sum(axis=1), 1.0, atol=1e-12)
+    assert np.all(np.diff(values, axis=1) <= 0.0)  # strongest first
+    return indices, values
+
+
+def dense_rows(indices: np.ndarray, values: np.ndarray, n_faces: int) -> np.ndarray:
+    dense = np.zeros((indices.shape[0], n_faces))
+    np.add.at(dense, (np.arange(indices.shape[0])[:, None], indices), values)
+    return dense
+
+
+# --- topology ---------------------------------------------------------------------------------------
+
+
+def test_corner_triples_fan_and_edges() -> None:
+    topo = CageTopology.from_polygons([[0, 1, 2], [3, 4, 5, 6], [7, 8, 9, 10, 11]])
+    triples, face, weight = topo.corner_triples()
+    assert triples.tolist()[:2] == [[0, 1, 2], [3, 4, 5]]
+    assert triples.tolist()[1:5] == [[3, 4, 5], [4, 5, 6], [5, 6, 3], [6, 3, 4]]
+    assert face.tolist() == [0] + [1] * 4 + [2] * 5
+    np.testing.assert_allclose(weight, [1.0] + [0.25] * 4 + [0.2] * 5)
+    fan, fan_face = topo.fan_triangles()
+    assert fan.tolist() == [[0, 1, 2], [3, 4, 5], [3, 5, 6], [7, 8, 9], [7, 9, 10], [7, 10, 11]]
+    assert fan_face.tolist() == [0, 1, 1, 2, 2, 2]
+    assert topo.directed_edges().tolist()[:3] == [[0, 1], [1, 2], [2, 0]]
+
+
+def test_topology_rejects_malformed_arrays() -> None:
+    with pytest.raises(ValueError, match="fewer than 3 corners"):
+        CageTopology.from_polygons([[0, 1, 2], [0, 1]])
+    with pytest.raises(ValueError, match="refers to vertex 5"):
+        CageTopology.from_arrays(np.array([0, 1, 5]), np.array([0]), np.array([3]), n_vertices=4)
+    with pytest.raises(ValueError, match="outside loop_vertex_indices"):
+        CageTopology.from_arrays(np.array([0, 1, 2]), np.array([1]), np.array([3]))
+    with pytest.raises(ValueError, match="integer"):
+        CageTopology.from_arrays(np.array([0.0, 1.0, 2.0]), np.array([0]), np.array([3]))
+    points, topo = cube()
+    with pytest.raises(ValueError, match="has 7 vertices"):
+        face_motions(points[:7], points[:7], topo)
+
+
+def test_newell_normal_of_a_triangle_is_the_cross_product() -> None:
+    points, topo = mixed_prism()
+    normals = face_normals(points, topo)
+    a, b, c = points[[4, 0, 5]]
+    np.testing.assert_allclose(normals[-2], np.cross(b - a, c - a), atol=1e-14)
+
+
+# --- face motions -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "G",
+    [
+        similarity(0.7, [1, 2, 3], 1.0, [0.3, -2.0, 1.0]),
+        similarity(2.9, [-1, 0.5, 0.2], 2.5, [0.0, 0.0, 0.0]),
+        similarity(0.0, [0, 0, 1], 0.01, [5.0, 5.0, 5.0]),
+        similarity(np.pi, [1, 0, 0], 1.3, [0.0, 1.0, 0.0]),  # exact half turn: corners must agree
+        similarity(np.pi - 1e-9, [0.3, -0.2, 1.0], 0.7, [1.0, 0.0, -1.0]),
+    ],
+)
+def test_similarity_of_the_whole_cage_gives_every_face_exactly_g(G: np.ndarray) -> None:
+    for points, topo in (cube(), mixed_prism()):
+        motion = face_motions(points, apply(G, points), topo)
+        assert motion.valid.all() and motion.messages == ()
+        A = matrices_from_params(motion.params)
+        np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-9)
+
+
+def test_shear_is_exact_on_each_face_plane_but_the_normal_follows_the_face() -> None:
+    """ERRATA 9's apex construction is similarity-covariant only: under a shear every corner maps its
+    own face exactly, and the normal direction goes to cof(M)·N/√|cof(M)·N|, not to M·N."""
+    points, topo = mixed_prism()
+    G = np.eye(4)
+    G[:3, :3] = [[1.0, 0.6, 0.0], [0.0, 1.2, 0.3], [0.2, 0.0, 0.8]]
+    G[:3, 3] = [0.5, -0.1, 0.2]
+    current = apply(G, points)
+    motion = face_motions(points, current, topo)
+    assert motion.valid.all()
+    A = matrices_from_params(motion.params)
+    normals = face_normals(points, topo)
+    M = G[:3, :3]
+    cof = np.linalg.det(M) * np.linalg.inv(M).T
+    for f in range(topo.n_faces):
+        verts = topo.loop_vertex_indices[topo.loop_start[f] : topo.loop_start[f] + topo.loop_total[f]]
+        np.testing.assert_allclose(apply(A[f], points[verts]), current[verts], atol=1e-9)
+        n_hat = normals[f] / np.linalg.norm(normals[f])
+        expected = cof @ n_hat / np.sqrt(np.linalg.norm(cof @ n_hat))
+        np.testing.assert_allclose(A[f, :3, :3] @ n_hat, expected, atol=1e-9)
+    assert np.abs(A - G).max() > 0.1  # so a common shear is NOT reproduced by blending faces
+
+
+@pytest.mark.parametrize("concave", [False, True])
+def test_quad_equals_its_two_triangles_under_an_affine_motion(concave: bool) -> None:
+    quad = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [2.0, 1.5, 0.0], [0.0, 1.0, 0.0]])
+    if concave:
+        quad[3] = [1.6, 0.4, 0.0]  # corner 3 becomes reflex
+    R = so3_exp(np.array([0.2, 0.5, -0.3]))
+    quad = quad @ R.T + [0.3, 0.1, -0.4]  # a quad in a general plane
+    G = np.eye(4)
+    G[:3, :3] = [[1.3, 0.4, -0.2], [0.1, 0.7, 0.5], [-0.3, 0.2, 1.1]]
+    G[:3, 3] = [1.0, 2.0, -0.5]
+    current = apply(G, quad)
+    as_quad = face_motions(quad, current, CageTopology.from_polygons([[0, 1, 2, 3]]))
+    as_tris = face_motions(quad, current, CageTopology.from_polygons([[0, 1, 2], [0, 2, 3]]))
+    np.testing.assert_allclose(as_tris.params[0], as_tris.params[1], atol=1e-10)
+    np.testing.assert_allclose(as_quad.params[0], as_tris.params[0], atol=1e-10)
+    assert np.abs(as_quad.params[0]).max() > 0.1
+
+
+def test_collapsed_face_is_reported_and_zeroed_never_nan() -> None:
+    # Octahedron; moving +z onto the midpoint of +x and +y makes exactly one triangle collinear.
+    points = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float)
+    faces = [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
+    topo = CageTopology.from_polygons(faces)
+    assert check_cage(points, topo).ok
+    current = points.copy()
+    current[4] = [0.5, 0.5, 0.0]
+    motion = face_motions(points, current, topo)
+    assert motion.valid.tolist() == [False] + [True] * 7
+    assert np.array_equal(motion.params[0], np.zeros(12))
+    assert np.all(np.isfinite(motion.params))
+    assert len(motion.messages) == 1 and "collapsed" in motion.messages[0] and ": 0" in motion.messages[0]
+
+    current[4] = [np.nan, 0.0, 1.0]
+    motion = face_motions(points, current, topo)
+    assert motion.valid.tolist() == [False] * 4 + [True] * 4
+    assert np.all(np.isfinite(motion.params))
+
+    rest = points.copy()
+    rest[4] = [0.5, 0.5, 0.0]
+    motion = face_motions(rest, points, topo)
+    assert not motion.valid[0] and motion.valid[1:].all()
+    assert "rest pose" in motion.messages[0]
+
+
+def test_straight_rest_corner_of_an_ngon_is_skipped() -> None:
+    points, _ = cube()
+    points = np.vstack([points, [0.0, -0.5, 0.5]])  # vertex 8 on the top-front edge (4, 5)
+    faces = [list(f) for f in CUBE_FACES]
+    faces[TOP] = [4, 8, 5, 7, 6]
+    faces[2] = [0, 1, 5, 8, 4]
+    topo = CageTopology.from_polygons(faces)
+    assert check_cage(points, topo).ok
+    G = similarity(1.1, [0.2, 1.0, -0.4], 1.7, [0.0, 2.0, 1.0])
+    motion = face_motions(points, apply(G, points), topo)
+    assert motion.valid.all()
+    A = matrices_from_params(motion.params)
+    np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-9)
+    # Bending at the T-junction still gives finite, valid parameters.
+    bent = points.copy()
+    bent[8, 2] += 0.05
+    motion = face_motions(points, bent, topo)
+    assert motion.valid.all() and np.all(np.isfinite(motion.params))
+
+
+def test_reference_rotation_lifts_every_face() -> None:
+    points, topo = cube()
+    angle = np.radians(400.0)
+    G = similarity(angle, [0, 0, 1], 1.0, [0.0, 0.0, 0.0])
+    motion = face_motions(points, apply(G, points), topo, w_ref=np.array([0.0, 0.0, angle]))
+    np.testing.assert_allclose(motion.params[:, 0:3], np.tile([0.0, 0.0, angle], (6, 1)), atol=1e-9)
+    A = matrices_from_params(motion.params)
+    np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-9)
+    principal = face_motions(points, apply(G, points), topo)
+    np.testing.assert_allclose(principal.params[:, 2], angle - 2 * np.pi, atol=1e-9)
+
+
+# --- distances --------------------------------------------------------------------------------------
+
+
+def reference_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[float, str]:
+    """Literal definition: the plane distance if the projection lies in the triangle, else the
+    nearest of the three segments. Also names the closest feature."""
+
+    def segment(p, x, y, names):  # type: ignore[no-untyped-def]
+        e = y - x
+        t = float(np.clip(np.dot(p - x, e) / np.dot(e, e), 0.0, 1.0))
+        name = names[0] if t == 0.0 else names[1] if t == 1.0 else names[0] + names[1]
+        return float(np.linalg.norm(p - (x + t * e))), name
+
+    n = np.cross(b - a, c - a)
+    ab, ac, ap = b - a, c - a, p - a
+    gram = np.array([[ab @ ab, ab @ ac], [ab @ ac, ac @ ac]])
+    v, w = np.linalg.solve(gram, [ap @ ab, ap @ ac])
+    if v >= 0 and w >= 0 and v + w <= 1:
+        return abs(np.dot(p - a, n)) / np.linalg.norm(n), "face"
+    return min(segment(p, a, b, "AB"), segment(p, b, c, "BC"), segment(p, c, a, "CA"))
+
+
+def test_point_triangle_distance_matches_brute_force_in_every_region() -> None:
+    rng = np.random.default_rng(8)
+    tris = rng.normal(size=(6, 3, 3))
+    tris[0] = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+    tris[1] = [[0, 0, 0], [10, 0, 0], [0, 0.01, 0]]  # a sliver
+    regions: set[str] = set()
+    for a, b, c in tris:
+        ab, ac, n = b - a, c - a, np.cross(b - a, c - a)
+        coef = rng.uniform(-1.0, 2.0, size=(400, 2))
+        points = a + coef[:, :1] * ab + coef[:, 1:] * ac + rng.uniform(-1, 1, size=(400, 1)) * n
+        got = point_triangle_distance_sq(points, a[None], b[None], c[None])[:, 0]
+        for p, d2 in zip(points, got, strict=True):
+            d, region = reference_distance(p, a, b, c)
+            regions.add(region)
+            assert np.sqrt(d2) == pytest.approx(d, abs=1e-9 * max(1.0, np.linalg.norm(p - a)))
+    assert regions == {"face", "AB", "BC", "CA", "A", "B", "C"}
+
+
+def test_degenerate_triangles_reduce_to_segments_and_points() -> None:
+    points = np.array([[0.5, 1.0, 0.0], [3.0, 0.0, 0.0], [-1.0, -1.0, 2.0]])
+    line = [np.zeros(3)], [np.array([1.0, 0.0, 0.0])], [np.array([2.0, 0.0, 0.0])]
+    got = point_triangle_distance_sq(points, *line)[:, 0]
+    np.testing.assert_allclose(got, [1.0, 1.0, 1.0 + 1.0 + 4.0], atol=1e-12)
+    dot = [np.ones(3)], [np.ones(3)], [np.ones(3)]
+    got = point_triangle_distance_sq(points, *dot)[:, 0]
+    np.testing.assert_allclose(got, ((points - 1.0) ** 2).sum(axis=1), atol=1e-12)
+
+
+def test_polygon_distance_is_the_minimum_over_fan_triangles() -> None:
+    points, topo = mixed_prism()
+    rng = np.random.default_rng(9)
+    query = rng.normal(size=(50, 3))
+    d2 = polygon_distance_sq(query, points, topo)
+    fan, fan_face = topo.fan_triangles()
+    per_tri = point_triangle_distance_sq(query, *(points[fan[:, k]] for k in range(3)))
+    for f in range(topo.n_faces):
+        np.testing.assert_allclose(d2[:, f], per_tri[:, fan_face == f].min(axis=1), atol=1e-12)
+    below_pentagon = points[[0, 1, 2, 3, 4]].mean(axis=0) - np.array([0.0, 0.0, 0.25])
+    assert polygon_distance_sq(below_pentagon[None], points, topo)[0, 0] == pytest.approx(0.0625)
+
+
+# --- weights ----------------------------------------------------------------------------------------
+
+
+def test_inverse_distance_weights_inside_a_cube() -> None:
+    points, topo = cube()
+    v = np.array([[0.1, -0.2, 0.3]])
+    idx, val = cage_weights(v, points, topo, k=6, exponent=2.0)
+    dist = {BOTTOM: 0.8, TOP: 0.2, 2: 0.3, 3: 0.7, 4: 0.6, 5: 0.4}
+    expected = np.array([dist[f] ** -2.0 for f in range(6)])
+    expected /= expected.sum()
+    np.testing.assert_allclose(val[0], expected[idx[0]], rtol=1e-12)
+    assert idx[0, 0] == TOP
+    idx3, val3 = cage_weights(v, points, topo, k=6, exponent=3.0)
+    w3 = np.array([dist[f] ** -3.0 for f in range(6)])
+    np.testing.assert_allclose(val3[0], (w3 / w3.sum())[idx3[0]], rtol=1e-12)
+
+
+def test_half_space_rule_on_a_cube() -> None:
+    points, topo = cube()
+    inside = np.array([[0.0, 0.0, 0.45]])
+    _, val = cage_weights(inside, points, topo, k=6)
+    assert np.all(val > 0.0)  # inside a convex cage nothing is cut
+
+    above = np.array([[0.1, 0.0, 0.8]])
+    weight = dense_rows(*cage_weights(above, points, topo, k=6), 6)[0]
+    assert weight[TOP] == 0.0 and np.count_nonzero(weight) == 5
+    idx, val = cage_weights(above, points, topo, k=6, half_space=False)
+    assert idx[0, 0] == TOP and val[0, 0] > 0.4  # the nearest face dominates again
+
+    corner = np.array([[0.8, 0.9, 0.7]])  # outside right, back and top
+    weight = dense_rows(*cage_weights(corner, points, topo, k=6), 6)[0]
+    assert set(np.flatnonzero(weight).tolist()) == {BOTTOM, 2, 4}
+
+    on_face = np.array([[0.1, 0.2, 0.5]])  # on the top face: it keeps (almost all) the weight
+    idx, val = cage_weights(on_face, points, topo, k=6)
+    assert idx[0, 0] == TOP and val[0, 0] > 0.999
+
+
+def test_vertex_outside_every_half_space_falls_back_to_plain_weights() -> None:
+    points, _ = cube()
+    open_cage = CageTopology.from_polygons([CUBE_FACES[TOP], CUBE_FACES[5]])  # two faces, open
+    far = np.array([[2.0, 0.0, 2.0], [0.0, 0.0, 0.0]])
+    idx, val = cage_weights(far, points, open_cage, k=8)
+    assert idx.shape == (2, 2)
+    assert np.all(val[0] > 0.0)  # outside both faces: fallback, no zero row
+    assert np.all(val[1] > 0.0)
+
+
+def dense_reference_weights(points, cage, topo, k, exponent=2.0):  # type: ignore[no-untyped-def]
+    d2 = polygon_distance_sq(points, cage, topo)
+    w = np.maximum(d2, (1e-6 * np.ptp(cage, axis=0).max()) ** 2) ** (-exponent / 2)
+    normals = face_normals(cage, topo)
+    unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    centroid = np.array([cage[topo.loop_vertex_indices[s : s + n]].mean(axis=0)
+                         for s, n in zip(topo.loop_start, topo.loop_total, strict=True)])
+    outside = np.einsum("fi,nfi->nf", unit, points[:, None, :] - centroid[None]) > 1e-9
+    cut = np.where(outside, 0.0, w)
+    w = np.where(cut.any(axis=1, keepdims=True), cut, w)
+    order = np.argsort(-w, axis=1, kind="stable")[:, :k]
+    vals = np.take_along_axis(w, order, axis=1)
+    return order, vals / vals.sum(axis=1, keepdims=True)
+
+
+def test_weights_match_a_dense_reference_for_any_chunking() -> None:
+    rng = np.random.default_rng(10)
+    # A bumpy closed cage with many faces: a subdivided, perturbed cube surface.
+    n = 6
+    g = np.linspace(-0.5, 0.5, n + 1)
+    verts: dict[tuple, int] = {}
+    faces = []
+
+    def vid(p):  # type: ignore[no-untyped-def]
+        key = tuple(np.round(p, 9))
+        return verts.setdefault(key, len(verts))
+
+    for axis, sign in itertools.product(range(3), (-1, 1)):
+        u_ax, v_ax = [a for a in range(3) if a != axis]
+        for i, j in itertools.product(range(n), range(n)):
+            quad = []
+            for di, dj in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                p = np.zeros(3)
+                p[axis] = 0.5 * sign
+                p[u_ax], p[v_ax] = g[i + di], g[j + dj]
+                quad.append(vid(p))
+            outward = np.cross(np.eye(3)[u_ax], np.eye(3)[v_ax])[axis] * sign > 0
+            faces.append(quad if outward else quad[::-1])
+    cage = np.array(list(verts.keys()))
+    cage += rng.normal(scale=0.01, size=cage.shape)
+    topo = CageTopology.from_polygons(faces)
+    assert check_cage(cage, topo).ok
+    points = np.concatenate([rng.uniform(-0.45, 0.45, size=(300, 3)), rng.uniform(-0.8, 0.8, size=(100, 3))])
+    ref_idx, ref_val = dense_reference_weights(points, cage, topo, k=9)
+    # Faces sharing the closest edge are at equal distance; where the 8th and 9th weights tie, which
+    # one is kept depends on rounding, so those rows are compared on the part above the tie only.
+    boundary_tie = np.isclose(ref_val[:, 7], ref_val[:, 8], rtol=1e-9)
+    assert np.count_nonzero(~boundary_tie) > 300
+    ref_idx, ref_val = ref_idx[:, :8], ref_val[:, :8] / ref_val[:, :8].sum(axis=1, keepdims=True)
+    expected = dense_rows(ref_idx, ref_val, topo.n_faces)
+    for chunk in (1, 7, 32, 1000):
+        idx, val = cage_weights(points, cage, topo, k=8, chunk_size=chunk)
+        got = dense_rows(idx, val, topo.n_faces)
+        np.testing.assert_allclose(got[~boundary_tie], expected[~boundary_tie], rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(np.sort(val, axis=1), np.sort(ref_val, axis=1), rtol=1e-9, atol=1e-15)
+
+
+def test_weight_input_errors() -> None:
+    points, topo = cube()
+    with pytest.raises(ValueError, match="non-finite"):
+        _cage_weights(np.array([[np.nan, 0, 0]]), points, topo)
+    with pytest.raises(ValueError, match="exponent"):
+        _cage_weights(np.zeros((1, 3)), points, topo, exponent=0.0)
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        _cage_weights(np.zeros((3,)), points, topo)
+
+
+# --- validation -------------------------------------------------------------------------------------
+
+
+def test_closed_outward_cube_validates() -> None:
+    points, topo = cube()
+    report = validate_cage(points, topo)
+    assert report.ok and report.boundary_edges == 0 and report.signed_volume == pytest.approx(1.0)
+    assert validate_cage(*mixed_prism()).ok
+
+
+def test_open_inside_out_inconsistent_nonmanifold_and_zero_area_cages_are_rejected() -> None:
+    points, _ = cube()
+    cases = {
+        "cage is open: 4 boundary edges": CUBE_FACES[:TOP] + CUBE_FACES[TOP + 1 :],
+        "cage is inside-out (normals point inward): flip normals": [f[::-1] for f in CUBE_FACES],
+        "cage normals are inconsistent: 4 edges": [CUBE_FACES[0][::-1], *CUBE_FACES[1:]],
+        "cage is non-manifold: 1 edges": [*CUBE_FACES, [4, 5, 8]],
+    }
+    pts = np.vstack([points, [0.0, -1.0, 1.0]])
+    for message, faces in cases.items():
+        report = check_cage(pts, CageTopology.from_polygons(faces))
+        assert not report.ok
+        assert any(p.startswith(message) for p in report.problems), report.problems
+        with pytest.raises(ValueError, match=re.escape(message)):
+            validate_cage(pts, CageTopology.from_polygons(faces))
+    flat = points.copy()
+    flat[[4, 5, 6, 7], 2] = -0.5  # the top collapses onto the bottom
+    report = check_cage(flat, CageTopology.from_polygons(CUBE_FACES))
+    assert "cage has 4 zero-area face(s): 2, 3, 4, 5" in report.problems
+    assert "cage encloses no volume (flat or collapsed)" in report.problems
