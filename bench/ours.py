@@ -45,6 +45,9 @@ STAGE_POINTS = (
     ("blender.storage", "read_weights", "read mesh"),
     ("blender.evaluate", "motions_to_params", "psi"),
     ("core.aff3", "params_from_matrices", "psi"),
+    ("core.aff3", "matrices_from_params", "psi"),
+    ("core.cage", "affected_faces", "psi"),  # cage: which faces moved, then their tetrahedra → params
+    ("core.cage", "face_motions", "psi"),
     ("core.deform", "deform_points_params", "kernel"),
     ("core.deform", "blend_linear_sparse", "kernel"),
     ("core.deform", "deform_points", "kernel"),
@@ -124,6 +127,7 @@ def _smooth_mode(deformer: bpy.types.bpy_struct) -> str | None:
 class OurRig(Rig):
     deformer_index: int = 0
     settings: dict[str, object] = field(default_factory=dict)
+    influences: tuple[int, float] | None = None  # (K slots, mean non-zero weights per vertex)
 
 
 def probe_rig(target: bpy.types.Object, empties: list[bpy.types.Object], radius: float) -> OurRig:
@@ -180,13 +184,8 @@ def cage_rig(target: bpy.types.Object, cage: bpy.types.Object) -> OurRig:
 _BIND_ATTR = re.compile(r"^\.affdef_(?P<uid>.+)_(?P<kind>idx|w)(?P<k>\d+)$")
 
 
-def bound_weights(target: bpy.types.Object, empties: list[bpy.types.Object]) -> np.ndarray | None:
-    """Dense (N, m) weights our bind stored on the mesh (top-K attributes), columns in `empties` order.
-
-    None when the attributes are not where DEVELOPING.md says they are; the caller then falls back to
-    the analytic smooth falloff.
-    """
-    me = target.data
+def _bind_columns(me: bpy.types.Mesh) -> list[tuple[str, str]] | None:
+    """[(index attribute, weight attribute)] per top-K slot of the one deformer bound on `me`, or None."""
     found: dict[str, dict[str, dict[int, str]]] = {}
     for attr in me.attributes:
         m = _BIND_ATTR.match(attr.name)
@@ -198,24 +197,49 @@ def bound_weights(target: bpy.types.Object, empties: list[bpy.types.Object]) -> 
     ks = sorted(parts.get("idx", {}))
     if not ks or ks != sorted(parts.get("w", {})):
         return None
-    deformer = target.affine_deformers[len(target.affine_deformers) - 1]
-    probe_objects = [p.object for p in deformer.probes]
-    column = {i: empties.index(ob) for i, ob in enumerate(probe_objects) if ob in empties}
-    n = len(me.vertices)
-    if not probe_objects:
+    return [(parts["idx"][k], parts["w"][k]) for k in ks]
+
+
+def bound_weights(target: bpy.types.Object, empties: list[bpy.types.Object]) -> np.ndarray | None:
+    """Dense (N, m) weights our bind stored on the mesh (top-K attributes), columns in `empties` order.
+
+    None when the attributes are not where DEVELOPING.md says they are; the caller then falls back to
+    the analytic smooth falloff. Dense on purpose (it feeds vertex groups): call it for small m only.
+    """
+    me = target.data
+    columns = _bind_columns(me)
+    probe_objects = [p.object for p in target.affine_deformers[len(target.affine_deformers) - 1].probes]
+    if columns is None or not probe_objects:
         return None
+    column = {i: empties.index(ob) for i, ob in enumerate(probe_objects) if ob in empties}
     cols = np.array([column.get(i, -1) for i in range(len(probe_objects))])
+    n = len(me.vertices)
     dense = np.zeros((n, len(empties)))
     idx_buf = np.empty(n, np.int32)
     w_buf = np.empty(n, np.float32)
-    for k in ks:
-        me.attributes[parts["idx"][k]].data.foreach_get("value", idx_buf)
-        me.attributes[parts["w"][k]].data.foreach_get("value", w_buf)
+    for idx_name, w_name in columns:
+        me.attributes[idx_name].data.foreach_get("value", idx_buf)
+        me.attributes[w_name].data.foreach_get("value", w_buf)
         valid = (idx_buf >= 0) & (idx_buf < len(probe_objects))
         c = np.where(valid, cols[np.clip(idx_buf, 0, len(probe_objects) - 1)], -1)
         ok = c >= 0
         np.add.at(dense, (np.flatnonzero(ok), c[ok]), w_buf[ok])
     return dense
+
+
+def mean_influences(target: bpy.types.Object) -> tuple[int, float] | None:
+    """(K stored slots, mean number of non-zero weights per vertex) of our bind, or None."""
+    me = target.data
+    columns = _bind_columns(me)
+    if columns is None:
+        return None
+    n = len(me.vertices)
+    w_buf = np.empty(n, np.float32)
+    nonzero = 0
+    for _, w_name in columns:
+        me.attributes[w_name].data.foreach_get("value", w_buf)
+        nonzero += int(np.count_nonzero(w_buf))
+    return len(columns), nonzero / max(n, 1)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -229,7 +253,7 @@ class Instrument:
         self.acc: dict[str, float] = {}
         self._handler_patches: list[tuple[list, int, Callable]] = []
         self._func_patches: list[tuple[object, str, Callable]] = []
-        self._depth = 0
+        self._stack: list[list[float]] = []
         self.layer_timings: dict | None = None
         self.source = "none"
 
@@ -256,17 +280,22 @@ class Instrument:
         self._func_patches.clear()
 
     def _timer(self, stage: str, fn: Callable) -> Callable:
+        """`fn` timed into `stage`, exclusive of wrapped calls nested inside it (they count for their own
+        stage): reading the cage, for instance, contains the per-face ψ."""
+
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
-            if self._depth:
-                return fn(*args, **kwargs)
-            self._depth += 1
+            frame = [0.0]  # time spent in wrapped calls nested inside this one
+            self._stack.append(frame)
             t0 = time.perf_counter()
             try:
                 return fn(*args, **kwargs)
             finally:
-                self.acc[stage] = self.acc.get(stage, 0.0) + time.perf_counter() - t0
-                self._depth -= 1
+                elapsed = time.perf_counter() - t0
+                self._stack.pop()
+                self.acc[stage] = self.acc.get(stage, 0.0) + elapsed - frame[0]
+                if self._stack:
+                    self._stack[-1][0] += elapsed
 
         return wrapper
 

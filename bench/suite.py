@@ -59,7 +59,7 @@ QUICK = Plan(
 STAGES = (
     ("read", "read transforms"),
     ("read mesh", "read rest + weights"),
-    ("psi", "ψ"),
+    ("psi", "ψ (motions → params)"),
     ("kernel", "kernel"),
     ("write", "write"),
     ("glue", "other"),
@@ -116,16 +116,21 @@ def validity(samples: Samples | None) -> str:
 
 
 def run_ours_probes(
-    plan: Plan, n_target: int, n_probes: int, label: str, report: Report
+    plan: Plan, n_target: int, n_probes: int, label: str, report: Report, dense_weights: bool = False
 ) -> tuple[Samples | None, ours.OurRig | None, object]:
-    """(samples, rig, dense weights or None) for our probe deformer; the scene is cleared afterwards."""
+    """(samples, rig, dense weights or None) for our probe deformer; the scene is cleared afterwards.
+
+    samples.extra["influences"] holds (K, mean non-zero weights per vertex) of the bind when readable.
+    """
     try:
         target = common.sphere_object("Target", n_target)
         empties = native.add_empties(common.probe_sites(n_probes))
         rig = ours.probe_rig(target, empties, plan.radius)
-        weights = ours.bound_weights(target, empties)
+        weights = ours.bound_weights(target, empties) if dense_weights else None
+        influences = ours.mean_influences(target)
         with ours.Instrument() as inst:
             samples = measure(rig, plan, label, report, inst)
+        rig.influences = influences
         return samples, rig, weights
     except Exception as exc:  # a broken layer must not hide the native numbers
         traceback.print_exc()
@@ -158,6 +163,13 @@ def _iqr(s: Samples | None) -> str:
     return f"{fmt_ms(lo)} – {fmt_ms(hi)}"
 
 
+def _influences(rig: ours.OurRig | None) -> str:
+    if rig is None or rig.influences is None:
+        return "—"
+    k, mean = rig.influences
+    return f"{mean:.2f} of {k}"
+
+
 def _median(s: Samples | None) -> float:
     return s.median if s is not None else math.nan
 
@@ -172,7 +184,9 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
     print(f"(a) {m} probes on a UV sphere of {n:,} vertices, falloff radius {plan.radius}", flush=True)
     mine = rig = weights = None
     if have_ours and ours.operator_exists(ours.PROBE_OP):
-        mine, rig, weights = run_ours_probes(plan, plan.a_verts, m, f"ours: {m} probes", report)
+        mine, rig, weights = run_ours_probes(
+            plan, plan.a_verts, m, f"ours: {m} probes", report, dense_weights=True
+        )
         if mine is not None:
             report.split_rows.append((f"(a) {m} probes, {n:,} verts", mine))
     else:
@@ -190,7 +204,7 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
         t.add("Affine probes (ours)", fmt_ms(mine.median), _iqr(mine), "1.00×", validity(mine))
     for name, s in ((f"Hook ×{m}, Smooth, same radius", hooks), (f"Armature ×{m}, Preserve Volume", arm)):
         t.add(name, fmt_ms(s.median), _iqr(s), fmt_ratio(_median(mine), s.median), validity(s))
-    source = "our bind weights (read back from the mesh)" if weights is not None else "analytic smooth falloff"
+    source = "our bind weights (read back from the mesh)" if weights is not None else "smooth falloff"
     t.notes.append(f"Armature vertex groups: {source}, quantised to 1/{native.WEIGHT_LEVELS}")
     if rig is not None:
         settings = ", ".join(f"{k} {v}" for k, v in rig.settings.items())
@@ -248,7 +262,7 @@ def part_b(plan: Plan, have_ours: bool, report: Report) -> None:
         fmt_ratio(ours_bind, rig_md.bind_seconds),
         validity(md),
     )
-    t.notes.append("the control moved is one cage vertex; bind = one run of the bind (ours: the add operator)")
+    t.notes.append("the control moved is one cage vertex; bind = one run (ours: the add operator)")
     report.tables.append(t)
 
 
@@ -256,15 +270,16 @@ def part_c(plan: Plan, have_ours: bool, report: Report) -> None:
     have = have_ours and ours.operator_exists(ours.PROBE_OP)
     t = Table(
         "(c) scaling: one update, vertices × probes (ours vs Hook modifiers)",
-        ["vertices", "probes", "ours", "ours ns/vertex", "ours kernel", "Hooks", "ours ÷ Hooks", "check"],
+        ["vertices", "probes", "ours", "ns/vertex", "kernel", "influences/vertex", "Hooks", "ours ÷ Hooks",
+         "check"],
     )
     print("(c) scaling", flush=True)
     for n_target in plan.c_verts:
         n = n_vertices(n_target)
         for m in plan.c_probes:
-            mine = None
+            mine = rig = None
             if have:
-                mine, _, _ = run_ours_probes(plan, n_target, m, f"ours: {n:,} verts, {m} probes", report)
+                mine, rig, _ = run_ours_probes(plan, n_target, m, f"ours: {n:,} verts, {m} probes", report)
                 if mine is not None:
                     report.split_rows.append((f"(c) {m} probes, {n:,} verts", mine))
             hooks = run_native(plan, n_target, m, "hook", f"Hook ×{m}: {n:,} verts", report)
@@ -274,12 +289,14 @@ def part_c(plan: Plan, have_ours: bool, report: Report) -> None:
                 fmt_ms(_median(mine)),
                 f"{mine.median / n * 1e9:.0f}" if mine is not None else "—",
                 fmt_ms(mine.extra_median("kernel")) if mine is not None else "—",
+                _influences(rig),
                 fmt_ms(hooks.median),
                 fmt_ratio(_median(mine), hooks.median),
                 "; ".join(x for x in (validity(mine), validity(hooks)) if x),
             )
     t.notes.append("same falloff radius for every probe count, so more probes overlap more: Hooks pay for "
                    "every hook at every vertex, ours for the top-K influences only")
+    t.notes.append("influences/vertex: mean non-zero weights per vertex of our bind (of K stored slots)")
     if not have:
         t.notes.append(f"`{ours.PROBE_OP}` is not registered: only the Hook side was timed")
     report.tables.append(t)
@@ -364,7 +381,8 @@ def write_markdown(
         "positions are read back (untimed) and must differ from the previous repetition's, and after the",
         "last one a third pass must change nothing; column *check* is empty when both hold.",
         "",
-        f"Median of {plan.reps} repetitions after {plan.warmup} warm-up ones; IQR = 25th – 75th percentile.",
+        f"Median of {plan.reps} repetitions after {plan.warmup} untimed warm-up run(s); IQR = 25th – 75th",
+        "percentile.",
         "Every method runs alone in a fresh scene of the same bpy process, on the same procedurally built",
         "UV sphere (radius 1). Probes sit on a Fibonacci lattice on its surface; the falloff radius is",
         f"{plan.radius} for every method. Ratios are ours ÷ native: below 1 means we are faster.",

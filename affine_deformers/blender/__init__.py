@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import bpy
 
-from . import evaluate, operators, panels, props
+from . import bake, evaluate, operators, panels, props
 
-CLASSES = (*props.CLASSES, *operators.CLASSES, *panels.CLASSES)
+CLASSES = (*props.CLASSES, *operators.CLASSES, *bake.CLASSES, *panels.CLASSES)
 
 
 def register() -> None:

@@ -13,8 +13,8 @@ import numpy as np
 from . import nodes, storage
 from .kinds import KINDS, BindError
 
-__all__ = ["BindError", "apply", "bind", "create", "rebind_probe_safely", "remove", "reweight",
-           "reweight_safely", "target_problem"]
+__all__ = ["BindError", "apply", "bind", "create", "mask_weights", "rebind_probe_safely", "rebind_safely",
+           "remove", "reweight", "reweight_safely", "target_problem"]
 
 
 _quiet = 0
@@ -98,14 +98,32 @@ def bind(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
     reweight(obj, deformer)
 
 
+def mask_weights(obj: bpy.types.Object, deformer) -> tuple[np.ndarray | None, str]:
+    """(per-vertex mask (N,) in [0, 1] or None, warning) from the deformer's mask vertex group.
+
+    A missing group masks nothing (like Blender's modifiers) and is reported."""
+    name = deformer.mask_group
+    if not name:
+        return None, ""
+    if obj.vertex_groups.get(name) is None:
+        return None, f"No vertex group named '{name}': the mask is ignored"
+    mask = nodes.vertex_group_weights(obj, [name])[:, 0]
+    return np.clip(np.nan_to_num(mask, nan=0.0), 0.0, 1.0), ""
+
+
 def reweight(obj: bpy.types.Object, deformer) -> None:
-    """Recompute the sparse weights from the stored rest data (rest poses are kept) and store them."""
+    """Recompute the sparse weights from the stored rest data (rest poses are kept) and store them,
+    multiplied by the mask vertex group when one is set (painted 0 = the vertex stays put)."""
     problem = target_problem(obj)
     if problem:
         raise BindError(problem)
     mesh = obj.data
     rest = storage.read_positions(mesh).astype(np.float64)
     indices, values, warning = _kind(deformer).sparse_weights(obj, deformer, rest)
+    mask, mask_warning = mask_weights(obj, deformer)
+    if mask is not None:
+        values = values * mask[:, None]
+    warning = "; ".join(w for w in (warning, mask_warning) if w)
     storage.write_weights(mesh, deformer.uid, indices, values)
     deformer.bound_vertex_count = len(rest)
     deformer.bound_flag = True
@@ -130,6 +148,17 @@ def rebind_probe_safely(obj: bpy.types.Object, deformer, probe_index: int) -> No
         bind(obj, deformer, bpy.context.evaluated_depsgraph_get(), only=[probe_index])
     except Exception as exc:  # see reweight_safely
         deformer.status = f"Binding the new probe failed: {exc}"
+
+
+def rebind_safely(obj: bpy.types.Object, deformer, what: str) -> None:
+    """Bind the whole deformer at the controls' current poses for a property update. A failure leaves
+    the deformer unbound (rest shape) with the reason in its status, never raises."""
+    try:
+        bind(obj, deformer, bpy.context.evaluated_depsgraph_get())
+    except Exception as exc:  # see reweight_safely
+        deformer.bound_flag = False
+        deformer.bind_warning = f"Binding {what} failed: {exc}"
+        deformer.status = deformer.bind_warning
 
 
 def remove(obj: bpy.types.Object, index: int) -> None:

@@ -19,11 +19,12 @@ import bpy
 import numpy as np
 from bpy.app.handlers import persistent
 
-from ..core import aff3, deform
+from ..core import aff3, deform, unwrap
 from . import nodes, storage
-from .kinds import KINDS, Motions
+from .kinds import KINDS, Motions, channel_references
 
 _signatures: dict[tuple[int, str], tuple] = {}
+_errors: dict[tuple[int, str], str] = {}
 _busy = False
 
 
@@ -31,19 +32,35 @@ def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
     """Drop cached signatures (all, or those of one deformer) so the next evaluation recomputes."""
     if obj is None:
         _signatures.clear()
+        _errors.clear()
     else:
         _signatures.pop((obj.session_uid, uid), None)
+        _errors.pop((obj.session_uid, uid), None)
 
 
 def motions_to_params(motions: Motions, deformer) -> np.ndarray:
     """Blend parameters (m, 12) of the controls' motions: ψ(A_i) in the layout of docs/DEVELOPING.md.
 
-    Controls exactly at rest get exactly zero parameters. (The continuous rotation-branch choice for
-    controls turned past 180° belongs here, fed from the rest/current rotation channels.)
+    Controls exactly at rest get exactly zero parameters. Kinds that give their own parameters (cage
+    faces average several tetrahedra) have them used as they are.
+
+    The rotation log is multivalued (ω + 2πk·ω/|ω|); ψ as printed takes |ω| ≤ π, so a control turned
+    past 180° flips the blend. With `branch_rule` 'CHANNELS' each ω is lifted to the branch nearest the
+    control's own rotation channels (kinds.channel_references: Rotation Z keyed 0 → 720° gives 720°;
+    turns from parents or constraints take the nearest branch) and u is recomputed about the control's
+    origin (core.unwrap.lift_params). The reference comes from the current frame alone, so any frame
+    evaluates the same in any order or process. 'SHORTEST' keeps the principal branch.
     """
     if len(motions.matrices) == 0:
         return np.zeros((0, 12))
+    if motions.params is not None:
+        params = np.array(motions.params, dtype=np.float64)
+        params[motions.at_rest] = 0.0
+        return params
     params = np.asarray(aff3.params_from_matrices(motions.matrices), dtype=np.float64)
+    if deformer.branch_rule == "CHANNELS" and len(motions.rotation_modes) == len(params):
+        pivots = motions.pivots if len(motions.pivots) == len(params) else None
+        params = unwrap.lift_params(params, channel_references(motions), pivots)
     params[motions.at_rest] = 0.0
     return params
 
@@ -60,7 +77,7 @@ def _precheck(obj: bpy.types.Object, deformer) -> str:
     if deformer.kind not in KINDS:
         return f"Deformer kind '{deformer.kind}' is not available in this version"
     if not deformer.is_bound:
-        return "Not bound: press Bind"
+        return "Not bound: press Bind" + (f" ({deformer.bind_warning})" if deformer.bind_warning else "")
     if nodes.find_modifier(obj, storage.offset_name(deformer.uid)) is None:
         return "The deformer's modifier was removed or applied: Rebind to recreate it"
     n = len(obj.data.vertices)
@@ -70,17 +87,43 @@ def _precheck(obj: bpy.types.Object, deformer) -> str:
     return ""
 
 
+def redistribute(indices: np.ndarray, values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Weights with the slots of invalid controls zeroed and each row rescaled to its former sum, so a
+    skipped control's weight goes to the vertex's other controls. Rows left with no valid control
+    become zero (the vertex follows only `Motions.outer`)."""
+    kept = np.where(valid[indices], values, 0.0)
+    before, after = values.sum(axis=1), kept.sum(axis=1)
+    scale = np.divide(before, after, out=np.zeros_like(before), where=after > 0.0)
+    return kept * scale[:, None]
+
+
+def _outer(motions: Motions, strength: float) -> np.ndarray | None:
+    """The motion applied after the blend, at `strength`: φ(s·ψ(G)) (exactly G at s = 1)."""
+    if motions.outer is None or strength == 1.0:
+        return motions.outer
+    return aff3.matrices_from_params(strength * aff3.params_from_matrices(motions.outer))
+
+
 def _offsets(mesh: bpy.types.Mesh, deformer, motions: Motions, rest: np.ndarray) -> np.ndarray:
     """v' − v for every rest vertex (N, 3) float64; exactly zero when every control is at rest."""
-    if deformer.strength == 0.0 or len(motions.matrices) == 0 or np.all(motions.at_rest):
+    outer = _outer(motions, deformer.strength)
+    if deformer.strength == 0.0 or len(motions.matrices) == 0 or (np.all(motions.at_rest) and outer is None):
         return np.zeros(rest.shape, dtype=np.float64)
-    indices, values = storage.read_weights(mesh, deformer.uid, len(motions.matrices))
-    values *= deformer.strength
     points = rest.astype(np.float64)
-    if deformer.blend_mode == "LINEAR":
-        deformed = deform.blend_linear_sparse(points, motions.matrices, indices, values)
+    if np.all(motions.at_rest):
+        deformed = points.copy()
     else:
-        deformed = deform.deform_points_params(points, motions_to_params(motions, deformer), indices, values)
+        indices, values = storage.read_weights(mesh, deformer.uid, len(motions.matrices))
+        if motions.valid is not None and not np.all(motions.valid):
+            values = redistribute(indices, values, motions.valid)
+        values *= deformer.strength
+        if deformer.blend_mode == "LINEAR":
+            deformed = deform.blend_linear_sparse(points, motions.matrices, indices, values)
+        else:
+            deformed = deform.deform_points_params(points, motions_to_params(motions, deformer), indices,
+                                                   values)
+    if outer is not None:
+        deformed = deformed @ outer[:3, :3].T + outer[:3, 3]
     return deformed - points
 
 
@@ -98,9 +141,13 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     rest = storage.read_positions(mesh)
     signature = (
         mesh.session_uid, len(rest), hash(rest.tobytes()), error, deformer.strength, deformer.blend_mode,
-        deformer.bind_generation,
+        deformer.branch_rule, deformer.bind_generation,
         None if motions is None else (motions.matrices.tobytes(), motions.at_rest.tobytes(),
-                                      motions.current_rotations.tobytes(), tuple(motions.rotation_modes)),
+                                      motions.current_rotations.tobytes(), tuple(motions.rotation_modes),
+                                      motions.channel_frames.tobytes(),
+                                      *(None if a is None else a.tobytes()
+                                        for a in (motions.params, motions.outer, motions.valid)),
+                                      motions.warning),
     )
     key = (obj.session_uid, deformer.uid)
     if _signatures.get(key) == signature:
@@ -119,10 +166,16 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         offsets = np.zeros(rest.shape)
     if mesh.library is None:
         storage.write_offsets(mesh, deformer.uid, offsets)
-    status = error or deformer.bind_warning
+    status = error or "; ".join(m for m in (motions.warning if motions else "", deformer.bind_warning) if m)
     _set_status(deformer, status)
     _signatures[key] = signature
+    _errors[key] = error
     return status
+
+
+def blocking_error(obj: bpy.types.Object, deformer) -> str:
+    """The error of the deformer's last evaluation ('' when it deformed, possibly with a warning)."""
+    return _errors.get((obj.session_uid, deformer.uid), "")
 
 
 def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None = None) -> list[str]:

@@ -6,7 +6,7 @@ A kind provides
       from that stored rest data only (so re-weighting never needs the current poses);
   (b) per frame: `current_motions(obj, deformer, depsgraph)` returns the controls' motions
       A_i = C_i · C_rest,i⁻¹ in the target's local space, plus validity.
-The probe kind lives here; the cage kind registers its own class in KINDS.
+The probe kind lives here, the cage kind in cage_kind.py.
 
 Matrices are expressed in the target's local space, C = target_world⁻¹ · control_world, and rounded
 to float32 exactly like the stored rest matrices, so a control whose current matrix is bitwise equal
@@ -18,9 +18,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import bpy
+import mathutils
 import numpy as np
 
-from ..core import aff3, weights
+from ..core import aff3, unwrap, weights
 from . import nodes
 
 
@@ -38,6 +39,16 @@ class Motions:
     rest_rotation_modes / rest_rotations (m, 4) and rotation_modes / current_rotations (m, 4): the
     controls' own rotation channels at bind and now (layout of props.AffineDeformerProbe), for choosing
     the rotation-log branch of controls turned past 180°; empty for kinds without channels.
+    channel_frames (m, 3, 3): rotation taking vectors of the frame each control's channels turn in
+    (its parent frame) to the target's local space; pivots (m, 3): the controls' current origins in
+    the target's local space (see `channel_references`); empty = identity frames / origin pivots.
+
+    Optional, for kinds whose blend parameters are not ψ of one matrix per control (cages):
+    params (m, 12): the controls' blend parameters, used instead of ψ(matrices) (matrices then hold
+    φ(params), for the linear blend); outer (4, 4): a motion applied after the blend,
+    v' = outer · blend(v) (None = identity); valid (m,) bool: False marks a control to skip — its
+    weight goes to the vertex's other controls (evaluate.redistribute); warning: a non-fatal status
+    (the deformation is still shown).
     """
 
     matrices: np.ndarray
@@ -47,6 +58,12 @@ class Motions:
     rest_rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     rotation_modes: list[str] = field(default_factory=list)
     current_rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    channel_frames: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    pivots: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    params: np.ndarray | None = None
+    outer: np.ndarray | None = None
+    valid: np.ndarray | None = None
+    warning: str = ""
 
     @classmethod
     def invalid(cls, m: int, error: str) -> Motions:
@@ -100,6 +117,78 @@ def _rotation_channels(obj: bpy.types.Object) -> tuple[float, float, float, floa
     if mode == "AXIS_ANGLE":
         return tuple(obj.rotation_axis_angle)
     return (*obj.rotation_euler, 0.0)
+
+
+def _channel_matrix(mode: str, channels) -> np.ndarray:
+    channels = np.asarray(channels, dtype=np.float64)
+    return unwrap.channels_to_matrix(mode, channels if mode in ("QUATERNION", "AXIS_ANGLE") else channels[:3])
+
+
+def channel_frame(evaluated: bpy.types.Object, target_world: np.ndarray) -> np.ndarray:
+    """Rotation Q (3, 3) from the frame `evaluated`'s rotation channels turn in to the target's space.
+
+    Blender composes matrix_world = W·T·D·R·S (W: parent and constraints, T: location, D: delta
+    rotation, R: the channels' rotation, S: scale × delta scale), so turning the channels by ΔR
+    (R → ΔR·R) turns the object by ΔR in the frame of W·D, and Q is the rotation part of
+    target_world⁻¹·W·D = target_world⁻¹·matrix_world·S⁻¹·Rᵀ (polar split; a mirrored frame is
+    negated first, since rotation vectors are pseudovectors). Identity when that matrix is singular
+    or not finite: the motion is then rejected anyway, or the branch falls back to the shortest.
+    """
+    R = _channel_matrix(evaluated.rotation_mode, _rotation_channels(evaluated))
+    scale = np.array(evaluated.scale, dtype=np.float64) * np.array(evaluated.delta_scale, dtype=np.float64)
+    world = np.array(evaluated.matrix_world, dtype=np.float64)[:3, :3]
+    with np.errstate(all="ignore"):
+        try:
+            frame = np.linalg.solve(target_world[:3, :3], world) / scale[None, :] @ R.T
+        except np.linalg.LinAlgError:
+            return np.eye(3)
+    det = np.linalg.det(frame) if np.all(np.isfinite(frame)) else 0.0
+    if not (np.isfinite(det) and abs(det) > 1e-30):
+        return np.eye(3)
+    rotation, _ = aff3.polar(np.sign(det) * frame)
+    return rotation
+
+
+def rest_channels_in_mode(rest_mode: str, rest_rotation, mode: str) -> tuple[float, float, float, float]:
+    """The rest rotation's channels in rotation mode `mode` (for a control whose mode changed since bind).
+
+    Same mode: unchanged. Otherwise the rest rotation matrix converted to the principal values of the
+    new mode (Euler angles in [-π, π], quaternion with w ≥ 0, axis-angle angle in [0, π]): turns keyed
+    in the new mode are then counted from there. Blender itself keeps Euler turns across an Euler order
+    switch but cannot carry them into a quaternion or axis-angle, so such a switch shows the rotation
+    the converted channels hold (at most one turn).
+    """
+    if rest_mode == mode:
+        return tuple(float(c) for c in rest_rotation)
+    matrix = mathutils.Matrix(_channel_matrix(rest_mode, rest_rotation).tolist())
+    if mode == "QUATERNION":
+        return tuple(matrix.to_quaternion())
+    if mode == "AXIS_ANGLE":
+        axis, angle = matrix.to_quaternion().to_axis_angle()
+        return (angle, *axis)
+    return (*matrix.to_euler(mode), 0.0)
+
+
+def channel_references(motions: Motions) -> np.ndarray:
+    """Reference rotation vectors (m, 3) in the target's space for choosing the rotation-log branch.
+
+    w_ref,i = Q_i · channel_rotvec(mode_i, rest_i, current_i): the controls' own turn since bind read
+    from their rotation channels (unwrapped along the straight channel path, so Rotation Z = 400°
+    means 400°), carried into the target's space by the channel frames Q_i. Depends on the current
+    frame's channels only. Zero rows (= shortest branch) for controls without channel data.
+    ValueError (from core.unwrap) when channels are non-finite or turn too often to unwrap.
+    """
+    m = len(motions.rotation_modes)
+    if m == 0:
+        return np.zeros((len(motions.matrices), 3))
+    modes = list(motions.rotation_modes)
+    rest = np.array([rest_channels_in_mode(r_mode, r_rot, mode) for r_mode, r_rot, mode
+                     in zip(motions.rest_rotation_modes, motions.rest_rotations, modes, strict=True)])
+    w_channels = unwrap.channel_rotvec(modes, rest, np.asarray(motions.current_rotations, dtype=np.float64))
+    frames = motions.channel_frames
+    if len(frames) != m:
+        frames = np.broadcast_to(np.eye(3), (m, 3, 3))
+    return np.einsum("mij,mj->mi", frames, w_channels)
 
 
 class ProbeKind:
@@ -163,6 +252,8 @@ class ProbeKind:
         modes = list(rest_modes)
         rest_rotations = np.array([tuple(item.rest_rotation) for item in deformer.probes], dtype=np.float64)
         current_rotations = rest_rotations.copy()
+        frames = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+        pivots = rests[:, :3, 3].astype(np.float64)
         try:
             target_world = world_matrix(obj, depsgraph)
             if not np.all(np.isfinite(target_world)):
@@ -179,6 +270,8 @@ class ProbeKind:
                 current = local_matrix(target_world, np.array(evaluated.matrix_world, dtype=np.float64))
                 current_rotations[i] = _rotation_channels(evaluated)
                 modes[i] = evaluated.rotation_mode
+                frames[i] = channel_frame(evaluated, target_world)
+                pivots[i] = current[:3, 3]
                 # At rest = the same matrix AND the same channels (a full turn changes only the channels).
                 if (np.array_equal(current, rests[i]) and modes[i] == rest_modes[i]
                         and np.array_equal(np.float32(current_rotations[i]), np.float32(rest_rotations[i]))):
@@ -201,7 +294,11 @@ class ProbeKind:
                     return Motions.invalid(m, f"Probe '{probe.name}' {reason}: the mesh shows its rest shape")
         except np.linalg.LinAlgError:
             return Motions.invalid(m, f"'{obj.name}' is scaled to zero: the mesh shows its rest shape")
-        return Motions(matrices, at_rest, "", rest_modes, rest_rotations, modes, current_rotations)
+        return Motions(matrices, at_rest, "", rest_modes, rest_rotations, modes, current_rotations,
+                       frames, pivots)
 
 
-KINDS: dict[str, ProbeKind] = {"PROBE": ProbeKind()}
+# cage_kind builds on the helpers above, so it is imported once they exist.
+from .cage_kind import CageKind  # noqa: E402
+
+KINDS: dict[str, ProbeKind | CageKind] = {"PROBE": ProbeKind(), "CAGE": CageKind()}

@@ -1,4 +1,4 @@
-"""Operators: add / bind / remove / apply deformers, add / remove probes.
+"""Operators: add (probe / cage) / bind / remove / apply deformers, add / remove probes.
 
 All are undoable, report clear messages, and work from background scripts through
 `bpy.context.temp_override(active_object=..., object=..., selected_objects=[...])`; an ERROR report
@@ -10,7 +10,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import IntProperty
 
-from . import binding, evaluate
+from . import binding, cage_kind, evaluate
 from .kinds import BindError
 
 UNDOABLE = {"REGISTER", "UNDO"}
@@ -103,6 +103,50 @@ class AFFINE_OT_probe_deformer_add(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class AFFINE_OT_cage_deformer_add(bpy.types.Operator):
+    """Add a cage deformer to the active mesh; the other selected mesh is the cage (closed, normals
+    outward). Its current shape becomes the rest shape"""
+
+    bl_idname = "object.affine_cage_deformer_add"
+    bl_label = "Add Cage Deformer"
+    bl_options = UNDOABLE
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        target = _target(context)
+        problem = binding.target_problem(target)
+        if problem:
+            self.report({"ERROR"}, problem)
+            return {"CANCELLED"}
+        selected = list(getattr(context, "selected_objects", None) or [])
+        cages = [o for o in selected if o != target and o.type == "MESH"]
+        if len(cages) != 1:
+            found = ", ".join(f"'{o.name}'" for o in cages)
+            self.report({"ERROR"}, "Select exactly one other mesh as the cage, with the target active "
+                        + (f"(selected: {found})" if cages else "(none selected)"))
+            return {"CANCELLED"}
+        cage = cages[0]
+        deformer = binding.create(target, "CAGE", "Cage Deformer")
+        with binding.quiet():  # bound below in one go
+            deformer.cage = cage
+            deformer.max_influences = 8
+        try:
+            binding.bind(target, deformer, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
+            binding.remove(target, binding.deformer_index(target, deformer))
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _lock_render_interface(context)
+        _refresh(context, target)
+        ignored = [o for o in selected if o not in (target, cage)]
+        if ignored:
+            self.report({"WARNING"}, "Ignored selected non-mesh objects: "
+                        + ", ".join(o.name for o in ignored))
+        faces = len(deformer[cage_kind.LOOP_TOTAL])
+        self.report({"INFO"}, f"Added a cage deformer to '{target.name}' driven by '{cage.name}' "
+                    f"({faces} faces)")
+        return {"FINISHED"}
+
+
 class AFFINE_OT_deformer_bind(bpy.types.Operator):
     """Rebind: the controls' current poses become the rest pose and the weights are recomputed"""
 
@@ -165,9 +209,10 @@ class AFFINE_OT_deformer_apply(bpy.types.Operator):
         if obj is None:
             return {"CANCELLED"}
         evaluate.forget(obj, deformer.uid)
-        status = evaluate.evaluate_deformer(obj, deformer, context.evaluated_depsgraph_get())
-        if status and status != deformer.bind_warning:
-            self.report({"ERROR"}, f"Cannot apply '{deformer.name}': {status}")
+        evaluate.evaluate_deformer(obj, deformer, context.evaluated_depsgraph_get())
+        error = evaluate.blocking_error(obj, deformer)
+        if error:
+            self.report({"ERROR"}, f"Cannot apply '{deformer.name}': {error}")
             return {"CANCELLED"}
         name = deformer.name
         try:
@@ -257,6 +302,7 @@ class AFFINE_OT_deformer_probe_remove(bpy.types.Operator):
 
 CLASSES = (
     AFFINE_OT_probe_deformer_add,
+    AFFINE_OT_cage_deformer_add,
     AFFINE_OT_deformer_bind,
     AFFINE_OT_deformer_remove,
     AFFINE_OT_deformer_apply,

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import bpy
 
+from . import bake
+
 
 class AFFINE_UL_deformers(bpy.types.UIList):
     """The deformers of an object, with a warning icon on those whose status is not empty."""
@@ -71,18 +73,29 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         row.operator("object.affine_deformer_apply", text="Apply", icon="CHECKMARK").index = index
         if deformer.is_bound:
             layout.label(text=f"Bound to {deformer.bound_vertex_count} vertices", icon="INFO")
+            bake.draw_bake(layout, deformer, index)
 
         col = layout.column()
         col.use_property_split = True
-        col.prop(deformer, "weight_mode")
-        if deformer.weight_mode != "VERTEX_GROUPS":
-            col.prop(deformer, "radius")
-        if deformer.weight_mode == "INVERSE_DISTANCE":
+        if deformer.kind == "CAGE":
+            col.prop(deformer, "cage")
             col.prop(deformer, "exponent")
-        col.prop(deformer, "normalize")
+            col.prop(deformer, "half_space")
+        else:
+            col.prop(deformer, "weight_mode")
+            if deformer.weight_mode != "VERTEX_GROUPS":
+                col.prop(deformer, "radius")
+            if deformer.weight_mode == "INVERSE_DISTANCE":
+                col.prop(deformer, "exponent")
+            col.prop(deformer, "normalize")
         col.prop(deformer, "max_influences")
+        col.prop(deformer, "mask_group", icon="GROUP_VERTEX")
         col.prop(deformer, "strength")
         col.prop(deformer, "blend_mode")
+        if deformer.kind == "PROBE":
+            sub = col.column()
+            sub.active = deformer.blend_mode == "AFFINE_LOG"  # a linear blend has no rotation branches
+            sub.prop(deformer, "branch_rule")
 
         if deformer.kind == "PROBE":
             layout.label(text="Probes")
@@ -93,8 +106,6 @@ class AFFINE_PT_deformers(bpy.types.Panel):
             col.operator("object.affine_deformer_probe_add", icon="ADD", text="").index = index
             op = col.operator("object.affine_deformer_probe_remove", icon="REMOVE", text="")
             op.index, op.probe_index = index, deformer.active_probe_index
-        else:
-            layout.prop(deformer, "cage")
 
 
 def _wrap(text: str, width: int) -> list[str]:
@@ -116,6 +127,7 @@ class AFFINE_MT_object(bpy.types.Menu):
 
     def draw(self, _context: bpy.types.Context) -> None:
         self.layout.operator("object.affine_probe_deformer_add", icon="EMPTY_AXIS")
+        self.layout.operator("object.affine_cage_deformer_add", icon="MESH_CUBE")
 
 
 def draw_object_menu(self, _context: bpy.types.Context) -> None:

@@ -36,6 +36,24 @@ ROTATION_MODES = [
 ]
 
 
+def _on_cage_object(self: AffineDeformer, _context: bpy.types.Context) -> None:
+    # A newly picked cage is bound at its current shape (like a newly picked probe).
+    obj = self.id_data
+    if binding.updates_suspended() or not isinstance(obj, bpy.types.Object) or self.kind != "CAGE":
+        return
+    if self.is_bound and self.cage is not None:
+        binding.rebind_safely(obj, self, "the new cage")
+
+
+def _poll_cage(self: AffineDeformer, candidate: bpy.types.Object) -> bool:
+    return candidate.type == "MESH" and candidate != self.id_data
+
+
+def _search_vertex_groups(self: AffineDeformer, _context: bpy.types.Context, _text: str) -> list[str]:
+    obj = self.id_data
+    return [g.name for g in obj.vertex_groups] if isinstance(obj, bpy.types.Object) else []
+
+
 def _owner_deformer(probe: AffineDeformerProbe) -> tuple[bpy.types.Object, AffineDeformer, int] | None:
     """The object and deformer holding `probe`, and its index (property groups do not know their parent)."""
     obj = probe.id_data
@@ -135,7 +153,17 @@ class AffineDeformer(bpy.types.PropertyGroup):
                             ("CAGE", "Cage", "Driven by the faces of a cage mesh")], default="PROBE")
     probes: CollectionProperty(type=AffineDeformerProbe)
     active_probe_index: IntProperty(name="Active Probe", default=0, min=0)
-    cage: PointerProperty(name="Cage", type=bpy.types.Object, description="Cage mesh (cage deformers)")
+    cage: PointerProperty(
+        name="Cage", type=bpy.types.Object, poll=_poll_cage, update=_on_cage_object,
+        description="Closed mesh with outward normals whose faces drive the target (a new pick is bound "
+                    "at its current shape)")
+    cage_rest_matrix: FloatVectorProperty(
+        name="Cage Rest Matrix", size=16, default=IDENTITY16,
+        description="Cage object matrix at bind, in the target's local space (row-major 4x4)")
+    half_space: BoolProperty(
+        name="Half-Space Rule", default=True, update=_on_weight_option,
+        description="A cage face has no influence on vertices outside it (in its outer half-space): "
+                    "keeps opposite sides of a thin part apart")
     weight_mode: EnumProperty(
         name="Weights", default="INVERSE_DISTANCE", update=_on_weight_option,
         items=[("INVERSE_DISTANCE", "Inverse Distance",
@@ -156,6 +184,10 @@ class AffineDeformer(bpy.types.PropertyGroup):
         items=[("NONE", "None", "Use raw weights (where they are small the mesh stays put)"),
                ("SUM", "Sum", "Weights of each vertex sum to 1: a motion shared by all probes is exact"),
                ("SOFTMAX", "Softmax", "Softmax of the raw weights")])
+    mask_group: StringProperty(
+        name="Mask", search=_search_vertex_groups, update=_on_weight_option,
+        description="Vertex group scaling each vertex's weights (empty: no mask). Repainting needs a "
+                    "re-weight: change an option or rebind")
     strength: FloatProperty(
         name="Strength", default=1.0, min=0.0, soft_max=1.0, max=10.0, subtype="FACTOR",
         update=_on_evaluation_option,
@@ -167,6 +199,16 @@ class AffineDeformer(bpy.types.PropertyGroup):
         name="Blend", default="AFFINE_LOG", update=_on_evaluation_option,
         items=[("AFFINE_LOG", "Affine (Log)", "Blend in the Aff+(3) parameter space: no collapse"),
                ("LINEAR", "Linear", "Blend the matrices linearly (for comparison)")])
+    branch_rule: EnumProperty(
+        name="Turns", default="CHANNELS", update=_on_evaluation_option,
+        items=[("CHANNELS", "Follow Rotation Channels",
+                "A probe turned past 180° twists by the full angle of its own rotation channels since "
+                "bind (Rotation Z = 400° twists 400°); turns from parents or constraints take the "
+                "nearest way. Quaternion channels hold at most one turn. After a rotation mode change "
+                "turns are counted from the rest orientation in the new mode"),
+               ("SHORTEST", "Shortest",
+                "Every probe motion is blended as its shortest rotation (at most 180°): a twist "
+                "flips when it passes 180°")])
     show_viewport: BoolProperty(
         name="Viewport", get=_mirrored_getter("show_viewport"), set=_mirrored_setter("show_viewport"),
         description="Show the deformer in the viewport (mirrors the modifier's toggle)")

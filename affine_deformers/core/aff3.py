@@ -28,6 +28,8 @@ eigenvalues inside a cluster cancel: the interpolant only sees products of node 
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -141,7 +143,8 @@ def _so3_coeffs(theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     b = 0.5 * sinc_half * sinc_half
     t2 = theta * theta
     c_series = _horner((1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800), t2)
-    c_direct = (safe - np.sin(safe)) / (safe * safe * safe)
+    big = np.where(small, 1.0, theta)
+    c_direct = (big - np.sin(big)) / (big * big * big)
     c = np.where(small, c_series, c_direct)
     return a, b, c
 
@@ -282,14 +285,24 @@ def sym_to6(Y: ArrayLike) -> FloatArray:
     )
 
 
+# Rows of the 20 3×3 minors of a 6×3 matrix (Cauchy–Binet sum for the discriminant).
+_MINOR_ROWS = np.array(list(itertools.combinations(range(6), 3)))
+
+
 def _centred_spectrum(Y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(e₁, x, y): middle eigenvalue and offsets x = e₀ − e₁ ≤ 0 ≤ y = e₂ − e₁ of symmetric Y.
 
     Trigonometric solution of the characteristic cubic on the traceless part B = Y − qI, q = tr Y/3,
-    scaled by p = √(tr(B²)/6): cos 3φ = det(B/p)/2, eigenvalues q + 2p cos(φ + 2πk/3). The offsets
-    come straight from the angle, x = −2√3 p sin φ and y = 2√3 p sin(π/3 − φ), so a tight cluster
-    is never formed as a difference of two large numbers. Exactly repeated eigenvalues (p = 0 or a
-    degenerate cubic) give exactly x = 0 or y = 0 where the arithmetic is exact.
+    scaled to C = B/p, p = √(tr(B²)/6): the eigenvalues of C are 2 cos(φ + 2πk/3) with
+    cos 3φ = det(C)/2 and sin 3φ = √(Δ/108), Δ = Π_{i<j}(λᵢ − λⱼ)² the discriminant of C.
+
+    Taking 3φ = arccos(det C/2) alone resolves a tight pair only to ~√ε·p (arccos is singular at
+    ±1). Here Δ is computed as a sum of squares (Cauchy–Binet on the Gram matrix of I, C, C²:
+    Δ = det[tr C^(i+j)] = Σ over the 20 3×3 minors of [v(I) v(C) v(C²)]², v the trace-inner-product
+    coordinates of a symmetric matrix), which is accurate in absolute terms, so 3φ = atan2(sin, cos)
+    and every eigenvalue gap come out to ~ε·p. The offsets are formed straight from the angle,
+    x = −2√3 p sin φ and y = 2√3 p sin(π/3 − φ), never as a difference of two eigenvalues.
+    Exactly repeated eigenvalues give exactly x = 0 or y = 0 whenever the arithmetic is exact.
     """
     y6 = sym_to6(Y)
     q = (y6[..., 0] + y6[..., 1] + y6[..., 2]) / 3.0
@@ -300,8 +313,28 @@ def _centred_spectrum(Y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray
     c0, c1, c2 = b0 * inv_p, b1 * inv_p, b2 * inv_p
     d01, d02, d12 = o01 * inv_p, o02 * inv_p, o12 * inv_p
     det = c0 * (c1 * c2 - d12 * d12) - d01 * (d01 * c2 - d12 * d02) + d02 * (d01 * d12 - c1 * d02)
-    r = np.clip(np.where(p > 0.0, 0.5 * det, 0.0), -1.0, 1.0)
-    ang = np.arccos(r) / 3.0
+    # C² and the 6×3 matrix W = [v(I), v(C), v(C²)] (off-diagonals weighted by √2)
+    s00 = c0 * c0 + d01 * d01 + d02 * d02
+    s11 = d01 * d01 + c1 * c1 + d12 * d12
+    s22 = d02 * d02 + d12 * d12 + c2 * c2
+    s01 = c0 * d01 + d01 * c1 + d02 * d12
+    s02 = c0 * d02 + d01 * d12 + d02 * c2
+    s12 = d01 * d02 + c1 * d12 + d12 * c2
+    one, zero, r2 = np.ones_like(p), np.zeros_like(p), np.sqrt(2.0)
+    W = np.stack(
+        [
+            np.stack([one, c0, s00], -1),
+            np.stack([one, c1, s11], -1),
+            np.stack([one, c2, s22], -1),
+            np.stack([zero, r2 * d01, r2 * s01], -1),
+            np.stack([zero, r2 * d02, r2 * s02], -1),
+            np.stack([zero, r2 * d12, r2 * s12], -1),
+        ],
+        axis=-2,
+    )
+    minors = _det3(W[..., _MINOR_ROWS, :])
+    disc = np.einsum("...k,...k->...", minors, minors)
+    ang = np.arctan2(np.sqrt(disc / 108.0), 0.5 * det) / 3.0
     x = -2.0 * _SQRT3 * p * np.sin(ang)
     y = 2.0 * _SQRT3 * p * np.sin(np.pi / 3.0 - ang)
     e1 = q - (x + y) / 3.0
@@ -473,7 +506,9 @@ def validate_affine(A: ArrayLike, name: str = "transform") -> FloatArray:
         if not finite[i]:
             raise ValueError(f"{name} {where} has non-finite entries (NaN or inf)")
         if not bottom[i] <= BOTTOM_ROW_TOL:
-            raise ValueError(f"{name} {where} is not affine: bottom row {flat[i, 3].tolist()} != [0, 0, 0, 1]")
+            raise ValueError(
+                f"{name} {where} is not affine: bottom row {flat[i, 3].tolist()} != [0, 0, 0, 1]"
+            )
         raise ValueError(
             f"{name} {where} has determinant {det[i]:.6g} <= 0 (mirrored or collapsed); "
             "only orientation-preserving transforms can be blended"
@@ -535,8 +570,10 @@ def params_from_xy(X: ArrayLike, Y: ArrayLike) -> FloatArray:
     u = X[..., :3, 3]
     y6 = sym_to6(Y)
     lead = np.broadcast_shapes(w.shape[:-1], y6.shape[:-1])
-    return np.concatenate([np.broadcast_to(w, (*lead, 3)), np.broadcast_to(u, (*lead, 3)),
-                           np.broadcast_to(y6, (*lead, 6))], axis=-1)
+    return np.concatenate(
+        [np.broadcast_to(w, (*lead, 3)), np.broadcast_to(u, (*lead, 3)), np.broadcast_to(y6, (*lead, 6))],
+        axis=-1,
+    )
 
 
 def xy_from_params(P: ArrayLike) -> tuple[FloatArray, FloatArray]:

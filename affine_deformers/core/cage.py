@@ -4,16 +4,37 @@ Topology comes as Blender's flat polygon arrays (`foreach_get` of loops.vertex_i
 polygons.loop_start, polygons.loop_total), wrapped in `CageTopology`.
 
 Per-face motion (course notes 8.3.2 with ERRATA 9): every consecutive vertex triple (p0, p1, p2) of a
-face (n triples for an n-gon, n ≥ 4; one for a triangle) spans a tetrahedron with the apex
+face (n triples for an n-gon, n ≥ 4; one for a triangle) is a corner with the rest frame
 
-    q = (p0 + p1 + p2)/3 + n/√|n|,   n = (p1 − p0) × (p2 − p0)    (offset length √(2·area)),
+    E = [e1, e2, h],   e1 = p1 − p0,  e2 = p2 − p0,  h = n/√|n|,  n = e1 × e2,
 
-so similarity transforms (rotation, uniform scale, translation) of the whole cage give every face
-exactly that transform. The triple's motion is the affine map taking the rest tetrahedron onto the
-current one, A_t = T_cur · T_rest⁻¹; with E = [p1 − p0, p2 − p0, n/√|n|] (3×3, det E = |n|^{3/2} > 0)
-its linear part is M = E_cur E_rest⁻¹ and its translation c_cur − M c_rest (c the triangle centroid).
-The face's parameters are the mean of ψ_params(A_t) over its triples, so they do not depend on how
-the polygon would be triangulated.
+centroid c = (p0 + p1 + p2)/3 and apex c + h (offset length √(2·area), so the tetrahedron scales with
+the face; det E = |n|^{3/2} > 0). The corner's motion is the affine map taking the rest tetrahedron
+onto the current one: linear part M = E′ E⁻¹, translation c′ − M c. The face's parameters are the mean
+of ψ_params(A_t) over its corners, so they do not depend on how the polygon would be triangulated.
+
+Current apex. e1′, e2′ and c′ follow any affine motion G of the cage, but the current normal follows
+cof(G), not G, so a normal apex c′ + n′/√|n′| ('NORMAL') reproduces only similarities exactly. A face
+alone cannot know the out-of-plane part of the motion; its neighbourhood can ('NEIGHBOURS', default).
+At bind, cage vertices are written in each rest corner frame, p_j = c + E (α_j, β_j) (α_j ∈ R², β_j
+the out-of-plane coordinate). The current apex column is the weighted least-squares fit
+
+    h′ = Σ_j ω_j β_j r_j / Σ_j ω_j β_j²,   r_j = p′_j − c′ − [e1′ e2′] α_j,   ω_j = (|p_j − c|/|h|)⁻⁴,
+
+over a stencil of the STENCIL_SIZE vertices with the largest least-squares weight ω_j β_j²
+(|β_j| ≥ STENCIL_MIN_BETA; coplanar vertices carry no out-of-plane information). Under a common
+affine G every r_j = G h β_j, so h′ = G h and A_t = G exactly (shear and non-uniform scale included);
+when the corner and its stencil move rigidly, h′ = R h and A_t is that rigid motion. h′ is linear in the
+current cage, so a local edit (one vertex dragged) shears the corners whose stencil holds it,
+continuously, by Σ γ_j δ_j (γ_j = ω_j β_j / Σ ω β²). A corner with no stencil (flat or open cage)
+keeps the normal apex, as does one whose stencil has non-finite current positions.
+
+Fold guard: the normal component x = h′·n̂′ is a weighted mean of the per-vertex estimates
+s_j = r_j·n̂′/β_j (weights ω β²); x ≤ 0 would make det M ≤ 0. With m the same mean of |s_j| (m = x
+exactly while no stencil vertex has crossed the corner's current plane), x is replaced by
+f(x) = x for x ≥ κm and (κm)²/(2κm − x) below (κ = FOLD_KAPPA): C¹, increasing and > 0. So a stencil
+vertex pushed through the face never flips or collapses its tetrahedron, and common affine or rigid
+motions (all s_j equal) are never touched.
 
 Weights (ERRATA 10): inverse distance to the face polygon (exact point–triangle distance, minimum over
 the polygon's fan triangles), zero for faces whose outer half-space holds the vertex, top-K, rows
@@ -22,8 +43,13 @@ normalised to 1; computed in chunks of vertices.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+import hashlib
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -52,6 +78,27 @@ CHUNK_ELEMENTS = 1 << 17
 
 _MAX_LISTED = 10
 
+APEX_MODES = ("NEIGHBOURS", "NORMAL")
+
+# Vertices per corner stencil for the 'NEIGHBOURS' apex: enough to average out a local edit, few
+# enough to keep the stencil local and the per-frame cost O(corners · STENCIL_SIZE).
+STENCIL_SIZE = 16
+
+# Stencil vertices must lie at least this far off the corner plane, in units of the apex length
+# √|n| (|β| ≥ this): nearly coplanar vertices (rounding, float32 noise) would amplify their motion
+# by 1/|β| into the apex.
+STENCIL_MIN_BETA = 1e-3
+
+# Fold guard (module docstring): the apex's normal component is floored smoothly once it drops below
+# this fraction of the stencil's mean absolute normal estimate.
+FOLD_KAPPA = 0.5
+
+# Rest cages whose stencils are kept (the Blender layer rebuilds CageTopology every frame, so the
+# cache is keyed by content, not by object).
+_STENCIL_CACHE_ENTRIES = 4
+
+_T = TypeVar("_T")
+
 
 def _norm(v: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("...i,...i->...", v, v))
@@ -65,7 +112,7 @@ def _list_indices(indices: np.ndarray) -> str:
 # --- topology -----------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class CageTopology:
     """Polygons as Blender stores them: face f uses loop_vertex_indices[loop_start[f] :
     loop_start[f] + loop_total[f]] in order (counter-clockwise seen from outside for outward faces).
@@ -75,7 +122,7 @@ class CageTopology:
     loop_start: np.ndarray
     loop_total: np.ndarray
     n_vertices: int
-    _cache: dict = field(default_factory=dict, compare=False, repr=False)
+    _cache: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_arrays(
@@ -107,11 +154,15 @@ class CageTopology:
         if n_vertices is None:
             n_vertices = top
         elif top > n_vertices:
-            raise ValueError(f"loop_vertex_indices refers to vertex {top - 1} but the cage has {n_vertices}")
+            raise ValueError(
+                f"loop_vertex_indices refers to vertex {top - 1} but the cage has {n_vertices}"
+            )
         return cls(loops.astype(np.intp), start.astype(np.intp), total.astype(np.intp), int(n_vertices))
 
     @classmethod
-    def from_polygons(cls, polygons: Sequence[Sequence[int]], n_vertices: int | None = None) -> CageTopology:
+    def from_polygons(
+        cls, polygons: Sequence[Sequence[int]], n_vertices: int | None = None
+    ) -> CageTopology:
         """Topology from a list of vertex-index lists (one per face)."""
         total = np.array([len(p) for p in polygons], dtype=np.intp)
         start = np.concatenate([[0], np.cumsum(total)[:-1]]).astype(np.intp)
@@ -122,12 +173,14 @@ class CageTopology:
     def n_faces(self) -> int:
         return int(self.loop_total.size)
 
-    def _cached(self, key: str, build):  # type: ignore[no-untyped-def]
+    def _cached(self, key: str, build: Callable[[], _T]) -> _T:
         if key not in self._cache:
             self._cache[key] = build()
         return self._cache[key]
 
-    def _loop_columns(self, count: np.ndarray, columns: Sequence) -> tuple[np.ndarray, np.ndarray]:
+    def _loop_columns(
+        self, count: np.ndarray, columns: Sequence[Callable[[np.ndarray], np.ndarray]]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """For each face f, `count[f]` rows j = 0..count−1; column c holds the vertex at loop position
         columns[c](j) (mod n) of the face. Returns (vertex indices (R, len(columns)), face (R,))."""
         face = np.repeat(np.arange(self.n_faces), count)
@@ -156,8 +209,28 @@ class CageTopology:
 
         return self._cached("fan", build)
 
+    def corners(self) -> tuple[np.ndarray, np.ndarray]:
+        """(vertex (R,), face (R,)) of every face corner, face by face in loop order."""
+
+        def build() -> tuple[np.ndarray, np.ndarray]:
+            vertex, face = self._loop_columns(self.loop_total, (lambda j: j,))
+            return vertex[:, 0], face
+
+        return self._cached("corners", build)
+
     def face_of_loop(self) -> np.ndarray:
-        return self._cached("face_of_loop", lambda: np.repeat(np.arange(self.n_faces), self.loop_total))
+        """(L,) the face owning each entry of loop_vertex_indices, in storage order (−1 for a loop no
+        face uses), so `bincount(face_of_loop(), x[loop_vertex_indices])` sums per face."""
+
+        def build() -> np.ndarray:
+            face = np.repeat(np.arange(self.n_faces), self.loop_total)
+            j = np.arange(face.size) - np.repeat(np.cumsum(self.loop_total) - self.loop_total,
+                                                 self.loop_total)
+            owner = np.full(self.loop_vertex_indices.size, -1, dtype=np.intp)
+            owner[self.loop_start[face] + j] = face
+            return owner
+
+        return self._cached("face_of_loop", build)
 
     def directed_edges(self) -> np.ndarray:
         """(E, 2) vertex pairs (v_j, v_j+1) of every face boundary, in loop order."""
@@ -185,8 +258,8 @@ def _check_points(points: np.ndarray, topology: CageTopology, name: str) -> np.n
 
 def face_centroids(points: np.ndarray, topology: CageTopology) -> np.ndarray:
     """Mean of each face's corner positions, (F, 3)."""
-    face = topology.face_of_loop()
-    p = points[topology.loop_vertex_indices]
+    vertex, face = topology.corners()
+    p = points[vertex]
     sums = np.stack([np.bincount(face, p[:, k], topology.n_faces) for k in range(3)], axis=1)
     return sums / topology.loop_total[:, None]
 
@@ -200,7 +273,7 @@ def face_normals(points: np.ndarray, topology: CageTopology) -> np.ndarray:
     points = _check_points(points, topology, "points")
     c = face_centroids(points, topology)
     edges = topology.directed_edges()
-    face = topology.face_of_loop()
+    _, face = topology.corners()  # same row order as directed_edges
     a = points[edges[:, 0]] - c[face]
     b = points[edges[:, 1]] - c[face]
     cr = np.cross(a, b)
@@ -238,29 +311,212 @@ def _usable_rest_triples(rest: np.ndarray, topology: CageTopology) -> tuple[np.n
     return usable, weight
 
 
+# --- apex stencils -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ApexStencil:
+    """Per corner t (rows of `CageTopology.corner_triples`), the stencil of the 'NEIGHBOURS' apex
+    (module docstring): cage vertex indices (T, S), their in-plane rest coordinates alpha (T, S, 2)
+    and least-squares coefficients gamma (T, S) = ω β / Σ ω β², so h′_t = Σ_s gamma r_s. Unused
+    slots have gamma 0 (and repeat the row's first vertex); a row without stencil is all zero."""
+
+    vertices: np.ndarray
+    alpha: np.ndarray
+    gamma: np.ndarray
+    active: np.ndarray = field(init=False, repr=False)  # (T,) bool: corners with a stencil
+    rows: np.ndarray = field(init=False, repr=False)  # flatnonzero(active)
+    moments: np.ndarray = field(init=False, repr=False)  # (T, 3): Σ γ, Σ γ α₁, Σ γ α₂
+
+    def __post_init__(self) -> None:
+        active = np.any(self.gamma != 0.0, axis=1)
+        moments = np.concatenate(
+            [self.gamma.sum(axis=1, keepdims=True), np.einsum("ts,tsk->tk", self.gamma, self.alpha)],
+            axis=1,
+        )
+        object.__setattr__(self, "active", active)
+        object.__setattr__(self, "rows", np.flatnonzero(active))
+        object.__setattr__(self, "moments", moments)
+
+
+_stencil_cache: OrderedDict[bytes, ApexStencil] = OrderedDict()
+_stencil_lock = threading.Lock()
+
+
+def _stencil_key(rest: np.ndarray, topology: CageTopology, size: int) -> bytes:
+    digest = hashlib.blake2b(digest_size=20)
+    for arr in (rest, topology.loop_vertex_indices, topology.loop_start, topology.loop_total):
+        digest.update(np.ascontiguousarray(arr).tobytes())
+        digest.update(str(arr.shape).encode())
+    digest.update(f"{topology.n_vertices}:{size}".encode())
+    return digest.digest()
+
+
+def apex_stencils(
+    rest_points: np.ndarray, topology: CageTopology, *, size: int = STENCIL_SIZE
+) -> ApexStencil:
+    """The 'NEIGHBOURS' apex stencils of the rest cage (module docstring), cached by content.
+
+    For corner t with rest frame E_t, centroid c_t, every vertex used by a face is written as
+    p_j − c_t = E_t (α_j, β_j); candidates have |β_j| ≥ STENCIL_MIN_BETA, and the `size` with the
+    largest least-squares weight ω_j β_j² (ω_j = (|p_j − c_t|/|h_t|)⁻⁴) are kept — the heaviest terms
+    of the fit over the whole cage. Collapsed or non-finite rest corners get no stencil.
+    """
+    rest = _check_points(rest_points, topology, "rest_points")
+    if size < 1:
+        raise ValueError(f"stencil size must be at least 1, got {size}")
+    key = _stencil_key(rest, topology, size)
+    with _stencil_lock:
+        found = _stencil_cache.get(key)
+        if found is not None:
+            _stencil_cache.move_to_end(key)
+            return found
+    stencil = _build_stencils(rest, topology, size)
+    with _stencil_lock:
+        _stencil_cache[key] = stencil
+        while len(_stencil_cache) > _STENCIL_CACHE_ENTRIES:
+            _stencil_cache.popitem(last=False)
+    return stencil
+
+
+def _build_stencils(rest: np.ndarray, topology: CageTopology, size: int) -> ApexStencil:
+    triples, _, _ = topology.corner_triples()
+    E, c, sin_corner = _corner_frames(rest, triples)
+    good = np.isfinite(sin_corner) & (sin_corner > COLLAPSED_SIN)
+    good &= np.isfinite(E).all(axis=(1, 2)) & np.isfinite(c).all(axis=1)
+    used = np.zeros(rest.shape[0], dtype=bool)
+    used[topology.loop_vertex_indices] = True
+    candidates = np.flatnonzero(used & np.isfinite(rest).all(axis=1))
+    S = min(size, candidates.size)
+    T = triples.shape[0]
+    vertices = np.zeros((T, S), dtype=np.intp)
+    alpha = np.zeros((T, S, 2))
+    gamma = np.zeros((T, S))
+    rows = np.flatnonzero(good)
+    if rows.size == 0 or S == 0:
+        return ApexStencil(vertices, alpha, gamma)
+    origin = rest[candidates].mean(axis=0)  # keeps the expanded |p − c|² well conditioned
+    P = rest[candidates] - origin
+    P_sq = np.einsum("vi,vi->v", P, P)
+    # Rows of E⁻¹ are the dual basis: (α₁, α₂, β) of p − c are dot products with them.
+    dual = np.linalg.inv(E[rows])
+    centre = c[rows] - origin
+    apex_sq = np.einsum("ti,ti->t", E[rows, :, 2], E[rows, :, 2])  # |h|² = |n|
+    step = max(1, CHUNK_ELEMENTS // candidates.size)
+    for lo in range(0, rows.size, step):  # chunks of corners bound the (corners × vertices) arrays
+        sl = slice(lo, lo + step)
+        cb = centre[sl]
+        beta = dual[sl, 2, :] @ P.T - np.einsum("ti,ti->t", dual[sl, 2, :], cb)[:, None]
+        dist_sq = (P_sq[None, :] - 2.0 * (cb @ P.T) + np.einsum("ti,ti->t", cb, cb)[:, None])
+        dist_sq /= apex_sq[sl, None]
+        np.maximum(dist_sq, beta * beta, out=dist_sq)  # d ≥ |β|·|h| exactly; undo rounding
+        candidate = np.abs(beta) >= STENCIL_MIN_BETA
+        with np.errstate(divide="ignore", invalid="ignore"):
+            score = np.where(candidate, beta * beta / (dist_sq * dist_sq), 0.0)  # ω β²
+        if candidates.size > S:
+            pick = np.argpartition(-score, S - 1, axis=1)[:, :S]
+        else:
+            pick = np.broadcast_to(np.arange(S), score.shape).copy()
+        # Heaviest first, so the per-frame sums run in a fixed order.
+        pick = np.take_along_axis(pick, np.argsort(-np.take_along_axis(score, pick, 1), 1, "stable"), 1)
+        s = np.take_along_axis(score, pick, axis=1)
+        b = np.take_along_axis(beta, pick, axis=1)
+        keep = s > 0.0
+        total = s.sum(axis=1, keepdims=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            g = np.where(keep, s / np.where(keep, b, 1.0) / np.where(total > 0.0, total, 1.0), 0.0)
+        pick = np.where(keep, pick, pick[:, :1])
+        r = rows[sl]
+        vertices[r] = candidates[pick]
+        coords = np.einsum("tki,tsi->tsk", dual[sl, :2, :], P[pick] - cb[:, None, :])
+        alpha[r] = np.where(keep[..., None], coords, 0.0)
+        gamma[r] = g
+    return ApexStencil(vertices, alpha, gamma)
+
+
+def _stencil_apex(
+    current: np.ndarray, E_cur: np.ndarray, c_cur: np.ndarray, stencil: ApexStencil
+) -> np.ndarray:
+    """(T, 3) the fitted current apex column h′ of each corner with a stencil, fold-guarded (module
+    docstring); NaN rows where there is no stencil or the fit is not finite.
+
+    h′ = Σ γ_s p′_s − (Σ γ) c′ − (Σ γ α₁) e1′ − (Σ γ α₂) e2′, and since e1′, e2′ ⊥ n̂′ the normal
+    residuals are r_s·n̂′ = (p′_s − c′)·n̂′; padding slots (γ = 0) repeat a real stencil vertex, so
+    they cannot bring in a non-finite value of their own.
+    """
+    out = np.full((E_cur.shape[0], 3), np.nan)
+    rows = stencil.rows
+    if rows.size == 0:
+        return out
+    g = stencil.gamma[rows]
+    moments = stencil.moments[rows]
+    e1, e2, c = E_cur[rows, :, 0], E_cur[rows, :, 1], c_cur[rows]
+    with np.errstate(all="ignore"):
+        Q = current[stencil.vertices[rows]]
+        h = np.einsum("ts,tsi->ti", g, Q)
+        h -= moments[:, 0:1] * c + moments[:, 1:2] * e1 + moments[:, 2:3] * e2
+        n = np.cross(e1, e2)
+        unit = n / _norm(n)[:, None]
+        normal = np.einsum("tsi,ti->ts", Q, unit)
+        normal -= np.einsum("ti,ti->t", c, unit)[:, None]
+        x = np.einsum("ti,ti->t", h, unit)
+        m = np.einsum("ts,ts->t", np.abs(g), np.abs(normal))
+        floor = FOLD_KAPPA * m
+        low = x < floor
+        if np.any(low):
+            guarded = floor[low] ** 2 / (2.0 * floor[low] - x[low])
+            h[low] += (guarded - x[low])[:, None] * unit[low]
+    out[rows] = np.where(np.isfinite(h).all(axis=1)[:, None], h, np.nan)
+    return out
+
+
 def corner_matrices(
-    rest: np.ndarray, current: np.ndarray, triples: np.ndarray
+    rest: np.ndarray,
+    current: np.ndarray,
+    triples: np.ndarray,
+    *,
+    stencil: ApexStencil | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(A (T, 4, 4), ok (T,)): the affine map taking each rest corner tetrahedron onto the current one.
 
-    ok is False where either tetrahedron is collapsed (sin of the corner angle ≤ COLLAPSED_SIN) or the
-    result is non-finite or has det ≤ 0; those rows of A are the identity.
+    The current apex is c′ + n′/√|n′| ('NORMAL'), or with `stencil` (rows matching `triples`) the
+    fitted c′ + h′ wherever that is available (module docstring). ok is False where either
+    tetrahedron is collapsed (sin of the corner angle ≤ COLLAPSED_SIN) or the result is non-finite
+    or has det ≤ 0; those rows of A are the identity.
     """
     E_rest, c_rest, sin_rest = _corner_frames(rest, triples)
     E_cur, c_cur, sin_cur = _corner_frames(current, triples)
+    if stencil is not None:
+        fitted = _stencil_apex(current, E_cur, c_cur, stencil)
+        use = np.isfinite(fitted).all(axis=1)
+        E_cur[use, :, 2] = fitted[use]
     ok = (sin_rest > COLLAPSED_SIN) & (sin_cur > COLLAPSED_SIN)
     ok &= np.isfinite(E_rest).all(axis=(1, 2)) & np.isfinite(E_cur).all(axis=(1, 2))
     ok &= np.isfinite(c_rest).all(axis=1) & np.isfinite(c_cur).all(axis=1)
     A = np.broadcast_to(np.eye(4), (triples.shape[0], 4, 4)).copy()
     if np.any(ok):
         # M E_rest = E_cur  <=>  E_restᵀ Mᵀ = E_curᵀ
-        M = np.swapaxes(np.linalg.solve(np.swapaxes(E_rest[ok], 1, 2), np.swapaxes(E_cur[ok], 1, 2)), 1, 2)
+        Mt = np.linalg.solve(np.swapaxes(E_rest[ok], 1, 2), np.swapaxes(E_cur[ok], 1, 2))
+        M = np.swapaxes(Mt, 1, 2)
         A[ok, :3, :3] = M
         A[ok, :3, 3] = c_cur[ok] - np.einsum("tij,tj->ti", M, c_rest[ok])
     good = np.isfinite(A).all(axis=(1, 2)) & (np.linalg.det(A[:, :3, :3]) > 0.0)
     ok &= good
     A[~ok] = np.eye(4)
     return A, ok
+
+
+def _params_or_nan(A: np.ndarray) -> np.ndarray:
+    """ψ_params of each matrix; a row that ψ rejects comes back as NaN instead of raising."""
+    try:
+        return params_from_matrices(A)
+    except ValueError:
+        # Rare (a corner too degenerate for the logarithm): redo row by row to isolate it.
+        out = np.full((A.shape[0], 12), np.nan)
+        for i in range(A.shape[0]):
+            with contextlib.suppress(ValueError):
+                out[i] = params_from_matrices(A[i])
+        return out
 
 
 @dataclass(frozen=True)
@@ -280,8 +536,15 @@ def face_motions(
     *,
     w_ref: np.ndarray | None = None,
     pivot: np.ndarray | None = None,
+    apex: str = "NEIGHBOURS",
 ) -> FaceMotions:
     """P_f = Σ_t (1/n_f) ψ_params(A_t) over the face's corner tetrahedra (see module docstring).
+
+    apex: 'NEIGHBOURS' (default) fits each corner's current apex to its rest-cage stencil
+    (`apex_stencils`, cached per rest cage), so any common affine motion of the cage — shear and
+    non-uniform scale included — gives every face exactly that motion; 'NORMAL' uses the current
+    normal (ERRATA 9), exact for similarities only. A face's motion then depends on its own vertices
+    and on its corners' stencil vertices (`affected_faces`).
 
     Corners are weighted 1/n, except that collapsed or nearly straight rest corners of n-gons are
     skipped (weight shared among the others). A face is invalid — params 0, reported — when it has
@@ -295,11 +558,16 @@ def face_motions(
     rest = _check_points(rest_points, topology, "rest_points")
     cur = _check_points(current_points, topology, "current_points")
     if rest.shape != cur.shape:
-        raise ValueError(f"rest and current cage differ in vertex count: {rest.shape[0]} vs {cur.shape[0]}")
+        raise ValueError(
+            f"rest and current cage differ in vertex count: {rest.shape[0]} vs {cur.shape[0]}"
+        )
+    if apex not in APEX_MODES:
+        raise ValueError(f"apex must be one of {', '.join(APEX_MODES)}, got {apex!r}")
     F = topology.n_faces
     triples, face, _ = topology.corner_triples()
     usable, weight = _usable_rest_triples(rest, topology)
-    A, ok = corner_matrices(rest, cur, triples)
+    stencil = apex_stencils(rest, topology) if apex == "NEIGHBOURS" else None
+    A, ok = corner_matrices(rest, cur, triples, stencil=stencil)
 
     broken = np.zeros(F, dtype=bool)
     np.logical_or.at(broken, face, usable & ~ok)
@@ -309,7 +577,7 @@ def face_motions(
 
     params_t = np.zeros((triples.shape[0], 12))
     if np.any(use):
-        params_t[use] = params_from_matrices(A[use])
+        params_t[use] = _params_or_nan(A[use])
         finite = np.isfinite(params_t).all(axis=1)
         if not np.all(finite):
             np.logical_and.at(valid, face, finite)
@@ -321,9 +589,10 @@ def face_motions(
             ref = params_t[first[face], 0:3]
         else:
             ref = np.broadcast_to(np.asarray(w_ref, dtype=np.float64), (F, 3))[face]
-        piv = None if pivot is None else np.broadcast_to(np.asarray(pivot, dtype=np.float64), (F, 3))[face]
-        lifted = lift_params(params_t[use], ref[use], None if piv is None else piv[use])
-        params_t[use] = lifted
+        piv = None
+        if pivot is not None:
+            piv = np.broadcast_to(np.asarray(pivot, dtype=np.float64), (F, 3))[face][use]
+        params_t[use] = lift_params(params_t[use], ref[use], piv)
 
     contrib = np.where(use[:, None], weight[:, None] * params_t, 0.0)
     params = np.stack([np.bincount(face, contrib[:, k], F) for k in range(12)], axis=1)
@@ -333,7 +602,8 @@ def face_motions(
     no_rest = np.flatnonzero(~has_corner)
     if no_rest.size:
         messages.append(
-            f"{no_rest.size} cage face(s) have zero area in the rest pose and are ignored: "
+            f"{no_rest.size} cage face(s) are degenerate (zero area or non-finite) in the rest pose "
+            "and are ignored: "
             f"{_list_indices(no_rest)}"
         )
     collapsed = np.flatnonzero(has_corner & ~valid)
@@ -343,6 +613,35 @@ def face_motions(
             f"are ignored: {_list_indices(collapsed)}"
         )
     return FaceMotions(params=params, valid=valid, messages=tuple(messages))
+
+
+def affected_faces(
+    rest_points: np.ndarray,
+    current_points: np.ndarray,
+    topology: CageTopology,
+    *,
+    apex: str = "NEIGHBOURS",
+) -> np.ndarray:
+    """(F,) bool: faces whose motion can differ from the identity — a corner vertex or (for the
+    'NEIGHBOURS' apex) a stencil vertex of one of its corners is not bitwise at rest (NaN counts as
+    moved). Every other face has the identity motion, so a caller may skip it."""
+    rest = _check_points(rest_points, topology, "rest_points")
+    cur = _check_points(current_points, topology, "current_points")
+    if rest.shape != cur.shape:
+        raise ValueError(
+            f"rest and current cage differ in vertex count: {rest.shape[0]} vs {cur.shape[0]}"
+        )
+    if apex not in APEX_MODES:
+        raise ValueError(f"apex must be one of {', '.join(APEX_MODES)}, got {apex!r}")
+    moved = np.any(cur != rest, axis=1)
+    triples, face, _ = topology.corner_triples()
+    corner = moved[triples].any(axis=1)
+    if apex == "NEIGHBOURS":
+        stencil = apex_stencils(rest, topology)
+        corner |= (moved[stencil.vertices] & (stencil.gamma != 0.0)).any(axis=1)
+    out = np.zeros(topology.n_faces, dtype=bool)
+    np.logical_or.at(out, face, corner)
+    return out
 
 
 # --- distances and weights ----------------------------------------------------------------------
@@ -468,9 +767,9 @@ class _CageFields:
         length = _norm(normals)
         unit = normals / np.where(length > 0.0, length, 1.0)[:, None]
         centers = face_centroids(local, topology)
-        reach = _norm(local[topology.loop_vertex_indices] - centers[topology.face_of_loop()])
+        vertex, face = topology.corners()
         radii = np.zeros(topology.n_faces)
-        np.maximum.at(radii, topology.face_of_loop(), reach)
+        np.maximum.at(radii, face, _norm(local[vertex] - centers[face]))
         offsets = np.einsum("ij,ij->i", unit, centers)
         return cls(origin, size, triangles, fan_face, unit, offsets, centers, radii)
 

@@ -23,7 +23,10 @@ The eigen-angle a = arccos(r)/3 ∈ [0, π/3] uses the same sinc polynomial.
 from __future__ import annotations
 
 import math
+import os
 import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -45,6 +48,8 @@ __all__ = [
 DEFAULT_CHUNK = 16384
 #: Above this many controls the blend gathers parameter rows instead of a dense (m, chunk) product.
 DENSE_BLEND_MAX_CONTROLS = 48
+#: Largest dense weight matrix (controls × vertices) a kernel keeps between calls (64 MiB).
+DENSE_CACHE_MAX_ENTRIES = 1 << 23
 
 # The quarter-angle polynomials are used for θ ≤ 1.8π, where cos(θ/4) = √(1 − sin²(θ/4)) ≥ 0.15 is
 # well conditioned; larger θ (lifted rotations past ±324°) take the np.sin/np.cos fallback.
@@ -52,11 +57,12 @@ _POLY_MAX_S = (1.8 * math.pi) ** 2
 _TINY = np.finfo(np.float64).tiny
 _SQRT3 = math.sqrt(3.0)
 
-# Taylor coefficients in z = x² of sin(x)/x = Σ (−z)^k/(2k+1)!; degree 10 keeps the truncation below
-# 2e-17 for x ≤ 0.45π (the quarter angle of θ ≤ 1.8π).
-_SINC_COEFFS = tuple((-1.0) ** k / math.factorial(2 * k + 1) for k in range(11))
-# For the eigen-angle a ≤ π/3: degree 9 keeps the truncation of sin(a)/a below 1e-17.
-_SINC_EIG_COEFFS = _SINC_COEFFS[:10]
+# Taylor coefficients in z = x² of sin(x)/x = Σ (−z)^k/(2k+1)!. Degree 9 keeps the truncation below
+# 2e-17 for x ≤ 0.45π (z ≤ 2, the quarter angle of θ ≤ 1.8π); degree 8 does for the eigen-angle
+# a ≤ π/3 (z ≤ 1.1). (Chebyshev-economised coefficients would save one degree but carry ~1e-15 of
+# rounding from the change of basis.)
+_SINC_COEFFS = tuple((-1.0) ** k / math.factorial(2 * k + 1) for k in range(10))
+_SINC_EIG_COEFFS = _SINC_COEFFS[:9]
 # Clamps that replace series branches (see the error bounds where they are used).
 _C_CLAMP_S = 1e-14
 _H2_CLAMP = 1e-5
@@ -104,18 +110,23 @@ _N_ROWS = 48  # 12 parameters + 3 points + 3 results + scratch
 
 
 class DeformKernel:
-    """Reusable per-vertex kernel with its scratch buffers (not thread-safe: one per thread).
+    """Reusable per-vertex kernel with its scratch buffers; not for concurrent use (one per thread).
 
-    `deform(points, params, indices, values, out)` computes v' = φ(Σ_k values[v,k] params[indices[v,k]]) v.
+    Work is split into chunks of `chunk_size` vertices; with `threads` > 1, contiguous runs of chunks
+    go to helper kernels on a shared thread pool (numpy releases the GIL inside each ufunc, so the
+    runs overlap). Results do not depend on chunk_size or threads.
     """
 
-    def __init__(self, chunk_size: int = DEFAULT_CHUNK) -> None:
+    def __init__(self, chunk_size: int = DEFAULT_CHUNK, threads: int | None = None) -> None:
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
         self.chunk_size = int(chunk_size)
+        self.threads = default_threads() if threads is None else max(1, int(threads))
         self._rows = _Rows(_N_ROWS, self.chunk_size)
         self._dense: FloatArray = np.empty(0)
         self._arange = np.arange(self.chunk_size, dtype=np.intp)
+        self._helpers: list[DeformKernel] = []
+        self._weights_cache: tuple[IntArray, FloatArray, int, FloatArray] | None = None
 
     def _param_rows(self, n: int) -> FloatArray:
         """The (12, n) parameter rows of the current chunk."""
@@ -131,6 +142,27 @@ class DeformKernel:
         self._rows._next = 18
         return self._rows
 
+    def _run(self, n_total: int, work: Callable[[DeformKernel, int, int], None]) -> None:
+        """work(kernel, lo, hi) over [0, n_total) in chunk-aligned runs, one run per thread."""
+        n_chunks = -(-n_total // self.chunk_size)
+        n_runs = min(self.threads, n_chunks)
+        if n_runs <= 1:
+            work(self, 0, n_total)
+            return
+        while len(self._helpers) < n_runs - 1:
+            self._helpers.append(DeformKernel(self.chunk_size, threads=1))
+        edges = [min(n_total, (i * n_chunks // n_runs) * self.chunk_size) for i in range(n_runs + 1)]
+        pool = _pool()
+        futures = [
+            pool.submit(work, helper, lo, hi)
+            for helper, lo, hi in zip(self._helpers, edges[1:-1], edges[2:], strict=False)
+        ]
+        try:
+            work(self, edges[0], edges[1])
+        finally:
+            for f in futures:
+                f.result()
+
     # ------------------------------------------------------------------------------------------
     # public entry points
 
@@ -143,7 +175,10 @@ class DeformKernel:
         out: FloatArray | None = None,
     ) -> FloatArray:
         """Sparse hot path; see `deform_points_params`."""
-        pts, table, idx, val, out = _check_sparse(points, params, indices, values, out, 12, "params")
+        pts = _check_points(points)
+        table = _check_table(params, 12, "params")
+        out = _check_out(out, pts)
+        idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], table.shape[0])
         if not table.any():
             # Every control at rest: the exact input, so "probes at rest ⇒ mesh unchanged" holds bit
             # for bit (the general path gives the same values but may turn −0.0 into +0.0).
@@ -151,12 +186,15 @@ class DeformKernel:
                 np.copyto(out, pts)
             return out
         table_t = np.ascontiguousarray(table.T)
-        for lo in range(0, pts.shape[0], self.chunk_size):
-            hi = min(lo + self.chunk_size, pts.shape[0])
-            n = hi - lo
-            P = self._param_rows(n)
-            self._blend_sparse(table_t, idx[lo:hi], val[lo:hi], P)
-            self._apply_chunk(pts[lo:hi], P, out[lo:hi])
+
+        def work(kernel: DeformKernel, lo: int, hi: int) -> None:
+            for a in range(lo, hi, kernel.chunk_size):
+                b = min(a + kernel.chunk_size, hi)
+                P = kernel._param_rows(b - a)
+                kernel._blend(table_t, idx, val, dense, a, b, P)
+                kernel._apply_chunk(pts[a:b], P, out[a:b])
+
+        self._run(pts.shape[0], work)
         return out
 
     def deform_dense(self, points: ArrayLike, params: ArrayLike, weights: ArrayLike) -> FloatArray:
@@ -170,11 +208,15 @@ class DeformKernel:
             raise ValueError("weights contain non-finite values")
         out = np.empty_like(pts)
         table_t = np.ascontiguousarray(table.T)
-        for lo in range(0, pts.shape[0], self.chunk_size):
-            hi = min(lo + self.chunk_size, pts.shape[0])
-            P = self._param_rows(hi - lo)
-            np.matmul(table_t, W[lo:hi].T, out=P)
-            self._apply_chunk(pts[lo:hi], P, out[lo:hi])
+
+        def work(kernel: DeformKernel, lo: int, hi: int) -> None:
+            for a in range(lo, hi, kernel.chunk_size):
+                b = min(a + kernel.chunk_size, hi)
+                P = kernel._param_rows(b - a)
+                np.matmul(table_t, W[a:b].T, out=P)
+                kernel._apply_chunk(pts[a:b], P, out[a:b])
+
+        self._run(pts.shape[0], work)
         return out
 
     def blend(self, table: ArrayLike, indices: ArrayLike, values: ArrayLike) -> FloatArray:
@@ -193,8 +235,110 @@ class DeformKernel:
             res[lo:hi] = buf.T
         return res
 
+    def linear(
+        self,
+        points: ArrayLike,
+        transforms: ArrayLike,
+        indices: ArrayLike,
+        values: ArrayLike,
+        out: FloatArray | None = None,
+    ) -> FloatArray:
+        """'LINEAR' comparison mode; see `blend_linear_sparse`."""
+        T = np.asarray(transforms, dtype=np.float64)
+        if T.ndim != 3 or T.shape[1:] != (4, 4):
+            raise ValueError(f"transforms must have shape (m, 4, 4), got {T.shape}")
+        D = (T[:, :3, :] - np.eye(3, 4)).reshape(T.shape[0], 12)  # row-major (3, 4) offsets from I
+        pts = _check_points(points)
+        table = _check_table(D, 12, "transforms")
+        out = _check_out(out, pts)
+        idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], table.shape[0])
+        if not table.any():
+            if out is not pts:
+                np.copyto(out, pts)
+            return out
+        table_t = np.ascontiguousarray(table.T)
+
+        def work(kernel: DeformKernel, lo: int, hi: int) -> None:
+            for a in range(lo, hi, kernel.chunk_size):
+                b = min(a + kernel.chunk_size, hi)
+                n = b - a
+                Dv = kernel._param_rows(n)
+                kernel._blend(table_t, idx, val, dense, a, b, Dv)
+                V = kernel._point_rows(n)
+                np.copyto(V, pts[a:b].T)
+                O = kernel._result_rows(n)
+                tmp = kernel._scratch().take(n, 1)[0]
+                for i in range(3):
+                    np.multiply(Dv[4 * i], V[0], out=O[i])
+                    np.multiply(Dv[4 * i + 1], V[1], out=tmp)
+                    O[i] += tmp
+                    np.multiply(Dv[4 * i + 2], V[2], out=tmp)
+                    O[i] += tmp
+                    O[i] += Dv[4 * i + 3]
+                    O[i] += V[i]
+                np.copyto(out[a:b], O.T)
+
+        self._run(pts.shape[0], work)
+        return out
+
     # ------------------------------------------------------------------------------------------
     # blend
+
+    def _sparse_weights(
+        self, indices: ArrayLike, values: ArrayLike, n_points: int, m: int
+    ) -> tuple[IntArray, FloatArray, FloatArray | None]:
+        """Checked (indices, values) and, for few controls, the dense (m, N) weights.
+
+        Bind data comes back unchanged frame after frame, so the dense weights are kept together with
+        a copy of the sparse arrays they were built from and reused while both compare equal (two
+        linear scans, ~10× cheaper than scattering them again; a mismatch just rebuilds).
+        """
+        idx = np.asarray(indices)
+        val = np.asarray(values, dtype=np.float64)
+        cache = self._weights_cache
+        if (
+            cache is not None
+            and cache[2] == m
+            and cache[0].shape == idx.shape
+            and cache[0].dtype == idx.dtype
+            and np.array_equal(cache[0], idx)
+            and np.array_equal(cache[1], val)
+        ):
+            return cache[0], cache[1], cache[3]
+        idx, val = _check_indices(idx, val, n_points, m)
+        N, K = idx.shape
+        if m > DENSE_BLEND_MAX_CONTROLS or m * N > DENSE_CACHE_MAX_ENTRIES:
+            return idx, val, None
+        dense = np.zeros((m, N))
+        flat = dense.reshape(-1)
+        cols = np.arange(N, dtype=np.intp)
+        for k in range(K):
+            pos = idx[:, k].astype(np.intp) * N
+            pos += cols
+            if k == 0:
+                flat[pos] = val[:, 0]
+            else:
+                # Each k hits every column once, so `+=` is exact even when a vertex lists a control
+                # twice (in different slots).
+                flat[pos] += val[:, k]
+        self._weights_cache = (idx.copy(), val.copy(), m, dense)
+        return idx, val, dense
+
+    def _blend(
+        self,
+        table_t: FloatArray,
+        idx: IntArray,
+        val: FloatArray,
+        dense: FloatArray | None,
+        a: int,
+        b: int,
+        P: FloatArray,
+    ) -> None:
+        """P (c, b − a) = blended table columns for vertices a:b."""
+        if dense is not None:
+            np.matmul(table_t, dense[:, a:b], out=P)
+        else:
+            self._blend_sparse(table_t, idx[a:b], val[a:b], P)
 
     def _blend_sparse(self, table_t: FloatArray, idx: IntArray, val: FloatArray, P: FloatArray) -> None:
         """P (c, n) = table_t (c, m) · W (m, n), W the chunk's sparse weights made dense."""
@@ -209,11 +353,14 @@ class DeformKernel:
             dense.fill(0.0)
             cols = self._arange[:n]
             for k in range(K):
-                # Each k hits every column once, so `+=` is exact even when a vertex lists a control
-                # twice (in different slots).
-                pos = idx[:, k] * stride
+                pos = idx[:, k].astype(np.intp) * stride
                 pos += cols
-                flat[pos] += val[:, k]
+                if k == 0:
+                    flat[pos] = val[:, 0]
+                else:
+                    # Each k hits every column once, so `+=` is exact even when a vertex lists a
+                    # control twice (in different slots).
+                    flat[pos] += val[:, k]
             np.matmul(table_t, dense, out=P)
         else:
             gathered = np.empty_like(P)
@@ -266,10 +413,10 @@ class DeformKernel:
         p2 += t0
         p2 *= 1.0 / 6.0
         np.sqrt(p2, out=p)
-        # r = det B/(2p³); a zero spread gives det = 0 and r = 0 (the floor only avoids 0/0).
+        # r = det B/(2p³); a zero spread gives det = 0 and r = 0 (adding TINY only avoids 0/0).
         mul(p2, p, out=t1)
         t1 += t1
-        np.maximum(t1, _TINY, out=t1)
+        t1 += _TINY
         r = t0
         np.divide(det, t1, out=r)
         np.minimum(r, 1.0, out=r)
@@ -314,7 +461,7 @@ class DeformKernel:
         mul(x, h2x, out=t0)
         g -= t0
         sub(y, x, out=t0)
-        np.maximum(t0, _TINY, out=t0)
+        t0 += _TINY  # y − x ≥ 0; only x = y = 0 (then g multiplies Z = 0) needs the guard
         g /= t0
         alpha = h2x
         alpha -= g
@@ -365,9 +512,9 @@ class DeformKernel:
         mul(B, s, out=cth)
         np.subtract(1.0, cth, out=cth)  # cos θ
         # C = (θ − sin θ)/θ³ = (1 − A)/θ². It only enters as C (ω·u) ω, of size ≤ C θ² |u|, so the
-        # direct formula's error ε/θ² costs ε|u| there; below θ² = _C_CLAMP_S the term itself is
-        # < 2e-15 |u| (and is 0 at θ = 0), so a series branch buys nothing.
-        np.maximum(s, _C_CLAMP_S, out=t0)
+        # direct formula's error ε/θ² costs ε|u| there; dividing by θ² + c (c = _C_CLAMP_S) instead
+        # moves the term by ≤ c|u|/6 < 2e-15 |u| and makes θ = 0 safe, so no series branch is needed.
+        np.add(s, _C_CLAMP_S, out=t0)
         np.subtract(1.0, A, out=C)
         C /= t0
         if (s > _POLY_MAX_S).any():
@@ -447,7 +594,9 @@ def _sym_matvec(
         oi += tmp
 
 
-def _exact_rotation_coeffs(s: FloatArray, A: FloatArray, B: FloatArray, C: FloatArray, cth: FloatArray) -> None:
+def _exact_rotation_coeffs(
+    s: FloatArray, A: FloatArray, B: FloatArray, C: FloatArray, cth: FloatArray
+) -> None:
     """Recompute the θ-coefficients with np.sin/np.cos where θ² > _POLY_MAX_S (lifted rotations)."""
     big = np.flatnonzero(s > _POLY_MAX_S)
     theta = np.sqrt(s[big])
@@ -497,32 +646,41 @@ def _check_indices(
         raise ValueError(f"indices must lie in [0, {m}), got [{int(idx.min())}, {int(idx.max())}]")
     if not np.all(np.isfinite(val)):
         raise ValueError("weight values contain non-finite entries")
-    return idx.astype(np.intp, copy=False), val
+    return idx, val
 
 
-def _check_sparse(
-    points: ArrayLike,
-    table: ArrayLike,
-    indices: ArrayLike,
-    values: ArrayLike,
-    out: FloatArray | None,
-    width: int,
-    name: str,
-) -> tuple[FloatArray, FloatArray, IntArray, FloatArray, FloatArray]:
-    pts = _check_points(points)
-    tab = _check_table(table, width, name)
-    idx, val = _check_indices(indices, values, pts.shape[0], tab.shape[0])
+def _check_out(out: FloatArray | None, pts: FloatArray) -> FloatArray:
     if out is None:
-        out = np.empty_like(pts)
-    elif out.shape != pts.shape or out.dtype != np.float64:
+        return np.empty_like(pts)
+    if not isinstance(out, np.ndarray) or out.shape != pts.shape or out.dtype != np.float64:
         raise ValueError(f"out must be a float64 array of shape {pts.shape}")
-    return pts, tab, idx, val, out
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
 # module-level API (docs/DEVELOPING.md)
 
 _local = threading.local()
+_pool_lock = threading.Lock()
+_pool_instance: ThreadPoolExecutor | None = None
+
+#: Upper bound of the default thread count (a frame handler should not take over a render farm node).
+MAX_DEFAULT_THREADS = 8
+
+
+def default_threads() -> int:
+    """Threads a new kernel uses: the CPU count, at most MAX_DEFAULT_THREADS."""
+    return max(1, min(os.cpu_count() or 1, MAX_DEFAULT_THREADS))
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _pool_instance
+    with _pool_lock:
+        if _pool_instance is None:
+            _pool_instance = ThreadPoolExecutor(
+                max_workers=2 * default_threads(), thread_name_prefix="affine_deformers"
+            )
+        return _pool_instance
 
 
 def _kernel() -> DeformKernel:
@@ -574,34 +732,6 @@ def blend_linear_sparse(
     """'LINEAR' comparison mode: v' = (Σ_k w_k A_idx(k) + (1 − Σ_k w_k) I) v = v + Σ_k w_k (A_idx(k) − I) v.
 
     The identity carries the leftover weight, so zero weight means "stays put", as in the affine mode.
-    transforms (m, 4, 4) must be finite with bottom rows (0, 0, 0, 1); any determinant is accepted.
+    transforms (m, 4, 4) must be finite (bottom rows are ignored; any determinant is accepted).
     """
-    T = np.asarray(transforms, dtype=np.float64)
-    if T.ndim != 3 or T.shape[1:] != (4, 4):
-        raise ValueError(f"transforms must have shape (m, 4, 4), got {T.shape}")
-    D = (T[:, :3, :] - np.eye(3, 4)).reshape(T.shape[0], 12)  # row-major (3, 4) offsets from identity
-    kernel = _kernel()
-    pts, table, idx, val, out = _check_sparse(points, D, indices, values, out, 12, "transforms")
-    if not table.any():
-        if out is not pts:
-            np.copyto(out, pts)
-        return out
-    table_t = np.ascontiguousarray(table.T)
-    for lo in range(0, pts.shape[0], kernel.chunk_size):
-        hi = min(lo + kernel.chunk_size, pts.shape[0])
-        Dv = kernel._param_rows(hi - lo)
-        kernel._blend_sparse(table_t, idx[lo:hi], val[lo:hi], Dv)
-        V = kernel._point_rows(hi - lo)
-        np.copyto(V, pts[lo:hi].T)
-        O = kernel._result_rows(hi - lo)
-        tmp = kernel._scratch().take(hi - lo, 1)[0]
-        for i in range(3):
-            np.multiply(Dv[4 * i], V[0], out=O[i])
-            np.multiply(Dv[4 * i + 1], V[1], out=tmp)
-            O[i] += tmp
-            np.multiply(Dv[4 * i + 2], V[2], out=tmp)
-            O[i] += tmp
-            O[i] += Dv[4 * i + 3]
-            O[i] += V[i]
-        np.copyto(out[lo:hi], O.T)
-    return out
+    return _kernel().linear(points, transforms, indices, values, out)

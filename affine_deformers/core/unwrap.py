@@ -151,9 +151,11 @@ def se3_log_lifted(
     """
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
-    w_p, u_p = se3_log(R, t)
-    w_ref = np.broadcast_to(np.asarray(w_ref, dtype=np.float64), w_p.shape)
-    return _lift_se3(w_p, u_p, t, w_ref, pivot, damping, axis_tol)
+    w_ref = np.asarray(w_ref, dtype=np.float64)
+    lead = np.broadcast_shapes(R.shape[:-2], t.shape[:-1], w_ref.shape[:-1])
+    t = np.broadcast_to(t, (*lead, 3))
+    w_p, u_p = se3_log(np.broadcast_to(R, (*lead, 3, 3)), t)
+    return _lift_se3(w_p, u_p, t, np.broadcast_to(w_ref, (*lead, 3)), pivot, damping, axis_tol)
 
 
 def lift_params(
@@ -173,12 +175,13 @@ def lift_params(
     params = np.asarray(params, dtype=np.float64)
     if params.shape[-1:] != (12,):
         raise ValueError(f"params must have a last axis of 12, got shape {params.shape}")
-    w_p = params[..., 0:3]
-    u_p = params[..., 3:6]
-    w_ref = np.broadcast_to(np.asarray(w_ref, dtype=np.float64), w_p.shape)
+    w_ref = np.asarray(w_ref, dtype=np.float64)
+    lead = np.broadcast_shapes(params.shape[:-1], w_ref.shape[:-1])
+    out = np.array(np.broadcast_to(params, (*lead, 12)))
+    w_p = out[..., 0:3]
+    u_p = out[..., 3:6]
     t = np.einsum("...ij,...j->...i", left_jacobian(w_p), u_p)
-    w, u = _lift_se3(w_p, u_p, t, w_ref, pivot, damping, axis_tol)
-    out = params.copy()
+    w, u = _lift_se3(w_p, u_p, t, np.broadcast_to(w_ref, (*lead, 3)), pivot, damping, axis_tol)
     out[..., 0:3] = w
     out[..., 3:6] = u
     return out

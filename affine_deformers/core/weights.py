@@ -77,8 +77,9 @@ def smooth_falloff(distances: ArrayLike, radius: float, power: int = 2) -> Float
         raise ValueError(f"radius must be positive, got {radius}")
     if power < 1:
         raise ValueError(f"power must be at least 1, got {power}")
-    x2 = (np.asarray(distances, dtype=np.float64) / radius) ** 2
-    return np.where(x2 < 1.0, (1.0 - np.minimum(x2, 1.0)) ** power, 0.0)
+    # min(d/R, 1) also maps d = inf to exactly 0 without overflow warnings
+    x = np.minimum(np.asarray(distances, dtype=np.float64) / radius, 1.0)
+    return (1.0 - x * x) ** power
 
 
 def normalize(W: ArrayLike, mode: str = "SUM", temperature: float = 1.0) -> FloatArray:
@@ -118,10 +119,7 @@ def top_k(W: ArrayLike, k: int) -> tuple[IntArray, FloatArray]:
         raise ValueError(f"k must be at least 1, got {k}")
     n, m = W.shape
     K = min(int(k), m)
-    if K < m:
-        part = np.argpartition(-W, K - 1, axis=1)[:, :K]
-    else:
-        part = np.broadcast_to(np.arange(m), (n, m))
+    part = np.argpartition(-W, K - 1, axis=1)[:, :K] if m > K else np.broadcast_to(np.arange(m), (n, m))
     # Sort the kept candidates by (−value, index) so ties resolve the same way in every chunk.
     part = np.sort(part, axis=1)
     vals = np.take_along_axis(W, part, axis=1)
@@ -162,8 +160,9 @@ def sparse_from_blocks(
         hi = min(lo + chunk, n_points)
         W = np.asarray(block(lo, hi), dtype=np.float64)
         if W.shape != (hi - lo, n_controls):
-            raise ValueError(f"weight block for rows {lo}:{hi} has shape {W.shape}, "
-                             f"expected {(hi - lo, n_controls)}")
+            raise ValueError(
+                f"weight block for rows {lo}:{hi} has shape {W.shape}, expected {(hi - lo, n_controls)}"
+            )
         if not np.all(np.isfinite(W)):
             raise ValueError(f"weights for rows {lo}:{hi} contain non-finite values")
         if np.any(W < 0.0):

@@ -107,6 +107,27 @@ def test_topology_rejects_malformed_arrays() -> None:
         face_motions(points[:7], points[:7], topo)
 
 
+def test_loop_start_need_not_follow_face_order() -> None:
+    points, topo = mixed_prism()
+    sizes = topo.loop_total
+    loops = topo.loop_vertex_indices
+    # Store the faces' loops back to front while keeping the face order.
+    order = np.arange(topo.n_faces)[::-1]
+    blocks = [loops[topo.loop_start[f] : topo.loop_start[f] + sizes[f]] for f in order]
+    new_start = np.empty_like(topo.loop_start)
+    new_start[order] = np.concatenate([[0], np.cumsum([b.size for b in blocks])[:-1]])
+    shuffled = CageTopology.from_arrays(np.concatenate(blocks), new_start, sizes.copy())
+    np.testing.assert_allclose(face_normals(points, shuffled), face_normals(points, topo), atol=1e-14)
+    G = similarity(0.4, [1, 1, 0], 1.2, [0.0, 0.3, 0.0])
+    current = apply(G, points) + 0.01 * np.sin(points)
+    a, b = face_motions(points, current, shuffled), face_motions(points, current, topo)
+    np.testing.assert_allclose(a.params, b.params, atol=1e-13)
+    assert check_cage(points, shuffled).ok
+    query = np.array([[0.1, 0.2, 0.0], [0.3, -0.2, 0.4]])
+    expected = dense_rows(*cage_weights(query, points, topo), 11)
+    np.testing.assert_allclose(dense_rows(*cage_weights(query, points, shuffled), 11), expected)
+
+
 def test_newell_normal_of_a_triangle_is_the_cross_product() -> None:
     points, topo = mixed_prism()
     normals = face_normals(points, topo)
@@ -199,7 +220,28 @@ def test_collapsed_face_is_reported_and_zeroed_never_nan() -> None:
     rest[4] = [0.5, 0.5, 0.0]
     motion = face_motions(rest, points, topo)
     assert not motion.valid[0] and motion.valid[1:].all()
-    assert "rest pose" in motion.messages[0]
+    assert "rest pose" in motion.messages[0] and "degenerate" in motion.messages[0]
+
+
+def test_corner_rejected_by_psi_invalidates_only_its_face(monkeypatch: pytest.MonkeyPatch) -> None:
+    import affine_deformers.core.cage as cage_module
+
+    real = cage_module.params_from_matrices
+
+    def picky(A: np.ndarray) -> np.ndarray:  # rejects batches and every non-identity matrix
+        if A.ndim == 3 or not np.allclose(A, np.eye(4)):
+            raise ValueError("transform is too degenerate to take its logarithm")
+        return real(A)
+
+    monkeypatch.setattr(cage_module, "params_from_matrices", picky)
+    points, topo = cube()
+    current = points.copy()
+    current[7] += [0.1, 0.2, 0.3]
+    motion = face_motions(points, current, topo)
+    has_7 = np.array([7 in f for f in CUBE_FACES])
+    np.testing.assert_array_equal(motion.valid, ~has_7)
+    assert np.array_equal(motion.params, np.zeros((6, 12)))
+    assert "3 cage face(s) collapsed" in motion.messages[0]
 
 
 def test_straight_rest_corner_of_an_ngon_is_skipped() -> None:

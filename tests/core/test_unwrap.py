@@ -284,10 +284,10 @@ def brute_force_unwrap(mode: str, rest: np.ndarray, current: np.ndarray, steps: 
     """Reference: very fine uniform samples, each principal log lifted against the previous one."""
     from affine_deformers.core.unwrap import channels_to_matrix
 
-    r0 = channels_to_matrix(mode, rest)
-    lifted = np.zeros(3)
+    r0_t = np.swapaxes(channels_to_matrix(mode, rest), -1, -2)
+    lifted = np.zeros((*rest.shape[:-1], 3))
     for s in np.linspace(0.0, 1.0, steps + 1)[1:]:
-        rel = channels_to_matrix(mode, rest + s * (current - rest)) @ r0.T
+        rel = channels_to_matrix(mode, rest + s * (current - rest)) @ r0_t
         lifted = lift_rotvec(so3_log(rel), lifted)
     return lifted
 
@@ -297,15 +297,26 @@ def test_sampled_paths_match_a_fine_brute_force_unwrap() -> None:
     rest_e = rng.uniform(-1, 1, size=(6, 3))
     cur_e = rest_e + rng.uniform(-5, 5, size=(6, 3))
     got = channel_rotvec("YZX", rest_e, cur_e)
-    for i in range(6):
-        np.testing.assert_allclose(got[i], brute_force_unwrap("YZX", rest_e[i], cur_e[i], 3000), atol=1e-9)
+    np.testing.assert_allclose(got, brute_force_unwrap("YZX", rest_e, cur_e, 3000), atol=1e-9)
 
-    rest_a = np.array([[0.5, 1.0, 0.0, 0.0], [2.0, 0.0, 1.0, 0.2], [-1.0, 0.3, 0.3, 1.0]])
-    cur_a = np.array([[9.0, 0.0, 1.0, 0.1], [-7.0, 1.0, -0.8, 0.2], [6.0, -0.2, 0.5, -1.0]])
+    # The last row keeps its angle while the axis swings through almost 180° close to zero length:
+    # the turn happens in a short stretch of the path, which uniform samples would step over.
+    rest_a = np.array(
+        [[0.5, 1.0, 0.0, 0.0], [2.0, 0.0, 1.0, 0.2], [-1.0, 0.3, 0.3, 1.0], [3.0, 1.0, 0.0, 0.0]]
+    )
+    cur_a = np.array(
+        [[9.0, 0.0, 1.0, 0.1], [-7.0, 1.0, -0.8, 0.2], [6.0, -0.2, 0.5, -1.0], [3.0, -1.0, 0.02, 0.0]]
+    )
     got = channel_rotvec("AXIS_ANGLE", rest_a, cur_a)
-    for i in range(3):
-        expected = brute_force_unwrap("AXIS_ANGLE", rest_a[i], cur_a[i], 6000)
-        np.testing.assert_allclose(got[i], expected, atol=1e-9)
+    assert np.linalg.norm(got[3]) > np.pi  # past a half turn: the branch matters
+    np.testing.assert_allclose(got, brute_force_unwrap("AXIS_ANGLE", rest_a, cur_a, 6000), atol=1e-9)
+
+    # Quaternions use a closed form; check it against the literal sampled path (not unit, any sign).
+    q_rest = rng.normal(size=(8, 4)) * rng.uniform(0.5, 3.0, size=(8, 1))
+    q_cur = rng.normal(size=(8, 4)) * rng.uniform(0.5, 3.0, size=(8, 1))
+    got = channel_rotvec("QUATERNION", q_rest, q_cur)
+    assert np.max(np.linalg.norm(got, axis=1)) > np.pi
+    np.testing.assert_allclose(got, brute_force_unwrap("QUATERNION", q_rest, q_cur, 3000), atol=1e-9)
 
 
 def test_per_row_modes_and_shapes() -> None:

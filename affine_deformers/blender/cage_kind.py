@@ -1,0 +1,239 @@
+"""The cage kind: a closed mesh whose faces drive the target (course notes 8.3.2, ERRATA 9, 10).
+
+Everything is expressed in the target's local space. With C = target_world⁻¹ · cage_world (rounded
+to float32 like the probes' matrices) and q the cage's vertex positions in its own object space:
+
+* bind stores, on the deformer item, C_rest (`cage_rest_matrix`), the rest cage
+  p_rest = C_rest · q_rest (ID property `cage_rest_points`, float64, V·3) and the topology it was
+  bound with (`cage_loop_vertices`, `cage_loop_start`, `cage_loop_total`, int32). These are ID
+  properties of the target object, so they are saved in the .blend with the bind weights, survive
+  undo, work with a cage linked from a library (nothing is written to the cage) and let re-weighting
+  (exponent, half-space, influences, mask) run from rest data alone;
+* per frame the cage is read from the EVALUATED depsgraph (shape keys, armature and other modifiers,
+  object animation, edit-mode edits). Its motion is split into the object-level part
+  G = C · C_rest⁻¹, applied exactly as a matrix after the blend, and the shape change
+  p̃ = C_rest · q, whose per-face motions A_f (p_rest → p̃, core.cage.face_motions) are blended:
+
+      v' = G · φ(Σ_f w_f P_f) v.
+
+  Moving, rotating, scaling or shearing the cage OBJECT maps the target by exactly G without any
+  per-face work; an affine map applied to the cage's vertices gives every face that map (core.cage's
+  'NEIGHBOURS' apex), so it is reproduced exactly too. Only the faces the shape change can reach
+  (core.cage.affected_faces) get parameters; the others are exactly at rest.
+
+A face that collapses in the current pose (zero area or non-finite) is skipped: its weight goes to
+the vertex's other faces (evaluate.redistribute) and the status names how many faces are skipped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import bpy
+import numpy as np
+
+from ..core import aff3
+from ..core.cage import CageTopology, affected_faces, cage_weights, check_cage, face_motions
+from . import storage
+from .kinds import BindError, Motions, local_matrix, relative_motion, world_matrix
+
+REST_POINTS = "cage_rest_points"
+LOOP_VERTICES = "cage_loop_vertices"
+LOOP_START = "cage_loop_start"
+LOOP_TOTAL = "cage_loop_total"
+BIND_KEYS = (REST_POINTS, LOOP_VERTICES, LOOP_START, LOOP_TOTAL)
+
+_COLLAPSE_NOTE = "their weight goes to the neighbouring faces"
+
+
+class CageUnavailableError(Exception):
+    """The cage cannot be read now (the message says why and what to do)."""
+
+
+@dataclass(frozen=True)
+class CageState:
+    """The cage as evaluated: vertex positions in its object space, topology, world matrix."""
+
+    points: np.ndarray  # (V, 3) float32
+    loop_vertices: np.ndarray  # (L,) int32
+    loop_start: np.ndarray  # (F,) int32
+    loop_total: np.ndarray  # (F,) int32
+    matrix_world: np.ndarray  # (4, 4) float64
+
+    def topology(self) -> CageTopology:
+        """Validated core topology (ValueError when malformed, e.g. a face with < 3 corners)."""
+        return CageTopology.from_arrays(self.loop_vertices, self.loop_start, self.loop_total,
+                                        len(self.points))
+
+
+def cage_problem(target: bpy.types.Object, cage: bpy.types.Object | None) -> str:
+    """Why `cage` cannot drive `target` (object level, not geometry), or ''."""
+    if cage is None:
+        return "The cage deformer has no cage object: pick a closed mesh in the Cage field and rebind"
+    if cage == target:
+        return f"'{target.name}' cannot be its own cage"
+    if cage.type != "MESH":
+        return f"Cage '{cage.name}' is a {cage.type.lower()}, not a mesh"
+    if not cage.users_scene:
+        return f"Cage '{cage.name}' is not in any scene (deleted?): link it back or pick another cage"
+    return ""
+
+
+def read_cage(cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> CageState:
+    """The evaluated cage (modifiers, shape keys, edit-mode edits and object animation included)."""
+    evaluated = cage.evaluated_get(depsgraph)
+    if not evaluated.is_evaluated:
+        raise CageUnavailableError(
+            f"Cage '{cage.name}' is not evaluated (disabled in viewports or renders): hide it with the "
+            "eye icon or display it as Wire instead")
+    # to_mesh, not .data: an evaluated mesh in Edit Mode may be a wrapper without vertex arrays.
+    mesh = evaluated.to_mesh()
+    try:
+        points = storage.read_positions(mesh).copy()
+        loops = np.empty(len(mesh.loops), dtype=np.int32)
+        start = np.empty(len(mesh.polygons), dtype=np.int32)
+        total = np.empty(len(mesh.polygons), dtype=np.int32)
+        mesh.loops.foreach_get("vertex_index", loops)
+        mesh.polygons.foreach_get("loop_start", start)
+        mesh.polygons.foreach_get("loop_total", total)
+    finally:
+        evaluated.to_mesh_clear()
+    return CageState(points, loops, start, total, np.array(evaluated.matrix_world, dtype=np.float64))
+
+
+def to_target(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Rows of `points` (V, 3) mapped by the affine 4×4 `matrix`, float64 (the single definition, so
+    bind and evaluation round identically)."""
+    m = np.asarray(matrix, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
+
+
+def rest_matrix(deformer) -> np.ndarray:
+    """C_rest (4, 4) float32 as stored."""
+    return np.array(deformer.cage_rest_matrix, dtype=np.float32).reshape(4, 4)
+
+
+def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarray, np.ndarray]:
+    """Stored (p_rest (V, 3) float64, topology, loop_vertices, loop_start, loop_total); BindError when
+    the bind data is missing or damaged."""
+    if any(key not in deformer for key in BIND_KEYS):
+        raise BindError("The cage bind data is missing: rebind the deformer")
+    points = np.asarray(deformer[REST_POINTS], dtype=np.float64)
+    loops, start, total = (np.asarray(deformer[key], dtype=np.int32) for key in BIND_KEYS[1:])
+    if points.ndim != 1 or points.size % 3:
+        raise BindError("The cage bind data is damaged: rebind the deformer")
+    points = points.reshape(-1, 3)
+    try:
+        topology = CageTopology.from_arrays(loops, start, total, len(points))
+    except ValueError:
+        raise BindError("The cage bind data is damaged: rebind the deformer") from None
+    return points, topology, loops, start, total
+
+
+class CageKind:
+    """A closed mesh with outward normals; each face is a control."""
+
+    def store_rest(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
+                   only: list[int] | None = None) -> None:
+        """Record the cage's current evaluated shape and placement as its rest (`only` is ignored: a
+        cage is bound as a whole). Refuses (BindError, nothing stored) an open, non-manifold,
+        inconsistently oriented or inside-out cage, or one with zero-area faces."""
+        cage = deformer.cage
+        problem = cage_problem(obj, cage)
+        if problem:
+            raise BindError(problem)
+        try:
+            target_world = world_matrix(obj, depsgraph)
+            state = read_cage(cage, depsgraph)
+            matrix = local_matrix(target_world, state.matrix_world)
+        except np.linalg.LinAlgError:
+            raise BindError(f"'{obj.name}' has a zero scale: fix its transform before binding") from None
+        except CageUnavailableError as exc:
+            raise BindError(str(exc)) from None
+        det = np.linalg.det(matrix[:3, :3].astype(np.float64))
+        if not (np.all(np.isfinite(matrix)) and np.isfinite(det) and det != 0.0):
+            raise BindError(f"Cage '{cage.name}' has a zero scale or a non-finite transform: fix it first")
+        try:
+            topology = state.topology()
+        except ValueError as exc:
+            raise BindError(f"Cage '{cage.name}' cannot be bound: {exc}") from None
+        points = to_target(matrix, state.points)
+        report = check_cage(points, topology)
+        if not report.ok:
+            hint = " (its object has a negative scale, which flips the normals)" if det < 0.0 else ""
+            raise BindError(f"Cage '{cage.name}' cannot be bound{hint}: " + "; ".join(report.problems))
+        deformer.cage_rest_matrix = matrix.ravel().tolist()
+        deformer[REST_POINTS] = points.ravel()
+        deformer[LOOP_VERTICES] = state.loop_vertices
+        deformer[LOOP_START] = state.loop_start
+        deformer[LOOP_TOTAL] = state.loop_total
+
+    def sparse_weights(self, obj: bpy.types.Object, deformer,
+                       rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        """Inverse distance^exponent to each face polygon, half-space rule, top-K, rows summing to 1
+        (core.cage.cage_weights), from the stored rest cage only."""
+        points, topology, *_ = rest_cage(deformer)
+        indices, values = cage_weights(rest_points, points, topology, exponent=deformer.exponent,
+                                       half_space=deformer.half_space, k=deformer.max_influences)
+        return indices, values, ""
+
+    def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
+        try:
+            rest, topology, loops, start, total = rest_cage(deformer)
+        except BindError as exc:
+            return Motions.invalid(0, str(exc))
+        F = topology.n_faces
+        cage = deformer.cage
+        problem = cage_problem(obj, cage)
+        if problem:
+            return Motions.invalid(F, problem)
+        try:
+            state = read_cage(cage, depsgraph)
+        except CageUnavailableError as exc:
+            return Motions.invalid(F, f"{exc}: the mesh shows its rest shape")
+        same = (len(state.points) == len(rest) and np.array_equal(state.loop_vertices, loops)
+                and np.array_equal(state.loop_start, start) and np.array_equal(state.loop_total, total))
+        if not same:
+            return Motions.invalid(
+                F, f"Cage '{cage.name}' changed topology since bind ({len(rest)} → {len(state.points)} "
+                   f"vertices, {F} → {len(state.loop_total)} faces): the mesh shows its rest shape; rebind")
+        try:
+            target_world = world_matrix(obj, depsgraph)
+            if not np.all(np.isfinite(target_world)):
+                return Motions.invalid(F, f"'{obj.name}' has a non-finite transform")
+            matrix = local_matrix(target_world, state.matrix_world)
+        except np.linalg.LinAlgError:
+            return Motions.invalid(F, f"'{obj.name}' is scaled to zero: the mesh shows its rest shape")
+        stored = rest_matrix(deformer)
+        outer = None
+        if not np.array_equal(matrix, stored):
+            try:
+                with np.errstate(all="ignore"):
+                    outer = relative_motion(matrix.astype(np.float64), stored.astype(np.float64))
+                aff3.validate_affine(outer)
+            except (np.linalg.LinAlgError, ValueError):
+                return Motions.invalid(F, f"Cage '{cage.name}' is scaled to zero, mirrored or non-finite "
+                                          "as an object: the mesh shows its rest shape")
+        return _face_motions(rest, to_target(stored, state.points), topology, outer)
+
+
+def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
+                  outer: np.ndarray | None) -> Motions:
+    """Motions of the faces the cage's shape change can reach (core.cage.affected_faces); all other
+    faces are exactly at rest (zero parameters, so the vertices they alone drive stay bit-for-bit)."""
+    F = topology.n_faces
+    face_moved = affected_faces(rest, current, topology)
+    at_rest = ~face_moved
+    params = np.zeros((F, 12))
+    valid = np.ones(F, dtype=bool)
+    warning = ""
+    if np.any(face_moved):
+        motion = face_motions(rest, current, topology)
+        params[face_moved] = motion.params[face_moved]
+        valid = motion.valid | at_rest
+        if motion.messages:
+            warning = "; ".join(motion.messages) + f" ({_COLLAPSE_NOTE})"
+    matrices = np.broadcast_to(np.eye(4), (F, 4, 4)).copy()
+    if np.any(face_moved):
+        matrices[face_moved] = aff3.matrices_from_params(params[face_moved])
+    return Motions(matrices, at_rest, "", params=params, outer=outer, valid=valid, warning=warning)

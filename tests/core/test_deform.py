@@ -1,0 +1,314 @@
+"""The per-vertex kernel (core/deform.py) against the reference φ(Σ w ψ(A)) v built from aff3."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from affine_deformers import core
+from affine_deformers.core import aff3, deform
+from affine_deformers.core.weights import top_k_dense
+from tests.core.conftest import random_affine
+
+# Rotation angles the kernel must handle: series/clamp regions, the polynomial range (θ ≤ 1.8π),
+# the np.sin fallback beyond it (lifted rotations), and exactly π.
+KERNEL_ANGLES = (
+    0.0,
+    1e-12,
+    1e-8,
+    1e-5,
+    0.1,
+    1.0,
+    np.pi / 2,
+    np.pi - 1e-9,
+    np.pi,
+    1.7 * np.pi,
+    1.9 * np.pi,
+    3.0 * np.pi,
+)
+# Stretch spectra (of Y = log S): zero, uniform, repeated, clustered at every gap, anisotropy 1e3:1e-3.
+KERNEL_SPECTRA = (
+    (0.0, 0.0, 0.0),
+    (0.7, 0.7, 0.7),
+    (0.3, 0.3, 2.0),
+    (-1.0, 0.5, 0.5),
+    (-6.9, 0.0, 6.9),
+    (-6.9, -6.9, 6.9),
+    *[(0.3, 0.3 + g, 1.0) for g in (1e-1, 1e-4, 1e-8, 1e-12)],
+    *[(0.2, 0.2 + g, 0.2 + 2 * g) for g in (1e-3, 1e-9)],
+)
+
+
+def reference(points: np.ndarray, blended: np.ndarray) -> np.ndarray:
+    """v' = φ(p_v) v per vertex with aff3's matrices (np.sin/np.cos, series, divided differences)."""
+    A = aff3.matrices_from_params(blended)
+    return np.einsum("nij,nj->ni", A[:, :3, :3], points) + A[:, :3, 3]
+
+
+def vertex_scale(points: np.ndarray, blended: np.ndarray) -> np.ndarray:
+    """‖M‖‖v‖ + ‖t‖ per vertex: the size of the terms the result is made of."""
+    A = aff3.matrices_from_params(blended)
+    return np.linalg.norm(A[:, :3, :3], axis=(1, 2)) * np.linalg.norm(points, axis=1) + np.linalg.norm(
+        A[:, :3, 3], axis=1
+    )
+
+
+def assert_matches_reference(
+    points: np.ndarray, blended: np.ndarray, got: np.ndarray, tol: float = 1e-12
+) -> None:
+    ref = reference(points, blended)
+    err = np.linalg.norm(got - ref, axis=1) / vertex_scale(points, blended)
+    assert err.max() <= tol, f"worst vertex {int(err.argmax())}: {err.max():.3e}"
+
+
+def sym6(eigs: tuple[float, float, float], frame: np.ndarray) -> np.ndarray:
+    return aff3.sym_to6(frame @ np.diag(eigs) @ frame.T)
+
+
+def adversarial_params() -> np.ndarray:
+    """One parameter row per (angle, spectrum, translation) combination."""
+    rng = np.random.default_rng(31)
+    rows = []
+    for i, angle in enumerate(KERNEL_ANGLES):
+        for j, eigs in enumerate(KERNEL_SPECTRA):
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            frame = aff3.so3_exp(rng.normal(size=3))
+            u = rng.normal(size=3) * (0.0, 1e-3, 1.0, 1e3)[(i + j) % 4]
+            rows.append(np.concatenate([angle * axis, u, sym6(eigs, frame)]))
+    return np.array(rows)
+
+
+@pytest.fixture(scope="module")
+def cloud() -> np.ndarray:
+    return np.random.default_rng(2).uniform(-3.0, 3.0, size=(4000, 3))
+
+
+# --------------------------------------------------------------------------------------------------
+
+
+def test_kernel_matches_phi_on_adversarial_parameters() -> None:
+    P = adversarial_params()
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-10.0, 10.0, size=(P.shape[0], 3))
+    # one control per vertex with weight 1: the kernel sees exactly these parameters
+    idx = np.arange(P.shape[0], dtype=np.int32)[:, None]
+    got = deform.deform_points_params(points, P, idx, np.ones((P.shape[0], 1)))
+    assert_matches_reference(points, P, got)
+
+
+def test_kernel_matches_phi_on_random_blends(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(5)
+    A = random_affine(rng, 8, log_scale=1.0, t_scale=5.0)
+    params = aff3.params_from_matrices(A)
+    W = rng.random((cloud.shape[0], 8)) ** 3
+    idx, val = top_k_dense(W, 4)
+    got = deform.deform_points_params(cloud, params, idx, val)
+    assert_matches_reference(cloud, deform.blend_params(params, idx, val), got)
+
+
+def test_dense_contract_matches_sparse_and_reference(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(6)
+    A = random_affine(rng, 5)
+    W = rng.random((cloud.shape[0], 5))
+    W /= W.sum(axis=1, keepdims=True)
+    dense = core.deform_points(cloud, A, W)
+    params = aff3.params_from_matrices(A)
+    assert_matches_reference(cloud, W @ params, dense)
+    idx = np.broadcast_to(np.arange(5, dtype=np.int32), (cloud.shape[0], 5))
+    sparse = core.deform_points_params(cloud, params, idx, W)
+    np.testing.assert_allclose(sparse, dense, rtol=0, atol=1e-13 * np.abs(dense).max())
+
+
+def test_zero_params_return_the_input_bit_for_bit(cloud: np.ndarray) -> None:
+    pts = cloud.copy()
+    pts[:3] = [[-0.0, 0.0, -0.0], [1e-320, -1e-320, 5e-324], [1e300, -1e300, 7.0]]
+    idx = np.zeros((pts.shape[0], 4), dtype=np.int32)
+    val = np.random.default_rng(7).random((pts.shape[0], 4))
+    got = deform.deform_points_params(pts, np.zeros((6, 12)), idx, val)
+    assert got.tobytes() == pts.tobytes()  # signed zeros and subnormals included
+    f32 = pts[3:].astype(np.float32)
+    assert np.array_equal(deform.deform_points_params(f32, np.zeros((6, 12)), idx[3:], val[3:]), f32)
+    assert (
+        deform.blend_linear_sparse(pts, np.broadcast_to(np.eye(4), (6, 4, 4)), idx, val).tobytes()
+        == pts.tobytes()
+    )
+
+
+def test_zero_weights_leave_vertices_in_place(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(8)
+    params = aff3.params_from_matrices(random_affine(rng, 3))
+    idx = rng.integers(0, 3, size=(cloud.shape[0], 2)).astype(np.int32)
+    val = np.zeros((cloud.shape[0], 2))
+    val[::2, 0] = 0.5  # half the vertices move, the others must not
+    got = deform.deform_points_params(cloud, params, idx, val)
+    assert np.array_equal(got[1::2], cloud[1::2])
+    assert np.all(np.linalg.norm(got[::2] - cloud[::2], axis=1) > 0)
+
+
+def test_common_motion_is_reproduced(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(9)
+    A = random_affine(rng, 1, log_scale=1.5, t_scale=20.0)[0]
+    params = np.broadcast_to(aff3.params_from_matrices(A), (4, 12))
+    W = rng.random((cloud.shape[0], 4))
+    idx, val = top_k_dense(W, 4, normalize="SUM")
+    got = deform.deform_points_params(cloud, params, idx, val)
+    ref = cloud @ A[:3, :3].T + A[:3, 3]
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * (np.abs(ref).max() + 1))
+
+
+def test_rigid_controls_give_a_rigid_result(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(10)
+    w = rng.normal(size=(5, 3))
+    w *= (rng.uniform(0.0, np.pi, 5) / np.linalg.norm(w, axis=1))[:, None]
+    A = np.broadcast_to(np.eye(4), (5, 4, 4)).copy()
+    A[:, :3, :3] = aff3.so3_exp(w)
+    A[:, :3, 3] = rng.normal(size=(5, 3)) * 4.0
+    # every vertex of a patch shares the same weights: the patch must move rigidly
+    patch = cloud[:200]
+    weights = np.broadcast_to(rng.dirichlet(np.ones(5)), (200, 5))
+    moved = core.deform_points(patch, A, weights)
+    d0 = np.linalg.norm(patch[:, None] - patch[None], axis=-1)
+    d1 = np.linalg.norm(moved[:, None] - moved[None], axis=-1)
+    np.testing.assert_allclose(d1, d0, rtol=0, atol=1e-13 * d0.max())
+    e = np.cross(patch[1] - patch[0], patch[2] - patch[0]) @ (patch[3] - patch[0])
+    f = np.cross(moved[1] - moved[0], moved[2] - moved[0]) @ (moved[3] - moved[0])
+    assert np.sign(e) == np.sign(f)  # no reflection
+
+
+def test_results_do_not_depend_on_chunks_or_threads(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(11)
+    params = aff3.params_from_matrices(random_affine(rng, 6))
+    idx, val = top_k_dense(rng.random((cloud.shape[0], 6)), 3)
+    base = deform.DeformKernel(chunk_size=16384, threads=1).deform(cloud, params, idx, val)
+    for chunk, threads in ((7, 1), (1000, 3), (333, 2)):
+        got = deform.DeformKernel(chunk_size=chunk, threads=threads).deform(cloud, params, idx, val)
+        np.testing.assert_allclose(got, base, rtol=1e-15, atol=1e-15)
+
+
+def test_many_controls_take_the_gather_path(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(12)
+    m = deform.DENSE_BLEND_MAX_CONTROLS + 10
+    params = aff3.params_from_matrices(random_affine(rng, m, log_scale=0.3, t_scale=1.0))
+    idx, val = top_k_dense(rng.random((cloud.shape[0], m)) ** 8, 4)
+    got = deform.deform_points_params(cloud, params, idx, val)
+    assert_matches_reference(cloud, deform.blend_params(params, idx, val), got)
+
+
+def test_duplicate_indices_in_a_row_add_up() -> None:
+    params = aff3.params_from_matrices(random_affine(np.random.default_rng(13), 2))
+    pts = np.array([[1.0, 2.0, 3.0], [-1.0, 0.5, 0.0]])
+    idx = np.array([[1, 1], [0, 1]], dtype=np.int32)
+    val = np.array([[0.25, 0.75], [0.5, 0.5]])
+    got = deform.deform_points_params(pts, params, idx, val)
+    blended = np.array([params[1], 0.5 * params[0] + 0.5 * params[1]])
+    assert_matches_reference(pts, blended, got)
+
+
+def test_out_argument_and_in_place(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(14)
+    params = aff3.params_from_matrices(random_affine(rng, 3))
+    idx, val = top_k_dense(rng.random((cloud.shape[0], 3)), 2)
+    expected = deform.deform_points_params(cloud, params, idx, val)
+    out = np.empty_like(cloud)
+    assert deform.deform_points_params(cloud, params, idx, val, out=out) is out
+    assert np.array_equal(out, expected)
+    pts = cloud.copy()
+    deform.deform_points_params(pts, params, idx, val, out=pts)
+    assert np.array_equal(pts, expected)
+    with pytest.raises(ValueError, match="out must be"):
+        deform.deform_points_params(cloud, params, idx, val, out=np.empty((3, 3)))
+
+
+def test_linear_blend_mode(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(15)
+    A = random_affine(rng, 4)
+    idx, val = top_k_dense(rng.random((cloud.shape[0], 4)), 3, normalize="NONE")
+    val *= 0.5
+    got = deform.blend_linear_sparse(cloud, A, idx, val)
+    T = np.einsum("nk,nkij->nij", val, A[idx]) + (1.0 - val.sum(1))[:, None, None] * np.eye(4)
+    ref = np.einsum("nij,nj->ni", T[:, :3, :3], cloud) + T[:, :3, 3]
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    # weights summing to 1 on a common matrix give that matrix
+    common = deform.blend_linear_sparse(
+        cloud, np.broadcast_to(A[0], (4, 4, 4)), idx, val / val.sum(1, keepdims=True)
+    )
+    np.testing.assert_allclose(
+        common, cloud @ A[0, :3, :3].T + A[0, :3, 3], rtol=0, atol=1e-12 * np.abs(ref).max()
+    )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"points": np.zeros((4, 2))}, r"points must have shape \(N, 3\)"),
+        ({"points": np.full((4, 3), np.nan)}, "non-finite coordinates"),
+        ({"params": np.zeros((3, 11))}, r"params must have shape \(m, 12\)"),
+        (
+            {"params": np.where(np.arange(36).reshape(3, 12) == 13, np.inf, 0.0)},
+            "params row 1 has non-finite",
+        ),
+        ({"indices": np.full((4, 2), 3, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
+        ({"indices": np.full((4, 2), -1, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
+        ({"indices": np.zeros((4, 2))}, "indices must be integers"),
+        (
+            {"indices": np.zeros((5, 2), dtype=np.int32), "values": np.zeros((5, 2))},
+            "indices have 5 rows for 4 points",
+        ),
+        ({"values": np.zeros((4, 3))}, "indices and values must both have shape"),
+        ({"values": np.full((4, 2), np.nan)}, "weight values contain non-finite"),
+    ],
+)
+def test_bad_arguments_raise_value_error(kwargs: dict, message: str) -> None:
+    args = {
+        "points": np.zeros((4, 3)),
+        "params": np.zeros((3, 12)),
+        "indices": np.zeros((4, 2), dtype=np.int32),
+        "values": np.ones((4, 2)),
+    }
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=message):
+        deform.deform_points_params(args["points"], args["params"], args["indices"], args["values"])
+
+
+def test_dense_contract_rejects_bad_transforms() -> None:
+    A = np.broadcast_to(np.eye(4), (3, 4, 4)).copy()
+    A[2, 0, 0] = -1.0
+    with pytest.raises(ValueError, match="transform 2 has determinant"):
+        core.deform_points(np.zeros((2, 3)), A, np.ones((2, 3)))
+    with pytest.raises(ValueError, match=r"weights must have shape \(2, 3\)"):
+        core.deform_points(np.zeros((2, 3)), np.eye(4)[None].repeat(3, 0), np.ones((2, 2)))
+
+
+def test_empty_input() -> None:
+    got = deform.deform_points_params(
+        np.zeros((0, 3)), np.ones((2, 12)), np.zeros((0, 2), np.int32), np.zeros((0, 2))
+    )
+    assert got.shape == (0, 3)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.integers(1, 6),
+    st.integers(1, 4),
+    st.sampled_from([0.0, 1e-9, 0.3, 1.5]),
+    st.sampled_from([0.5, 1.0, 3.0]),
+    st.integers(0, 2**32 - 1),
+)
+def test_property_kernel_matches_reference(m: int, k: int, y_scale: float, w_scale: float, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    P = np.concatenate(
+        [
+            rng.normal(scale=w_scale, size=(m, 3)),
+            rng.normal(scale=10.0, size=(m, 3)),
+            rng.normal(scale=y_scale, size=(m, 6)),
+        ],
+        axis=1,
+    )
+    pts = rng.normal(scale=5.0, size=(64, 3))
+    idx = rng.integers(0, m, size=(64, k)).astype(np.int32)
+    val = rng.random((64, k))
+    got = deform.deform_points_params(pts, P, idx, val)
+    assert_matches_reference(pts, deform.blend_params(P, idx, val), got)

@@ -1,0 +1,194 @@
+"""Weights (core/weights.py): kernels, falloff, normalisation, top-K, chunking."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from affine_deformers.core import weights as wt
+
+
+def test_inverse_distance() -> None:
+    d = np.array([0.0, 1e-12, 0.5, 1.0, 2.0, 4.0])
+    w = wt.inverse_distance(d, exponent=2.0, reference=2.0)
+    np.testing.assert_allclose(w[2:], [16.0, 4.0, 1.0, 0.25], rtol=1e-15)
+    # a vertex on the control: finite, equal to the floor value, dominant
+    assert np.isfinite(w[0]) and w[0] == w[1] == (1.0 / wt.MIN_DISTANCE_FRACTION) ** 2
+    assert wt.inverse_distance([0.0], 3.0, min_distance=0.1)[0] == pytest.approx(1000.0)
+    for bad in ({"exponent": 0.0}, {"reference": -1.0}, {"min_distance": 0.0}):
+        with pytest.raises(ValueError):
+            wt.inverse_distance(d, **bad)
+
+
+def test_smooth_falloff_is_exactly_zero_at_and_after_the_radius() -> None:
+    R = 1.5
+    d = np.array([0.0, 0.75, R * (1 - 1e-12), R, R * (1 + 1e-15), 2 * R, 1e300, np.inf])
+    w = wt.smooth_falloff(d, R)
+    assert w[0] == 1.0
+    assert w[1] == pytest.approx((1 - 0.25) ** 2)
+    assert 0.0 < w[2] < 1e-22
+    assert np.all(w[3:] == 0.0)
+
+
+@pytest.mark.parametrize("power", [2, 3])
+def test_smooth_falloff_is_smooth_at_the_radius(power: int) -> None:
+    # one-sided derivatives at R vanish up to order power − 1 (C¹ for 2, C² for 3)
+    R, h = 2.0, 1e-4
+    f = lambda d: wt.smooth_falloff(np.array([d]), R, power)[0]  # noqa: E731
+    d1 = (f(R) - f(R - h)) / h
+    assert abs(d1) < 10 * h ** (power - 1)
+    if power == 3:
+        d2 = (f(R) - 2 * f(R - h) + f(R - 2 * h)) / h**2
+        assert abs(d2) < 100 * h
+
+
+def test_normalize_modes() -> None:
+    W = np.array([[1.0, 3.0, 0.0], [0.0, 0.0, 0.0], [2.0, 2.0, 4.0]])
+    s = wt.normalize(W, "SUM")
+    np.testing.assert_allclose(s, [[0.25, 0.75, 0.0], [0.0, 0.0, 0.0], [0.25, 0.25, 0.5]], rtol=1e-15)
+    assert not np.any(np.isnan(s))
+    assert np.array_equal(wt.normalize(W, "NONE"), W)
+    sm = wt.normalize(W, "SOFTMAX")
+    e = np.exp([1.0 - 3.0, 0.0])
+    np.testing.assert_allclose(sm[0], [e[0] / e.sum(), e[1] / e.sum(), 0.0], rtol=1e-15)
+    assert np.array_equal(sm[1], [0.0, 0.0, 0.0])  # all-zero row stays zero
+    np.testing.assert_allclose(sm.sum(axis=1), [1.0, 0.0, 1.0], rtol=1e-15)
+    # huge raw weights (a vertex on a probe) do not overflow
+    assert np.all(np.isfinite(wt.normalize(np.array([[1e300, 1.0]]), "SOFTMAX")))
+    with pytest.raises(ValueError, match="normalize mode"):
+        wt.normalize(W, "MAX")
+
+
+def test_top_k_orders_by_value_then_index() -> None:
+    W = np.array([[0.1, 0.5, 0.5, 0.2], [0.0, 0.0, 0.0, 0.0], [4.0, 3.0, 2.0, 1.0]])
+    idx, val = wt.top_k(W, 2)
+    assert idx.dtype == np.int32
+    assert idx.tolist() == [[1, 2], [0, 1], [0, 1]]
+    assert val.tolist() == [[0.5, 0.5], [0.0, 0.0], [4.0, 3.0]]
+    idx, val = wt.top_k(W, 10)  # K = min(k, m)
+    assert idx.shape == (3, 4) and np.array_equal(np.take_along_axis(W, idx.astype(np.intp), 1), val)
+
+
+def test_top_k_renormalises_to_one() -> None:
+    rng = np.random.default_rng(1)
+    W = rng.random((500, 9))
+    idx, val = wt.top_k_dense(W, 3, normalize="SUM")
+    np.testing.assert_allclose(val.sum(axis=1), 1.0, rtol=0, atol=4e-16)
+    kept = np.take_along_axis(W, idx.astype(np.intp), 1)
+    np.testing.assert_allclose(val, kept / kept.sum(1, keepdims=True), rtol=1e-15)
+    # the kept entries are the three largest of each row
+    assert np.all(kept.min(axis=1) >= np.sort(W, axis=1)[:, -3])
+    raw_idx, raw_val = wt.top_k_dense(W, 3, normalize="NONE")
+    assert np.array_equal(raw_idx, idx) and np.array_equal(raw_val, kept)
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 64, 10_000])
+def test_chunked_equals_unchunked(chunk: int) -> None:
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(-2, 2, (300, 3))
+    centers = rng.uniform(-2, 2, (11, 3))
+    for mode in ("INVERSE_DISTANCE", "FALLOFF"):
+        for norm in ("NONE", "SUM", "SOFTMAX"):
+            ref = wt.probe_weights(pts, centers, mode=mode, radius=1.5, normalize=norm, k=4)
+            got = wt.probe_weights(pts, centers, mode=mode, radius=1.5, normalize=norm, k=4, chunk_size=chunk)
+            assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
+
+
+def test_probe_weights_inverse_distance() -> None:
+    centers = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 3.0, 0.0]])
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    idx, val = wt.probe_weights(pts, centers, mode="INVERSE_DISTANCE", exponent=2.0, normalize="SUM", k=2)
+    assert idx[0, 0] == 0 and val[0, 0] > 1 - 1e-10  # a vertex on a probe follows it
+    assert idx[1].tolist() == [0, 1] and np.allclose(val[1], [0.5, 0.5], rtol=0, atol=1e-15)
+    w = np.array([1 / 0.25, 1 / 2.25])  # distances 0.5 and 1.5 to the two nearest probes
+    np.testing.assert_allclose(val[2], w / w.sum(), rtol=1e-14)
+    scaled = wt.probe_weights(
+        pts, centers, mode="INVERSE_DISTANCE", normalize="SUM", k=2, scales=[0.0, 1.0, 1.0]
+    )
+    assert scaled[0][1, 0] == 1  # the zero-scaled probe drops out of the top-K
+
+
+def test_probe_weights_falloff_locality() -> None:
+    centers = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    pts = np.array([[0.5, 0.0, 0.0], [5.0, 0.0, 0.0], [9.0, 0.0, 0.0]])
+    idx, val = wt.probe_weights(pts, centers, mode="FALLOFF", radius=2.0, normalize="SUM", k=2)
+    assert val[0, 0] == 1.0 and idx[0, 0] == 0 and val[0, 1] == 0.0
+    assert np.array_equal(val[1], [0.0, 0.0])  # out of every radius: stays put
+    assert idx[2, 0] == 1 and val[2, 0] == 1.0
+    _, soft = wt.probe_weights(pts, centers, mode="FALLOFF", radius=2.0, normalize="SOFTMAX", k=2)
+    assert np.array_equal(soft[1], [0.0, 0.0]) and soft[0, 1] == 0.0
+
+
+def test_probe_weights_from_painted_groups() -> None:
+    painted = np.array([[0.2, 0.8, 0.0], [-1.0, 0.0, 0.5], [0.0, 0.0, 0.0]])
+    idx, val = wt.probe_weights(
+        np.zeros((3, 3)), np.zeros((3, 3)), mode="VERTEX_GROUPS", dense=painted, normalize="SUM", k=2
+    )
+    assert idx[0].tolist() == [1, 0] and np.allclose(val[0], [0.8, 0.2], rtol=0, atol=1e-16)
+    assert idx[1, 0] == 2 and val[1].tolist() == [1.0, 0.0]  # negative paint clamped to 0
+    assert val[2].tolist() == [0.0, 0.0]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"mode": "NEAREST"}, "weight mode"),
+        ({"mode": "VERTEX_GROUPS"}, "needs the dense painted weights"),
+        ({"mode": "VERTEX_GROUPS", "dense": np.ones((2, 2))}, "painted weights must have shape"),
+        ({"radius": 0.0}, "radius must be positive"),
+        ({"normalize": "MAX"}, "normalize mode"),
+        ({"k": 0}, "k must be at least 1"),
+        ({"scales": [1.0, -1.0]}, "scales must be"),
+        ({"points": np.full((3, 3), np.nan)}, "non-finite"),
+    ],
+)
+def test_probe_weights_errors(kwargs: dict, message: str) -> None:
+    args = {"points": np.zeros((3, 3)), "centers": np.ones((2, 3))}
+    pts, ctr = kwargs.pop("points", args["points"]), args["centers"]
+    with pytest.raises(ValueError, match=message):
+        wt.probe_weights(pts, ctr, **kwargs)
+
+
+def test_sparse_from_blocks_checks_blocks() -> None:
+    with pytest.raises(ValueError, match="has shape"):
+        wt.sparse_from_blocks(10, 3, lambda lo, hi: np.ones((hi - lo, 2)), k=2)
+    with pytest.raises(ValueError, match="negative"):
+        wt.sparse_from_blocks(10, 3, lambda lo, hi: -np.ones((hi - lo, 3)), k=2)
+    with pytest.raises(ValueError, match="non-finite"):
+        wt.sparse_from_blocks(10, 3, lambda lo, hi: np.full((hi - lo, 3), np.nan), k=2)
+    calls = []
+
+    def block(lo: int, hi: int) -> np.ndarray:
+        calls.append(hi - lo)
+        return np.ones((hi - lo, 3))
+
+    wt.sparse_from_blocks(10, 3, block, k=2, chunk_size=4)
+    assert calls == [4, 4, 2]  # bounded blocks: O(chunk · m) memory
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    hnp.arrays(np.float64, st.tuples(st.integers(1, 20), st.integers(1, 8)), elements=st.floats(0.0, 1e6)),
+    st.integers(1, 9),
+    st.sampled_from(["NONE", "SUM", "SOFTMAX"]),
+    st.integers(1, 25),
+)
+def test_property_sparse_weights(W: np.ndarray, k: int, mode: str, chunk: int) -> None:
+    idx, val = wt.top_k_dense(W, k, normalize=mode, chunk_size=chunk)
+    K = min(k, W.shape[1])
+    assert idx.shape == val.shape == (W.shape[0], K)
+    assert np.all((idx >= 0) & (idx < W.shape[1]))
+    assert np.all([len(set(r)) == K for r in idx.tolist()])  # no control twice in a row
+    assert np.all(np.isfinite(val)) and np.all(val >= 0)
+    kept = np.take_along_axis(W, idx.astype(np.intp), 1)
+    assert np.all(kept.min(axis=1) >= np.sort(W, axis=1)[:, -K])
+    total = val.sum(axis=1)
+    if mode != "NONE":
+        positive = kept.max(axis=1) > 0
+        np.testing.assert_allclose(total[positive], 1.0, rtol=0, atol=1e-14)
+        assert np.all(total[~positive] == 0.0)
+    ref = wt.top_k_dense(W, k, normalize=mode)
+    assert np.array_equal(ref[0], idx) and np.array_equal(ref[1], val)
