@@ -200,12 +200,6 @@ def time_updates(
     return out
 
 
-def timed(fn: Callable[[], object]) -> tuple[float, object]:
-    t0 = time.perf_counter()
-    result = fn()
-    return time.perf_counter() - t0, result
-
-
 def wiggle(i: int) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
     """A different small (translation, Euler rotation) for every rep index i — never repeats."""
     a = 0.7 * i + 0.3

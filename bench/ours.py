@@ -4,13 +4,13 @@ The per-update time is measured from outside (`common.time_updates`), so it cont
 waits for: the depsgraph pass that moves the control, our @persistent handler, and Blender's
 re-evaluation of the Geometry Nodes modifier that adds our offsets.
 
-The split of that time comes from `Instrument`:
-- the handler total is measured by wrapping our entries in `bpy.app.handlers` (exact, no cooperation
-  needed); whole update − handler = Blender's own work (depsgraph passes, Geometry Nodes);
-- inside the handler, if `blender/evaluate.py` exposes a `TIMINGS` dict of cumulative seconds per stage,
-  those numbers are used; otherwise the layer's stage functions listed in `STAGE_POINTS` (reading the
-  controls' transforms, reading rest positions and weights, ψ, the per-vertex kernel, writing the
-  offsets) are wrapped for the duration of a case, and the rest of the handler is reported as glue.
+The split of that time comes from `Instrument`, which needs no cooperation from the layer:
+- the handler total is measured by wrapping our entries in `bpy.app.handlers` (exact);
+  whole update − handler = Blender's own work (depsgraph passes, Geometry Nodes);
+- inside the handler, the layer's stage functions listed in `STAGE_POINTS` (reading the controls'
+  transforms, reading rest positions and weights, ψ, the per-vertex kernel, writing the offsets) are
+  wrapped for the duration of a case, each timed exclusive of the others nested in it; the rest of the
+  handler is reported as glue. A renamed function simply drops out of its stage into glue.
 """
 
 from __future__ import annotations
@@ -254,20 +254,12 @@ class Instrument:
         self._handler_patches: list[tuple[list, int, Callable]] = []
         self._func_patches: list[tuple[object, str, Callable]] = []
         self._stack: list[list[float]] = []
-        self.layer_timings: dict | None = None
-        self.source = "none"
+        self.source = "the layer's stage functions (STAGE_POINTS), wrapped by the benchmark"
 
     # -- patching ---------------------------------------------------------------------------------
     def __enter__(self) -> Instrument:
         self._wrap_handlers()
-        evaluate = sys.modules.get(f"{INNER}.blender.evaluate")
-        timings = getattr(evaluate, "TIMINGS", None) if evaluate is not None else None
-        if isinstance(timings, dict):
-            self.layer_timings = timings
-            self.source = "layer counters (evaluate.TIMINGS)"
-        else:
-            self._wrap_stages()
-            self.source = "the layer's stage functions, wrapped by the benchmark"
+        self._wrap_stages()
         self.reset()
         return self
 
@@ -346,19 +338,12 @@ class Instrument:
     # -- reading ----------------------------------------------------------------------------------
     def reset(self) -> None:
         self.acc = {}
-        if self.layer_timings is not None:
-            for key, value in self.layer_timings.items():
-                if isinstance(value, float | int) and not isinstance(value, bool):
-                    self.layer_timings[key] = type(value)(0)
 
     def stages(self) -> dict[str, float]:
-        """Seconds per stage since the last reset ('handler' = our whole handler)."""
+        """Seconds per stage since the last reset ('handler' = our whole handler, 'glue' = the part of
+        it no wrapped stage covers)."""
         out = dict(self.acc)
-        if self.layer_timings is not None:
-            for key, value in self.layer_timings.items():
-                if isinstance(value, float):
-                    out[key] = value
-        elif "handler" in out:
+        if "handler" in out:
             covered = sum(v for k, v in out.items() if k != "handler")
             out["glue"] = max(out["handler"] - covered, 0.0)
         return out

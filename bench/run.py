@@ -17,7 +17,9 @@ Usage: python bench/run.py [--quick] [--reps N] [--markdown docs/benchmarks.md] 
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -52,7 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     ns = parse_args(argv)
     # The extension is installed into a throw-away user directory, never into the user's Blender; the
     # variable is read once, when bpy is imported.
-    os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="affdef-bench-")
+    user_dir = tempfile.mkdtemp(prefix="affdef-bench-")
+    atexit.register(shutil.rmtree, user_dir, ignore_errors=True)
+    os.environ["BLENDER_USER_RESOURCES"] = user_dir
     import bpy
 
     bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -45,6 +45,17 @@ BIND_KEYS = (REST_POINTS, LOOP_VERTICES, LOOP_START, LOOP_TOTAL)
 
 _COLLAPSE_NOTE = "their weight goes to the neighbouring faces"
 
+# (target session_uid, deformer uid) -> (inputs, Motions) of the last evaluation: a cache, not bind data.
+_last_motions: dict[tuple[int, str], tuple[tuple, Motions]] = {}
+
+
+def forget(key: tuple[int, str] | None = None) -> None:
+    """Drop the cached motions of one deformer ((target session_uid, uid)) or of all."""
+    if key is None:
+        _last_motions.clear()
+    else:
+        _last_motions.pop(key, None)
+
 
 class CageUnavailableError(Exception):
     """The cage cannot be read now (the message says why and what to do)."""
@@ -73,16 +84,34 @@ def cage_problem(target: bpy.types.Object, cage: bpy.types.Object | None) -> str
     if cage == target:
         return f"'{target.name}' cannot be its own cage"
     if cage.type != "MESH":
-        return f"Cage '{cage.name}' is a {cage.type.lower()}, not a mesh"
+        return f"Cage '{cage.name}' is not a mesh ({cage.type.title()}): pick a closed mesh"
     if not cage.users_scene:
         return f"Cage '{cage.name}' is not in any scene (deleted?): link it back or pick another cage"
     return ""
 
 
+def is_evaluated(cage: bpy.types.Object, evaluated: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> bool:
+    """Whether the depsgraph really evaluates the cage this update.
+
+    Nothing makes the target depend on its cage, so a cage disabled in viewports (or renders) is not
+    evaluated, yet `evaluated_get` may still return a stale copy (the deformer's pointer to the cage
+    puts an ID node in the depsgraph). Evaluated objects are those the depsgraph lists, plus objects
+    hidden only with the eye icon (evaluated but not listed)."""
+    if not evaluated.is_evaluated:
+        return False
+    try:
+        if cage.hide_get(view_layer=depsgraph.view_layer):
+            return True
+    except RuntimeError:  # not in the depsgraph's view layer
+        return False
+    listed = depsgraph.objects.get(cage.name)  # by name: a linear search in Python is 4x slower
+    return listed is not None and listed.original == cage
+
+
 def read_cage(cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> CageState:
     """The evaluated cage (modifiers, shape keys, edit-mode edits and object animation included)."""
     evaluated = cage.evaluated_get(depsgraph)
-    if not evaluated.is_evaluated:
+    if not is_evaluated(cage, evaluated, depsgraph):
         raise CageUnavailableError(
             f"Cage '{cage.name}' is not evaluated (disabled in viewports or renders): hide it with the "
             "eye icon or display it as Wire instead")
@@ -106,6 +135,16 @@ def to_target(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     bind and evaluation round identically)."""
     m = np.asarray(matrix, dtype=np.float64)
     return np.asarray(points, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
+
+
+def store_array(owner, key: str, array: np.ndarray) -> None:
+    """owner[key] = array (an ID property array, via the buffer protocol).
+
+    The old property is deleted first: assigning a buffer to an existing ID property array of another
+    length keeps the old length (Blender 4.2 and 5.0), and a shorter buffer corrupts memory."""
+    if key in owner:
+        del owner[key]
+    owner[key] = np.ascontiguousarray(array)
 
 
 def rest_matrix(deformer) -> np.ndarray:
@@ -163,10 +202,10 @@ class CageKind:
             hint = " (its object has a negative scale, which flips the normals)" if det < 0.0 else ""
             raise BindError(f"Cage '{cage.name}' cannot be bound{hint}: " + "; ".join(report.problems))
         deformer.cage_rest_matrix = matrix.ravel().tolist()
-        deformer[REST_POINTS] = points.ravel()
-        deformer[LOOP_VERTICES] = state.loop_vertices
-        deformer[LOOP_START] = state.loop_start
-        deformer[LOOP_TOTAL] = state.loop_total
+        store_array(deformer, REST_POINTS, points.ravel())
+        store_array(deformer, LOOP_VERTICES, state.loop_vertices)
+        store_array(deformer, LOOP_START, state.loop_start)
+        store_array(deformer, LOOP_TOTAL, state.loop_total)
 
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
@@ -214,7 +253,15 @@ class CageKind:
             except (np.linalg.LinAlgError, ValueError):
                 return Motions.invalid(F, f"Cage '{cage.name}' is scaled to zero, mirrored or non-finite "
                                           "as an object: the mesh shows its rest shape")
-        return _face_motions(rest, to_target(stored, state.points), topology, outer)
+        # Every depsgraph update re-evaluates; the face motions are a pure function of these inputs.
+        key = (rest.tobytes(), loops.tobytes(), start.tobytes(), total.tobytes(), stored.tobytes(),
+               matrix.tobytes(), state.points.tobytes())
+        cached = _last_motions.get((obj.session_uid, deformer.uid))
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        motions = _face_motions(rest, to_target(stored, state.points), topology, outer)
+        _last_motions[(obj.session_uid, deformer.uid)] = (key, motions)
+        return motions
 
 
 def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,

@@ -20,8 +20,18 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from ..core import aff3, deform, unwrap
-from . import nodes, storage
+from . import cage_kind, nodes, storage
 from .kinds import KINDS, Motions, channel_references
+
+# Branch lift tolerances for Blender's float32 matrices (relative noise ~1e-7); core.unwrap's defaults
+# suit exact input. Near a full turn the principal rotation is tiny, so its axis is noise/θ, which the
+# lift multiplies by 2πk: below LIFT_AXIS_TOL radians the channels' axis is used instead (dropping at
+# most that much genuine off-axis rotation). And V(ω) loses its in-plane gain there, so the float32
+# residual of the translation (~1e-7·|pivot|) is divided by it: LIFT_DAMPING bounds the gain by
+# 1/(2·LIFT_DAMPING). A probe turned 359.999° / 360° / 720° about a tilted axis, 6 units from the target's
+# origin, was off by 3.5e-3 / 0.65 units with the core defaults, by < 2e-5 with these.
+LIFT_AXIS_TOL = 3e-3
+LIFT_DAMPING = 1e-3
 
 _signatures: dict[tuple[int, str], tuple] = {}
 _errors: dict[tuple[int, str], str] = {}
@@ -33,9 +43,11 @@ def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
     if obj is None:
         _signatures.clear()
         _errors.clear()
+        cage_kind.forget()
     else:
         _signatures.pop((obj.session_uid, uid), None)
         _errors.pop((obj.session_uid, uid), None)
+        cage_kind.forget((obj.session_uid, uid))
 
 
 def motions_to_params(motions: Motions, deformer) -> np.ndarray:
@@ -60,7 +72,8 @@ def motions_to_params(motions: Motions, deformer) -> np.ndarray:
     params = np.asarray(aff3.params_from_matrices(motions.matrices), dtype=np.float64)
     if deformer.branch_rule == "CHANNELS" and len(motions.rotation_modes) == len(params):
         pivots = motions.pivots if len(motions.pivots) == len(params) else None
-        params = unwrap.lift_params(params, channel_references(motions), pivots)
+        params = unwrap.lift_params(params, channel_references(motions), pivots,
+                                    damping=LIFT_DAMPING, axis_tol=LIFT_AXIS_TOL)
     params[motions.at_rest] = 0.0
     return params
 

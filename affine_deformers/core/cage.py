@@ -14,27 +14,40 @@ onto the current one: linear part M = E′ E⁻¹, translation c′ − M c. The
 of ψ_params(A_t) over its corners, so they do not depend on how the polygon would be triangulated.
 
 Current apex. e1′, e2′ and c′ follow any affine motion G of the cage, but the current normal follows
-cof(G), not G, so a normal apex c′ + n′/√|n′| ('NORMAL') reproduces only similarities exactly. A face
-alone cannot know the out-of-plane part of the motion; its neighbourhood can ('NEIGHBOURS', default).
-At bind, cage vertices are written in each rest corner frame, p_j = c + E (α_j, β_j) (α_j ∈ R², β_j
-the out-of-plane coordinate). The current apex column is the weighted least-squares fit
+cof(G), not G, so the normal apex c′ + n′/√|n′| ('NORMAL') reproduces only similarities exactly. A
+face alone cannot know the out-of-plane part of the motion; its neighbourhood can ('NEIGHBOURS', the
+default). At bind every cage vertex is written in each rest corner frame, p_j − c = E z_j with
+z_j = (α_j, β_j) (α_j ∈ R² in plane, β_j out of plane), and the current apex column is
 
-    h′ = Σ_j ω_j β_j r_j / Σ_j ω_j β_j²,   r_j = p′_j − c′ − [e1′ e2′] α_j,   ω_j = (|p_j − c|/|h|)⁻⁴,
+    h′ = Σ_j γ_j r_j,   r_j = p′_j − c′ − [e1′ e2′] α_j,   with fixed γ_j such that Σ_j γ_j β_j = 1.
 
-over a stencil of the STENCIL_SIZE vertices with the largest least-squares weight ω_j β_j²
-(|β_j| ≥ STENCIL_MIN_BETA; coplanar vertices carry no out-of-plane information). Under a common
-affine G every r_j = G h β_j, so h′ = G h and A_t = G exactly (shear and non-uniform scale included);
-when the corner and its stencil move rigidly, h′ = R h and A_t is that rigid motion. h′ is linear in the
-current cage, so a local edit (one vertex dragged) shears the corners whose stencil holds it,
-continuously, by Σ γ_j δ_j (γ_j = ω_j β_j / Σ ω β²). A corner with no stencil (flat or open cage)
-keeps the normal apex, as does one whose stencil has non-finite current positions.
+Under a common affine G every r_j = G h β_j, so h′ = G h and A_t = G exactly (shear and non-uniform
+scale included) whatever the γ_j; when a corner and its stencil move rigidly, A_t is that rigid
+motion. The γ_j are the out-of-plane row of the weighted least-squares fit of a linear map to the
+stencil (p_j − c ↦ p′_j − c′):
 
-Fold guard: the normal component x = h′·n̂′ is a weighted mean of the per-vertex estimates
-s_j = r_j·n̂′/β_j (weights ω β²); x ≤ 0 would make det M ≤ 0. With m the same mean of |s_j| (m = x
-exactly while no stencil vertex has crossed the corner's current plane), x is replaced by
-f(x) = x for x ≥ κm and (κm)²/(2κm − x) below (κ = FOLD_KAPPA): C¹, increasing and > 0. So a stencil
-vertex pushed through the face never flips or collapses its tetrahedron, and common affine or rigid
-motions (all s_j equal) are never touched.
+    γ_j = ω_j z_jᵀ (W + ρ diag(1, 1, 0))⁻¹ e₃,   W = Σ_j ω_j z_j z_jᵀ,   ω_j = (|p_j − c|/|h|)⁻⁴,
+
+ρ = STENCIL_RIDGE · (W₁₁ + W₂₂)/2. Fitting the in-plane columns as well (small ρ) drives Σ γ_j α_j to
+0, so the corner's own in-plane distortion is not extrapolated across the stencil; pinning them
+(ρ → ∞, γ_j = ω_j β_j / Σ ω β²) amplifies vertex motion into the apex about three times more on
+finely tessellated curved cages. The ridge keeps the fit well posed for any stencil. The stencil
+holds the STENCIL_SIZE vertices with the largest weight ω_j β_j² among those with |β_j| ≥
+STENCIL_MIN_BETA (coplanar vertices carry no out-of-plane information, so on a flat side of a cage
+the stencil reaches round the edge to the next sides).
+
+Local edits: h′ is linear in the current cage, so moving one vertex by δ moves the apex of every
+corner whose stencil holds it by γ_j δ — continuous and proportional; `affected_faces` lists the
+faces reached. A corner without stencil (a flat or open cage) keeps the normal apex, as does one
+whose stencil has non-finite current positions.
+
+Fold guard: x = h′·n̂′ = Σ γ_j (p′_j − c′)·n̂′ (in-plane terms drop out), and x ≤ 0 would give
+det M ≤ 0. With m = Σ |γ_j| |(p′_j − c′)·n̂′| and μ = Σ |γ_j β_j| ≥ 1 (fixed at bind), every common
+affine or rigid motion has m = μ x. x is replaced by f(x) = x for x ≥ τ = κ m/μ and τ²/(2τ − x) below
+(κ = FOLD_KAPPA): C¹, increasing and > 0. It acts only once stencil vertices cross the corner's
+current plane (the cage folds through itself) and keeps the tetrahedron from flipping or collapsing
+there. A cage folded far through itself can still turn a corner more than a half turn from its rest,
+where the principal rotation log changes branch, as a face turned over does with either apex.
 
 Weights (ERRATA 10): inverse distance to the face polygon (exact point–triangle distance, minimum over
 the polygon's fan triangles), zero for faces whose outer half-space holds the vertex, top-K, rows
@@ -90,8 +103,14 @@ STENCIL_SIZE = 16
 STENCIL_MIN_BETA = 1e-3
 
 # Fold guard (module docstring): the apex's normal component is floored smoothly once it drops below
-# this fraction of the stencil's mean absolute normal estimate.
+# this fraction of what a common motion of the stencil would give (m/μ); 1/2 lets a quarter of the
+# stencil's weight cross the face plane before the guard acts.
 FOLD_KAPPA = 0.5
+
+# Ridge on the in-plane block of the stencil fit, relative to its mean diagonal (module docstring):
+# small enough to balance the stencil's in-plane moments, large enough to keep the fit well posed
+# when the stencil vertices are nearly collinear in the corner frame.
+STENCIL_RIDGE = 1e-2
 
 # Rest cages whose stencils are kept (the Blender layer rebuilds CageTopology every frame, so the
 # cache is keyed by content, not by object).
@@ -314,19 +333,22 @@ def _usable_rest_triples(rest: np.ndarray, topology: CageTopology) -> tuple[np.n
 # --- apex stencils -------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ApexStencil:
     """Per corner t (rows of `CageTopology.corner_triples`), the stencil of the 'NEIGHBOURS' apex
-    (module docstring): cage vertex indices (T, S), their in-plane rest coordinates alpha (T, S, 2)
-    and least-squares coefficients gamma (T, S) = ω β / Σ ω β², so h′_t = Σ_s gamma r_s. Unused
-    slots have gamma 0 (and repeat the row's first vertex); a row without stencil is all zero."""
+    (module docstring): cage vertex indices (T, S), their rest coordinates in the corner frame,
+    alpha (T, S, 2) in plane and beta (T, S) out of plane, and the fit coefficients gamma (T, S)
+    (Σ_s gamma β = 1), so h′_t = Σ_s gamma r_s. Unused slots have alpha, beta, gamma 0 and repeat
+    the row's first vertex; a row without stencil is all zero."""
 
     vertices: np.ndarray
     alpha: np.ndarray
+    beta: np.ndarray
     gamma: np.ndarray
     active: np.ndarray = field(init=False, repr=False)  # (T,) bool: corners with a stencil
     rows: np.ndarray = field(init=False, repr=False)  # flatnonzero(active)
     moments: np.ndarray = field(init=False, repr=False)  # (T, 3): Σ γ, Σ γ α₁, Σ γ α₂
+    spread: np.ndarray = field(init=False, repr=False)  # (T,): Σ |γ β| (≥ 1, as Σ γ β = 1)
 
     def __post_init__(self) -> None:
         active = np.any(self.gamma != 0.0, axis=1)
@@ -337,6 +359,7 @@ class ApexStencil:
         object.__setattr__(self, "active", active)
         object.__setattr__(self, "rows", np.flatnonzero(active))
         object.__setattr__(self, "moments", moments)
+        object.__setattr__(self, "spread", np.abs(self.gamma * self.beta).sum(axis=1))
 
 
 _stencil_cache: OrderedDict[bytes, ApexStencil] = OrderedDict()
@@ -348,7 +371,7 @@ def _stencil_key(rest: np.ndarray, topology: CageTopology, size: int) -> bytes:
     for arr in (rest, topology.loop_vertex_indices, topology.loop_start, topology.loop_total):
         digest.update(np.ascontiguousarray(arr).tobytes())
         digest.update(str(arr.shape).encode())
-    digest.update(f"{topology.n_vertices}:{size}".encode())
+    digest.update(f"{topology.n_vertices}:{size}:{STENCIL_RIDGE!r}".encode())
     return digest.digest()
 
 
@@ -391,10 +414,11 @@ def _build_stencils(rest: np.ndarray, topology: CageTopology, size: int) -> Apex
     T = triples.shape[0]
     vertices = np.zeros((T, S), dtype=np.intp)
     alpha = np.zeros((T, S, 2))
+    beta = np.zeros((T, S))
     gamma = np.zeros((T, S))
     rows = np.flatnonzero(good)
     if rows.size == 0 or S == 0:
-        return ApexStencil(vertices, alpha, gamma)
+        return ApexStencil(vertices, alpha, beta, gamma)
     origin = rest[candidates].mean(axis=0)  # keeps the expanded |p − c|² well conditioned
     P = rest[candidates] - origin
     P_sq = np.einsum("vi,vi->v", P, P)
@@ -406,13 +430,13 @@ def _build_stencils(rest: np.ndarray, topology: CageTopology, size: int) -> Apex
     for lo in range(0, rows.size, step):  # chunks of corners bound the (corners × vertices) arrays
         sl = slice(lo, lo + step)
         cb = centre[sl]
-        beta = dual[sl, 2, :] @ P.T - np.einsum("ti,ti->t", dual[sl, 2, :], cb)[:, None]
+        beta_all = dual[sl, 2, :] @ P.T - np.einsum("ti,ti->t", dual[sl, 2, :], cb)[:, None]
         dist_sq = (P_sq[None, :] - 2.0 * (cb @ P.T) + np.einsum("ti,ti->t", cb, cb)[:, None])
         dist_sq /= apex_sq[sl, None]
-        np.maximum(dist_sq, beta * beta, out=dist_sq)  # d ≥ |β|·|h| exactly; undo rounding
-        candidate = np.abs(beta) >= STENCIL_MIN_BETA
+        np.maximum(dist_sq, beta_all * beta_all, out=dist_sq)  # d ≥ |β|·|h| exactly; undo rounding
+        candidate = np.abs(beta_all) >= STENCIL_MIN_BETA
         with np.errstate(divide="ignore", invalid="ignore"):
-            score = np.where(candidate, beta * beta / (dist_sq * dist_sq), 0.0)  # ω β²
+            score = np.where(candidate, beta_all * beta_all / (dist_sq * dist_sq), 0.0)  # ω β²
         if candidates.size > S:
             pick = np.argpartition(-score, S - 1, axis=1)[:, :S]
         else:
@@ -420,18 +444,37 @@ def _build_stencils(rest: np.ndarray, topology: CageTopology, size: int) -> Apex
         # Heaviest first, so the per-frame sums run in a fixed order.
         pick = np.take_along_axis(pick, np.argsort(-np.take_along_axis(score, pick, 1), 1, "stable"), 1)
         s = np.take_along_axis(score, pick, axis=1)
-        b = np.take_along_axis(beta, pick, axis=1)
+        b = np.take_along_axis(beta_all, pick, axis=1)
         keep = s > 0.0
-        total = s.sum(axis=1, keepdims=True)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            g = np.where(keep, s / np.where(keep, b, 1.0) / np.where(total > 0.0, total, 1.0), 0.0)
         pick = np.where(keep, pick, pick[:, :1])
         r = rows[sl]
-        vertices[r] = candidates[pick]
         coords = np.einsum("tki,tsi->tsk", dual[sl, :2, :], P[pick] - cb[:, None, :])
-        alpha[r] = np.where(keep[..., None], coords, 0.0)
+        a = np.where(keep[..., None], coords, 0.0)
+        b = np.where(keep, b, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = np.where(keep, s / np.where(keep, b * b, 1.0), 0.0)  # ω
+        g = _stencil_coefficients(w, a, b)
+        vertices[r] = candidates[pick]
+        alpha[r] = a
+        beta[r] = b
         gamma[r] = g
-    return ApexStencil(vertices, alpha, gamma)
+    return ApexStencil(vertices, alpha, beta, gamma)
+
+
+def _stencil_coefficients(w: np.ndarray, alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """γ (C, S) = ω z ᵀ(W + ρ diag(1, 1, 0))⁻¹ e₃ (module docstring), so Σ γ β = 1; rows with no
+    stencil (all ω = 0) give 0. w (C, S) the weights ω (0 in unused slots), alpha (C, S, 2), beta (C, S)."""
+    z = np.concatenate([alpha, beta[..., None]], axis=2)
+    W = np.einsum("ts,tsi,tsj->tij", w, z, z)
+    ok = W[:, 2, 2] > 0.0
+    ridge = STENCIL_RIDGE * 0.5 * (W[:, 0, 0] + W[:, 1, 1])
+    W[:, 0, 0] += ridge
+    W[:, 1, 1] += ridge
+    sol = np.zeros((w.shape[0], 3))
+    rhs = np.zeros((int(ok.sum()), 3, 1))
+    rhs[:, 2, 0] = 1.0
+    sol[ok] = np.linalg.solve(W[ok], rhs)[..., 0]
+    return w * np.einsum("tsi,ti->ts", z, sol)
 
 
 def _stencil_apex(
@@ -440,9 +483,9 @@ def _stencil_apex(
     """(T, 3) the fitted current apex column h′ of each corner with a stencil, fold-guarded (module
     docstring); NaN rows where there is no stencil or the fit is not finite.
 
-    h′ = Σ γ_s p′_s − (Σ γ) c′ − (Σ γ α₁) e1′ − (Σ γ α₂) e2′, and since e1′, e2′ ⊥ n̂′ the normal
-    residuals are r_s·n̂′ = (p′_s − c′)·n̂′; padding slots (γ = 0) repeat a real stencil vertex, so
-    they cannot bring in a non-finite value of their own.
+    h′ = Σ γ_s (p′_s − c′) − (Σ γ α₁) e1′ − (Σ γ α₂) e2′, and since e1′, e2′ ⊥ n̂′ the normal
+    residuals are r_s·n̂′ = (p′_s − c′)·n̂′. Padding slots (γ = 0) of an active row repeat one of its
+    stencil vertices, so they cannot bring in a non-finite value of their own.
     """
     out = np.full((E_cur.shape[0], 3), np.nan)
     rows = stencil.rows
@@ -452,16 +495,15 @@ def _stencil_apex(
     moments = stencil.moments[rows]
     e1, e2, c = E_cur[rows, :, 0], E_cur[rows, :, 1], c_cur[rows]
     with np.errstate(all="ignore"):
-        Q = current[stencil.vertices[rows]]
+        Q = current[stencil.vertices[rows]] - c[:, None, :]
         h = np.einsum("ts,tsi->ti", g, Q)
-        h -= moments[:, 0:1] * c + moments[:, 1:2] * e1 + moments[:, 2:3] * e2
+        h -= moments[:, 1:2] * e1 + moments[:, 2:3] * e2
         n = np.cross(e1, e2)
         unit = n / _norm(n)[:, None]
         normal = np.einsum("tsi,ti->ts", Q, unit)
-        normal -= np.einsum("ti,ti->t", c, unit)[:, None]
         x = np.einsum("ti,ti->t", h, unit)
         m = np.einsum("ts,ts->t", np.abs(g), np.abs(normal))
-        floor = FOLD_KAPPA * m
+        floor = FOLD_KAPPA * m / stencil.spread[rows]
         low = x < floor
         if np.any(low):
             guarded = floor[low] ** 2 / (2.0 * floor[low] - x[low])
@@ -489,6 +531,10 @@ def corner_matrices(
     if stencil is not None:
         fitted = _stencil_apex(current, E_cur, c_cur, stencil)
         use = np.isfinite(fitted).all(axis=1)
+        # A corner whose inputs are bitwise at rest keeps the normal apex, which then equals the rest
+        # apex bitwise, so its motion is exactly the identity rather than rounding noise.
+        moved = np.any(current != rest, axis=1)
+        use &= moved[triples].any(axis=1) | (moved[stencil.vertices] & (stencil.gamma != 0.0)).any(1)
         E_cur[use, :, 2] = fitted[use]
     ok = (sin_rest > COLLAPSED_SIN) & (sin_cur > COLLAPSED_SIN)
     ok &= np.isfinite(E_rest).all(axis=(1, 2)) & np.isfinite(E_cur).all(axis=(1, 2))

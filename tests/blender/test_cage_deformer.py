@@ -6,7 +6,8 @@ life-cycle operators."""
 from __future__ import annotations
 
 import importlib
-import math
+import os
+import subprocess
 
 import bmesh
 import bpy
@@ -225,7 +226,8 @@ def test_whole_cage_moved_as_an_object_maps_the_target_by_exactly_g(bl, motion):
     elif motion == "scale":
         outer.scale = (1.4, 0.6, 1.9)
     else:
-        outer.location, outer.rotation_euler, outer.scale = (0.3, -0.2, 0.5), (0.2, -0.5, 0.9), (1.3, 0.8, 1.1)
+        outer.location, outer.rotation_euler = (0.3, -0.2, 0.5), (0.2, -0.5, 0.9)
+        outer.scale = (1.3, 0.8, 1.1)
         inner.rotation_euler = (0.7, 0.3, -0.4)
     got = transform(target.matrix_world, bl.evaluated_positions(target))
     G = np.array(inner.evaluated_get(bpy.context.evaluated_depsgraph_get()).matrix_world, dtype=np.float64)
@@ -262,36 +264,45 @@ def test_whole_cage_affine_by_vertex_edit_is_exact(bl, installed, core_cage, mot
     normal = core_cage.face_motions(rest_cage, transform(G, rest_cage), topology(core_cage, cage),
                                     apex="NORMAL")
     error = np.abs(installed.aff3.matrices_from_params(normal.params) - np.array(G)).max()
-    assert (error < 1e-9) == (motion in ("translate", "rotate"))
+    assert (error < 1e-5) == (motion in ("translate", "rotate")) and (error < 1e-5 or error > 1e-2)
 
 
 # ---------------------------------------------------------------------------------------------- rigidity
 
 
-def _bar(bl):
-    """A bar-shaped target inside a long box cage subdivided along x (8 segments)."""
-    target = point_cloud("Bar", np.stack(np.meshgrid(np.linspace(-3.8, 3.8, 77), np.linspace(-0.3, 0.3, 4),
-                                                     np.linspace(-0.3, 0.3, 4), indexing="ij"), -1))
-    bm = bmesh.new()
-    bmesh.ops.create_cube(bm, size=2.0)
-    for v in bm.verts:
-        v.co = (v.co.x * 4.0, v.co.y * 0.5, v.co.z * 0.5)
-    long_edges = [e for e in bm.edges if abs(e.verts[0].co.x - e.verts[1].co.x) > 1.0]
-    bmesh.ops.subdivide_edges(bm, edges=long_edges, cuts=7, use_grid_fill=True)
-    cage_mesh = bpy.data.meshes.new("BarCage")
-    bm.to_mesh(cage_mesh)
-    bm.free()
-    cage = bpy.data.objects.new("BarCage", cage_mesh)
-    bpy.context.scene.collection.objects.link(cage)
-    return target, cage
+def bar_cage(name: str, nx: int, ny: int, half=(4.0, 0.5, 0.5)):
+    """A box cage [-hx, hx]×[-hy, hy]×[-hz, hz] with nx quads along x and ny×ny across, normals out."""
+    hx, hy, hz = half
+    index: dict[tuple, int] = {}
+    polygons = []
+
+    def side(origin, u, v, nu, nv):  # u × v points outward
+        for i in range(nu):
+            for j in range(nv):
+                corners = [origin + u * a / nu + v * b / nv for a, b in ((i, j), (i + 1, j), (i + 1, j + 1),
+                                                                         (i, j + 1))]
+                polygons.append([index.setdefault(tuple(np.round(c, 9)), len(index)) for c in corners])
+
+    o, X, Y, Z = np.array([-hx, -hy, -hz]), np.array([2 * hx, 0, 0]), np.array([0, 2 * hy, 0]), np.array(
+        [0, 0, 2 * hz])
+    side(o, Y, X, ny, nx)
+    side(o + Z, X, Y, nx, ny)
+    side(o, X, Z, nx, ny)
+    side(o + Y, Z, X, ny, nx)
+    side(o, Z, Y, ny, ny)
+    side(o + X, Y, Z, ny, ny)
+    return cage_from_polygons(name, list(index), polygons)
 
 
 def test_rigidly_moved_cage_half_moves_the_region_inside_rigidly(bl):
-    target, cage = _bar(bl)
+    """A bar in a long box cage (16 quads along x, 2×2 across); the cage's +x half is turned rigidly."""
+    target = point_cloud("Bar", np.stack(np.meshgrid(np.linspace(-3.8, 3.8, 77), np.linspace(-0.3, 0.3, 4),
+                                                     np.linspace(-0.3, 0.3, 4), indexing="ij"), -1))
+    cage = bar_cage("BarCage", 16, 2)
     deformer = add_cage_deformer(target, cage)
-    assert len(deformer["cage_loop_total"]) == 34
+    assert deformer.status == "" and len(deformer["cage_loop_total"]) == 4 * 16 * 2 + 2 * 4
     points = cage_points(cage)
-    half = points[:, 0] > 0.5  # the cage vertices at x = 1, 2, 3, 4
+    half = points[:, 0] > 0.25  # the cage vertices at x = 0.5 ... 4
     R = Matrix.Translation((0.0, 0.0, 0.0)) @ Matrix.Rotation(0.9, 4, (0.2, 1.0, 0.4))
     moved = points.copy()
     moved[half] = transform(R, points[half])
@@ -304,8 +315,8 @@ def test_rigidly_moved_cage_half_moves_the_region_inside_rigidly(bl):
     assert np.abs(J.T @ J - np.eye(3)).max() < 1e-3 and abs(np.linalg.det(J) - 1.0) < 1e-3
     assert residual < 1e-3, "one rigid motion for the whole region"
     assert np.abs(got[inside] - transform(R, rest[inside])).max() < 1e-3, "the cage half's own motion"
-    still = rest[:, 0] < -1.6
-    assert np.abs(got[still] - rest[still]).max() < 1e-3, "the other half stays put"
+    still = rest[:, 0] < -2.4
+    assert np.abs(got[still] - rest[still]).max() < 1e-5, "the other half stays put"
     joint = np.abs(rest[:, 0]) < 0.5
     J, residual = fitted_jacobian(rest[joint], got[joint])
     assert residual > 1e-2, "around the stretched faces the motion blends (the test can fail)"
@@ -314,29 +325,38 @@ def test_rigidly_moved_cage_half_moves_the_region_inside_rigidly(bl):
 # ---------------------------------------------------------------------------------------------- n-gons
 
 
-def test_quad_cage_and_its_triangulation_give_the_same_result(bl):
-    """The core averages a face's consecutive-triple tetrahedra so a planar quad moved affinely gets
-    the same parameters as each of its two triangles. With one influence per vertex (the nearest face;
-    a quad's distance is that of its nearer triangle) the whole pipeline must then agree, under a
-    shear of the cage's vertices that gives each face different parameters."""
+@pytest.mark.parametrize("edit", ["shear", "scale"])
+def test_quad_cage_and_its_triangulation_give_the_same_result(bl, installed, core_cage, edit):
+    """A face's parameters are the mean over its consecutive-triple corners, so they do not depend on
+    how the face would be triangulated — given the same motion of each corner's neighbourhood. With
+    core.cage's 'NEIGHBOURS' apex a corner's motion also depends on its apex stencil (cage vertices
+    off its plane), which differs between a quad's four corners and its triangles' corners; so the
+    configuration where quad ≡ triangles is meaningful is an affine edit of the whole cage: every face
+    of either cage must come out as exactly G, although their weights differ and the bare ERRATA 9
+    normal apex would give the faces different motions (checked below)."""
     rng = np.random.default_rng(4)
     points = rng.uniform(-1.3, 1.3, size=(400, 3))
     targets, cages = [], []
     for triangulate in (False, True):
         target = point_cloud("Cloud", points)
         cage = box_cage("Tris" if triangulate else "Quads", cuts=1, triangulate=triangulate)
-        add_cage_deformer(target, cage, max_influences=1)
+        add_cage_deformer(target, cage)
         targets.append(target)
         cages.append(cage)
     assert len(cages[0].data.polygons) == 24 and len(cages[1].data.polygons) == 48
-    G = shear_matrix()
-    for cage in cages:
-        set_cage_points(cage, transform(G, cage_points(cage)))
+    G = shear_matrix() if edit == "shear" else np.diag([1.5, 0.7, 1.2, 1.0])
+    rest_cages = [cage_points(cage) for cage in cages]
+    for cage, rest_cage in zip(cages, rest_cages, strict=True):
+        set_cage_points(cage, transform(G, rest_cage))
     quads, tris = (bl.evaluated_positions(t).astype(np.float64) for t in targets)
     rest = bl.rest_positions(targets[0]).astype(np.float64)
     assert np.abs(quads - rest).max() > 0.3
-    assert np.abs(quads - transform(G, rest)).max() > 0.05, "faces differ, so a wrong face would show"
     assert np.abs(quads - tris).max() < 1e-6
+    assert np.abs(quads - transform(G, rest)).max() < 1e-5
+    for cage, rest_cage in zip(cages, rest_cages, strict=True):
+        normal = core_cage.face_motions(rest_cage, transform(G, rest_cage), topology(core_cage, cage),
+                                        apex="NORMAL")
+        assert np.ptp(normal.params, axis=0).max() > 0.05, "with the normal apex the faces would differ"
 
 
 # ---------------------------------------------------------------------------------------------- animation
@@ -505,7 +525,7 @@ def test_collapsed_face_is_skipped_and_reported(bl, installed, core_cage):
 
     topo = topology(core_cage, cage)
     idx, val = core_cage.cage_weights(rest, points, topo, k=8)
-    motion = core_cage.face_motions(points, collapsed, topo)
+    motion = core_cage.face_motions(points, cage_points(cage), topo)  # as stored: float32
     assert motion.valid.tolist() == [False] + [True] * 7
     kept = np.where(idx == 0, 0.0, val)
     kept /= kept.sum(axis=1, keepdims=True)
@@ -534,7 +554,7 @@ def test_cage_topology_changed_after_bind(bl):
     cage = box_cage(cuts=1)
     deformer = add_cage_deformer(target, cage)
     rest = bl.rest_positions(target).copy()
-    set_cage_points(cage, cage_points(cage) + (0.3, 0.0, 0.0))
+    set_cage_points(cage, cage_points(cage) + np.array([0.3, 0.0, 0.0]))
     assert np.abs(bl.evaluated_positions(target) - rest).max() > 0.1
     bm = bmesh.new()
     bm.from_mesh(cage.data)
@@ -569,6 +589,9 @@ def test_deleted_unlinked_or_zero_scaled_cage(bl):
     bpy.data.objects.remove(cage, do_unlink=True)
     assert_intact(bl, target, rest)
     assert "has no cage object" in deformer.status
+    deformer.cage = bl.empty("NotAMesh")  # scripts bypass the picker's mesh filter
+    assert_intact(bl, target, rest)
+    assert "Cage 'NotAMesh' is not a mesh (Empty)" in deformer.status
 
 
 def test_cage_disabled_in_viewports_is_reported(bl):
@@ -583,6 +606,18 @@ def test_cage_disabled_in_viewports_is_reported(bl):
     cage.hide_viewport = False
     cage.hide_set(True)  # the eye icon keeps it evaluated
     assert np.abs(bl.evaluated_positions(target) - rest - (0.4, 0, 0)).max() < 1e-5
+    cage.hide_set(False)
+    cages = bpy.data.collections.new("Cages")  # so does the eye of a collection holding it
+    bpy.context.scene.collection.children.link(cages)
+    cages.objects.link(cage)
+    bpy.context.scene.collection.objects.unlink(cage)
+    bpy.context.view_layer.layer_collection.children["Cages"].hide_viewport = True
+    cage.location.x = 0.6
+    assert np.abs(bl.evaluated_positions(target) - rest - (0.6, 0, 0)).max() < 1e-5
+    assert deformer.status == ""
+    bpy.context.view_layer.layer_collection.children["Cages"].exclude = True
+    assert_intact(bl, target, rest)
+    assert "is not evaluated" in deformer.status
 
 
 # ---------------------------------------------------------------------------------------------- options
@@ -593,9 +628,10 @@ def test_weight_options_reweight_live_from_the_stored_rest(bl, core_cage):
     cage = box_cage(half=(1.5, 1.5, 1.5), cuts=1)
     deformer = add_cage_deformer(target, cage)
     rest = bl.rest_positions(target).astype(np.float64)
-    stored_rest = np.asarray(deformer["cage_rest_points"]).copy()
+    stored_rest = np.asarray(deformer["cage_rest_points"]).reshape(-1, 3).copy()
     topo = topology(core_cage, cage)
-    set_cage_points(cage, cage_points(cage) + (0.5, 0.0, 0.0))  # not a new rest: weights use the stored one
+    # not a new rest: the weights keep using the stored one
+    set_cage_points(cage, cage_points(cage) + np.array([0.5, 0.0, 0.0]))
     for options in ({"half_space": False}, {"exponent": 4.0}, {"max_influences": 3}):
         for key, value in options.items():
             setattr(deformer, key, value)
@@ -605,7 +641,7 @@ def test_weight_options_reweight_live_from_the_stored_rest(bl, core_cage):
         expected = np.zeros((len(rest), 24))
         np.add.at(expected, (np.arange(len(rest))[:, None], idx), val)
         assert np.abs(dense_weights(target, deformer) - expected).max() < 1e-6, options
-    assert np.array_equal(np.asarray(deformer["cage_rest_points"]), stored_rest)
+    assert np.array_equal(np.asarray(deformer["cage_rest_points"]).reshape(-1, 3), stored_rest)
     columns = [a for a in affdef_attributes(target) if a.startswith(f".affdef_{deformer.uid}_idx")]
     assert len(columns) == 3
     idx_on, _ = core_cage.cage_weights(rest, stored_rest, topo, half_space=True)
@@ -652,9 +688,10 @@ def test_linear_blend_mode(bl):
     cage = box_cage()
     deformer = add_cage_deformer(target, cage, blend_mode="LINEAR")
     rest = bl.rest_positions(target).astype(np.float64)
-    set_cage_points(cage, cage_points(cage) + (0.2, -0.3, 0.1))
+    shift = np.array([0.2, -0.3, 0.1])
+    set_cage_points(cage, cage_points(cage) + shift)
     cage.rotation_euler.z = 0.5
-    expected = transform(Matrix.Rotation(0.5, 4, "Z"), rest + (0.2, -0.3, 0.1))
+    expected = transform(Matrix.Rotation(0.5, 4, "Z"), rest + shift)
     assert np.abs(bl.evaluated_positions(target) - expected).max() < 1e-5
     assert deformer.status == ""
 
@@ -773,3 +810,75 @@ def test_panel_and_menu_show_the_cage_options(bl, installed):
     panels.AFFINE_MT_object.draw(type("Menu", (), {"layout": Layout()})(), None)
     assert ("operator", "object.affine_cage_deformer_add") in log
     assert deformer.bl_rna.properties["mask_group"].name == "Mask"
+
+
+LTS_SCRIPT = """
+import os, sys, tempfile
+os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="affdef_lts_")
+import bpy, bmesh
+import numpy as np
+assert bpy.app.version[:2] == (4, 2), bpy.app.version_string
+assert bpy.ops.extensions.package_install_files(
+    filepath=sys.argv[1], repo="user_default", enable_on_install=True) == {"FINISHED"}
+bpy.ops.mesh.primitive_uv_sphere_add(segments=24, ring_count=12, radius=0.8)
+target = bpy.context.active_object
+def box(cuts):
+    mesh = bpy.data.meshes.new("Cage")
+    bm = bmesh.new()
+    bmesh.ops.create_cube(bm, size=3.0)
+    bmesh.ops.subdivide_edges(bm, edges=bm.edges[:], cuts=cuts, use_grid_fill=True)
+    bm.to_mesh(mesh)
+    bm.free()
+    return mesh
+cage = bpy.data.objects.new("Cage", box(1))
+bpy.context.scene.collection.objects.link(cage)
+with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, cage]):
+    assert bpy.ops.object.affine_cage_deformer_add() == {"FINISHED"}
+deformer = target.affine_deformers[0]
+def positions():
+    mesh = target.evaluated_get(bpy.context.evaluated_depsgraph_get()).data
+    co = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3).astype(np.float64)
+rest = positions()
+G = np.array([[1.1, 0.45, 0.0], [0.0, 0.9, 0.3], [0.25, 0.0, 1.2]])
+co = np.empty(len(cage.data.vertices) * 3, np.float32)
+cage.data.vertices.foreach_get("co", co)
+cage.shape_key_add(name="Basis")
+key = cage.shape_key_add(name="Shear")
+key.data.foreach_set("co", (co.reshape(-1, 3) @ G.T).astype(np.float32).ravel())
+key.value = 1.0
+assert deformer.status == "", deformer.status
+assert np.abs(positions() - rest @ G.T).max() < 1e-5
+key.value = 0.0
+cage.location = (0.3, -0.2, 0.5)
+assert np.abs(positions() - rest - (0.3, -0.2, 0.5)).max() < 1e-5
+# a rebind with another topology replaces the stored arrays (ID property arrays are re-created)
+cage.shape_key_clear()
+bm = bmesh.new()
+bm.from_mesh(cage.data)
+bmesh.ops.subdivide_edges(bm, edges=bm.edges[:], cuts=1, use_grid_fill=True)
+bm.to_mesh(cage.data)
+bm.free()
+cage.data.update()
+positions()
+assert "changed topology" in deformer.status, deformer.status
+with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target]):
+    assert bpy.ops.object.affine_deformer_bind(index=0) == {"FINISHED"}
+assert deformer.status == "" and len(deformer["cage_loop_total"]) == len(cage.data.polygons)
+assert np.array_equal(positions(), rest)
+print("LTS CAGE OK", bpy.app.version_string)
+"""
+
+
+def test_cage_deformer_on_blender_4_2_lts(extension_zip, tmp_path):
+    python = os.environ.get("AFFINE_LTS_PYTHON")
+    if not python:
+        pytest.skip("AFFINE_LTS_PYTHON is not set (the Makefile's `make test` sets it to .venv42's python)")
+    script = tmp_path / "lts_cage.py"
+    script.write_text(LTS_SCRIPT)
+    env = {k: v for k, v in os.environ.items() if k != "BLENDER_USER_RESOURCES"}
+    proc = subprocess.run([python, str(script), str(extension_zip)], capture_output=True, text=True,
+                          timeout=300, env=env)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "LTS CAGE OK 4.2" in proc.stdout

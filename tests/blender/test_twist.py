@@ -10,6 +10,7 @@ moves each vertex by exactly v' = Rz(w_v·θ)·v (w_v its weight), which the tes
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import bpy
@@ -84,12 +85,13 @@ def step_frames(bl, target, frames) -> dict[int, np.ndarray]:
 
 
 def max_jump_ratio(positions: dict[int, np.ndarray]) -> float:
-    """Over vertices that move: max over frames of the per-frame motion / its median per-frame motion."""
+    """Max over vertices and consecutive frames of a vertex's motion / its median per-frame motion
+    (medians below 1e-4 count as 1e-4, so a static vertex that jumps counts too)."""
     frames = sorted(positions)
-    steps = np.stack([np.linalg.norm(positions[b] - positions[a], axis=1) for a, b in zip(frames, frames[1:])])
-    median = np.median(steps, axis=0)
-    moving = median > 1e-4
-    return float((steps[:, moving].max(axis=0) / median[moving]).max())
+    steps = np.stack([np.linalg.norm(positions[b] - positions[a], axis=1)
+                      for a, b in itertools.pairwise(frames)])
+    median = np.maximum(np.median(steps, axis=0), 1e-4)
+    return float((steps / median).max())
 
 
 # ------------------------------------------------------------------------------------- continuity
@@ -151,7 +153,8 @@ def _set_turn(probe, degrees: float, rest_rotation) -> None:
         ("XYZ", (0.3, -0.2, 0.5), (200.0, 300.0, 400.0, 720.0, -500.0)),
         ("AXIS_ANGLE", (0.5, 0.0, 0.0, 1.0), (200.0, 300.0, 400.0, 720.0, -500.0)),
         # A quaternion holds at most one turn (q and −q): read along the straight path from the rest one.
-        ("QUATERNION", (math.cos(0.4), math.sin(0.4) * 0.6, 0.0, math.sin(0.4) * 0.8), (200.0, 300.0, -330.0)),
+        ("QUATERNION", (math.cos(0.4), 0.6 * math.sin(0.4), 0.0, 0.8 * math.sin(0.4)),
+         (200.0, 300.0, -330.0)),
     ],
 )
 def test_every_rotation_mode_gives_the_same_twist(bl, mode, rest_rotation, turns):
@@ -187,30 +190,35 @@ def test_rotation_mode_changed_since_bind_counts_turns_from_the_converted_rest(b
     check(300.0)
 
 
-def test_parent_frame_and_parent_motion(bl):
-    """The channels turn in the parent's frame; a parent's own turn takes the branch nearest that."""
-    target, _probe, _deformer, _w = twist_scene(bl)  # a reference set-up for the weights
-    rest = bl.rest_positions(target).astype(np.float64)
-    bpy.data.objects.remove(target)
-    for obj in list(bpy.data.objects):
-        bpy.data.objects.remove(obj)
-
+def test_channels_turn_in_the_parent_frame_and_parent_turns_take_the_nearest_branch(bl):
+    """The target lies along world X; the probe's parent (scaled, turned) maps the probe's Y channel
+    onto the target's axis, so turning that channel by 400° twists the tube by 400°. The parent then
+    adds 30° about the same axis: 430° in total, the branch nearest the channels' 400°."""
     target = tube()
-    parent = bl.empty("Parent", (0.0, 0.0, HEIGHT))
-    parent.rotation_euler = (math.pi / 2, 0.0, 0.0)  # the parent's y axis is the world's z axis
+    target.location, target.rotation_euler = (1.0, 2.0, 3.0), (0.0, math.pi / 2, 0.0)  # local z = world x
+    parent = bl.empty("Parent", (1.0 + HEIGHT, 2.0, 3.0))  # the tube's top
+    parent.rotation_mode = "ZYX"  # x outermost: its X channel turns about world x
+    parent.rotation_euler = (0.0, 0.0, -math.pi / 2)  # the parent's y axis is world x
+    parent.scale = (2.0, 2.0, 2.0)
     child = bl.empty("Child")
     child.parent = parent
-    child.rotation_euler = (-math.pi / 2, 0.0, 0.0)  # upright in the world
+    child.rotation_euler = (0.3, 0.0, 0.0)  # a rest tilt inside the Y turn (x is innermost in XYZ)
+    bpy.context.view_layer.update()
     deformer = bl.add_probe_deformer(target, [child], weight_mode="FALLOFF", radius=HEIGHT, normalize="NONE")
     w = bl.dense_weights(target, deformer)[:, 0]
+    rest = bl.rest_positions(target).astype(np.float64)
+    assert w.max() > 0.9
 
-    child.rotation_euler.y = math.radians(400.0)  # 400° about the parent's y = world z
+    child.rotation_euler.y = math.radians(400.0)
     np.testing.assert_allclose(bl.evaluated_positions(target), rotate_z(rest, w * math.radians(400.0)),
                                atol=1e-4)
-    parent.rotation_euler.z = math.radians(30.0)  # the parent adds 30° about world z: 430° in total
+    parent.rotation_euler.x = math.radians(30.0)
     np.testing.assert_allclose(bl.evaluated_positions(target), rotate_z(rest, w * math.radians(430.0)),
                                atol=1e-4)
     assert deformer.status == ""
+    deformer.branch_rule = "SHORTEST"  # 430° = 70° the short way
+    np.testing.assert_allclose(bl.evaluated_positions(target), rotate_z(rest, w * math.radians(70.0)),
+                               atol=1e-4)
 
 
 # ------------------------------------------------------------------------------------- frame independence
@@ -285,3 +293,16 @@ def test_frame_37_in_a_fresh_process_and_a_single_frame_render_match_stepping(bl
     assert stepped_img.std() > 0.02, "blank render"
     assert np.abs(rest_img - stepped_img).mean() > 0.01, "the full twist must show in the render"
     assert np.abs(farm_img - stepped_img).max() <= 2.0 / 255.0
+
+
+def test_channels_too_large_to_unwrap_give_a_clear_status_and_the_rest_shape(bl):
+    target, probe, deformer, w = twist_scene(bl)
+    rest = bl.rest_positions(target).astype(np.float64)
+    probe.rotation_euler.z = 1e6  # ~160000 turns: more than the unwrap will sample
+    got = bl.evaluated_positions(target)
+    assert "too many turns" in deformer.status
+    assert np.array_equal(got, rest.astype(np.float32)), "the mesh shows its rest shape"
+    deformer.branch_rule = "SHORTEST"  # needs no unwrap: deforms again
+    angle = math.remainder(1e6, 2.0 * math.pi)
+    np.testing.assert_allclose(bl.evaluated_positions(target), rotate_z(rest, w * angle), atol=1e-3)
+    assert deformer.status == ""

@@ -8,9 +8,13 @@ import re
 import numpy as np
 import pytest
 
+import affine_deformers.core.cage as cage_module
 from affine_deformers.core.aff3 import matrices_from_params, so3_exp
 from affine_deformers.core.cage import (
+    STENCIL_MIN_BETA,
     CageTopology,
+    affected_faces,
+    apex_stencils,
     check_cage,
     face_motions,
     face_normals,
@@ -19,6 +23,7 @@ from affine_deformers.core.cage import (
     validate_cage,
 )
 from affine_deformers.core.cage import cage_weights as _cage_weights
+from affine_deformers.core.deform import deform_points, deform_points_params
 
 CUBE_POINTS = np.array(list(itertools.product([0, 1], repeat=3)), dtype=float)[:, ::-1] - 0.5
 # vertex i has (x, y, z) bits (i & 1, i >> 1 & 1, i >> 2 & 1): 0 (0,0,0) 1 (1,0,0) 2 (0,1,0) 3 (1,1,0) ...
@@ -48,6 +53,33 @@ def mixed_prism() -> tuple[np.ndarray, CageTopology]:
         faces.append([i, j, j + 5, i + 5])
     faces += [[4, 0, 5], [4, 5, 9]]
     return points, CageTopology.from_polygons(faces)
+
+
+def box_cage(counts, size) -> tuple[np.ndarray, CageTopology]:  # type: ignore[no-untyped-def]
+    """Closed box centred at 0 with `size` (3,), each side a grid of counts (3,) quads: large flat
+    regions, so most vertices are coplanar with most faces."""
+    grids = [np.linspace(-0.5 * s, 0.5 * s, n + 1) for n, s in zip(counts, size, strict=True)]
+    verts: dict[tuple, int] = {}
+    faces = []
+    for axis, sign in itertools.product(range(3), (-1, 1)):
+        u_ax, v_ax = [a for a in range(3) if a != axis]
+        for i, j in itertools.product(range(counts[u_ax]), range(counts[v_ax])):
+            quad = []
+            for di, dj in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                p = np.zeros(3)
+                p[axis] = 0.5 * sign * size[axis]
+                p[u_ax], p[v_ax] = grids[u_ax][i + di], grids[v_ax][j + dj]
+                quad.append(verts.setdefault(tuple(np.round(p, 12)), len(verts)))
+            outward = np.cross(np.eye(3)[u_ax], np.eye(3)[v_ax])[axis] * sign > 0
+            faces.append(quad if outward else quad[::-1])
+    return np.array(list(verts)), CageTopology.from_polygons(faces)
+
+
+def affine(M, shift) -> np.ndarray:  # type: ignore[no-untyped-def]
+    G = np.eye(4)
+    G[:3, :3] = M
+    G[:3, 3] = shift
+    return G
 
 
 def similarity(angle: float, axis, scale: float, shift) -> np.ndarray:
@@ -156,15 +188,13 @@ def test_similarity_of_the_whole_cage_gives_every_face_exactly_g(G: np.ndarray) 
         np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-9)
 
 
-def test_shear_is_exact_on_each_face_plane_but_the_normal_follows_the_face() -> None:
-    """ERRATA 9's apex construction is similarity-covariant only: under a shear every corner maps its
-    own face exactly, and the normal direction goes to cof(M)·N/√|cof(M)·N|, not to M·N."""
+def test_normal_apex_is_exact_in_plane_but_follows_the_normal_under_shear() -> None:
+    """ERRATA 9's normal apex ('NORMAL') is similarity-covariant only: under a shear every corner maps
+    its own face exactly, and the normal direction goes to cof(M)·N/√|cof(M)·N|, not to M·N."""
     points, topo = mixed_prism()
-    G = np.eye(4)
-    G[:3, :3] = [[1.0, 0.6, 0.0], [0.0, 1.2, 0.3], [0.2, 0.0, 0.8]]
-    G[:3, 3] = [0.5, -0.1, 0.2]
+    G = affine([[1.0, 0.6, 0.0], [0.0, 1.2, 0.3], [0.2, 0.0, 0.8]], [0.5, -0.1, 0.2])
     current = apply(G, points)
-    motion = face_motions(points, current, topo)
+    motion = face_motions(points, current, topo, apex="NORMAL")
     assert motion.valid.all()
     A = matrices_from_params(motion.params)
     normals = face_normals(points, topo)
@@ -177,6 +207,228 @@ def test_shear_is_exact_on_each_face_plane_but_the_normal_follows_the_face() -> 
         expected = cof @ n_hat / np.sqrt(np.linalg.norm(cof @ n_hat))
         np.testing.assert_allclose(A[f, :3, :3] @ n_hat, expected, atol=1e-9)
     assert np.abs(A - G).max() > 0.1  # so a common shear is NOT reproduced by blending faces
+
+
+COMMON_MOTIONS = {
+    "shear": affine([[1.0, 0.6, 0.0], [0.0, 1.2, 0.3], [0.2, 0.0, 0.8]], [0.5, -0.1, 0.2]),
+    "non-uniform scale": affine(np.diag([2.0, 0.5, 1.5]), [0.0, 0.0, 0.0]),
+    "squash": affine(np.diag([1.0 / np.sqrt(0.2), 1.0 / np.sqrt(0.2), 0.2]), [0.0, 1.0, 0.0]),
+    "rotation + translation": similarity(2.5, [1, -2, 0.5], 1.0, [3.0, -1.0, 2.0]),
+    "rotated shear": affine(so3_exp(np.array([0.4, 1.9, -0.7])) @ [[1.3, 0.0, 0.9], [0.0, 0.6, 0.0],
+                                                                   [-0.4, 0.0, 1.1]], [1.0, 2.0, -3.0]),
+}
+
+
+def interior_points(points: np.ndarray, topo: CageTopology, n: int, seed: int) -> np.ndarray:
+    """Random points inside a convex cage, at least 5% of its size from every face plane."""
+    rng = np.random.default_rng(seed)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    normals = face_normals(points, topo)
+    unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    centroid = np.array([points[topo.loop_vertex_indices[s : s + k]].mean(axis=0)
+                         for s, k in zip(topo.loop_start, topo.loop_total, strict=True)])
+    q = rng.uniform(lo, hi, size=(20 * n, 3))
+    depth = np.einsum("fi,nfi->nf", unit, centroid[None] - q[:, None, :]).min(axis=1)
+    q = q[depth > 0.05 * np.ptp(points, axis=0).max()][:n]
+    assert len(q) == n
+    return q
+
+
+@pytest.mark.parametrize("name", list(COMMON_MOTIONS))
+def test_any_common_affine_motion_gives_every_face_exactly_g(name: str) -> None:
+    """The 'NEIGHBOURS' apex (default): shear and non-uniform scale of the whole cage are exact too,
+    so blending the faces reproduces G·v inside the cage (issue 4)."""
+    G = COMMON_MOTIONS[name]
+    for points, topo in (mixed_prism(), box_cage((3, 2, 4), (1.5, 1.0, 2.0)), cube()):
+        motion = face_motions(points, apply(G, points), topo)
+        assert motion.valid.all() and motion.messages == ()
+        A = matrices_from_params(motion.params)
+        np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-9)
+        q = interior_points(points, topo, 40, seed=topo.n_faces)
+        idx, val = cage_weights(q, points, topo)
+        np.testing.assert_allclose(deform_points_params(q, motion.params, idx, val), apply(G, q), atol=1e-9)
+        dense = dense_rows(idx, val, topo.n_faces)
+        np.testing.assert_allclose(deform_points(q, A, dense), apply(G, q), atol=1e-9)
+
+
+def test_random_affine_motions_of_the_cage_are_exact() -> None:
+    rng = np.random.default_rng(44)
+    points, topo = box_cage((2, 3, 2), (1.0, 1.0, 1.0))
+    points = points + rng.normal(scale=0.02, size=points.shape)  # no face exactly flat any more
+    assert check_cage(points, topo).ok
+    for _ in range(10):
+        Q1, Q2 = (np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(2))
+        M = (Q1 * np.sign(np.linalg.det(Q1))) @ np.diag(np.exp(rng.normal(scale=0.5, size=3))) @ Q2
+        G = affine(M * np.sign(np.linalg.det(M)), rng.normal(size=3))
+        motion = face_motions(points, apply(G, points), topo)
+        assert motion.valid.all()
+        A = matrices_from_params(motion.params)
+        np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-9)
+
+
+def test_stencil_fit_reaches_round_flat_sides_and_is_balanced() -> None:
+    points, topo = box_cage((4, 3, 2), (2.0, 1.5, 1.0))
+    stencil = apex_stencils(points, topo)
+    triples, _, _ = topo.corner_triples()
+    assert stencil.active.all()  # even a corner in the middle of a flat side has a stencil
+    used = stencil.gamma != 0.0
+    assert np.all(used.sum(axis=1) == 16)
+    assert np.all(np.abs(stencil.beta[used]) >= STENCIL_MIN_BETA)
+    # The stencil's rest coordinates are exact: p_j − c = E (α, β).
+    E, c, _ = cage_module._corner_frames(points, triples)
+    rebuilt = c[:, None, :] + np.einsum("tik,tsk->tsi", E[:, :, :2], stencil.alpha)
+    rebuilt += E[:, None, :, 2] * stencil.beta[..., None]
+    np.testing.assert_allclose(np.where(used[..., None], rebuilt, 0.0),
+                               np.where(used[..., None], points[stencil.vertices], 0.0), atol=1e-12)
+    # Σ γβ = 1 makes any common affine motion exact; the fit keeps the in-plane moments Σ γα small.
+    np.testing.assert_allclose((stencil.gamma * stencil.beta).sum(axis=1), 1.0, atol=1e-12)
+    assert np.abs(stencil.moments[:, 1:]).max() < 0.05
+    assert np.all(stencil.spread >= 1.0 - 1e-12)
+
+
+def test_stencils_are_cached_by_content() -> None:
+    points, topo = box_cage((2, 2, 2), (1.0, 1.0, 1.0))
+    first = apex_stencils(points, topo)
+    again = CageTopology.from_arrays(topo.loop_vertex_indices.copy(), topo.loop_start.copy(),
+                                     topo.loop_total.copy())
+    assert apex_stencils(points.copy(), again) is first  # the Blender layer rebuilds topology per frame
+    moved = points.copy()
+    moved[0, 0] += 1e-3
+    assert apex_stencils(moved, topo) is not first
+    with pytest.raises(ValueError, match="apex must be one of"):
+        face_motions(points, points, topo, apex="NORMALS")
+
+
+def test_flat_open_cage_keeps_the_normal_apex() -> None:
+    """No vertex off a face's plane: no stencil, so 'NEIGHBOURS' falls back to the normal apex."""
+    g = np.linspace(0.0, 1.0, 4)
+    points = np.array([[x, y, 0.0] for y in g for x in g])
+    quads = [[4 * j + i, 4 * j + i + 1, 4 * j + i + 5, 4 * j + i + 4] for j in range(3) for i in range(3)]
+    topo = CageTopology.from_polygons(quads)
+    assert not apex_stencils(points, topo).active.any()
+    current = apply(COMMON_MOTIONS["rotated shear"], points)
+    current[5, 2] += 0.2
+    a = face_motions(points, current, topo)
+    b = face_motions(points, current, topo, apex="NORMAL")
+    assert np.array_equal(a.params, b.params) and a.valid.all()
+
+
+def long_box_with_rigid_half() -> tuple[np.ndarray, np.ndarray, CageTopology, np.ndarray, np.ndarray]:
+    """(rest, current, topology, moved (V,) bool, G): the x > 0 half of a 6 × 1 × 1 box moved by a
+    rigid G, the rest in place; faces at the junction are stretched."""
+    points, topo = box_cage((12, 2, 2), (6.0, 1.0, 1.0))
+    G = similarity(0.6, [0.3, -0.4, 0.5], 1.0, [0.3, 0.2, -0.5])
+    moved = points[:, 0] > 0.01
+    current = points.copy()
+    current[moved] = apply(G, points[moved])
+    return points, current, topo, moved, G
+
+
+def faces_depending_only_on(mask: np.ndarray, points: np.ndarray, topo: CageTopology) -> np.ndarray:
+    """Faces whose corner vertices and apex stencil vertices all lie in `mask`."""
+    stencil = apex_stencils(points, topo)
+    triples, face, _ = topo.corner_triples()
+    inside = mask[triples].all(axis=1) & np.where(stencil.gamma != 0.0, mask[stencil.vertices], True).all(1)
+    out = np.ones(topo.n_faces, dtype=bool)
+    np.logical_and.at(out, face, inside)
+    return out
+
+
+def test_rigidly_moved_half_of_a_long_cage_moves_rigidly() -> None:
+    points, current, topo, moved, G = long_box_with_rigid_half()
+    motion = face_motions(points, current, topo)
+    assert motion.valid.all()
+    A = matrices_from_params(motion.params)
+    rigid = faces_depending_only_on(moved, points, topo)
+    still = faces_depending_only_on(~moved, points, topo)
+    assert rigid.sum() >= 30 and still.sum() >= 30
+    np.testing.assert_allclose(A[rigid], np.broadcast_to(G, A[rigid].shape), atol=1e-9)
+    np.testing.assert_allclose(A[still], np.broadcast_to(np.eye(4), A[still].shape), atol=1e-9)
+    np.testing.assert_array_equal(affected_faces(points, current, topo), ~still)
+
+    rng = np.random.default_rng(5)
+    q = np.column_stack([rng.uniform(1.5, 2.5, 40), rng.uniform(-0.35, 0.35, (40, 2))])
+    idx, val = cage_weights(q, points, topo)
+    assert rigid[idx[val > 0.0]].all()  # deep in the moved half: only rigid faces have weight
+
+    def deform(x: np.ndarray) -> np.ndarray:
+        return deform_points_params(x, motion.params, *cage_weights(x, points, topo))
+
+    np.testing.assert_allclose(deform(q), apply(G, q), atol=1e-9)
+    step = 1e-5
+    J = np.stack([(deform(q + step * e) - deform(q - step * e)) / (2 * step) for e in np.eye(3)], axis=2)
+    np.testing.assert_allclose(np.einsum("nki,nkj->nij", J, J), np.broadcast_to(np.eye(3), J.shape),
+                               atol=1e-6)
+def test_local_edit_shears_nearby_faces_continuously() -> None:
+    """One vertex of a thin plank dragged from the bottom up through the top face: the faces whose
+    apex stencil holds it shear with it, continuously, and none flips or is dropped; every other
+    face stays exactly at rest."""
+    points, topo = box_cage((4, 4, 1), (2.0, 2.0, 0.3))
+    v = int(np.flatnonzero(np.all(np.isclose(points, [0.0, 0.0, -0.15]), axis=1))[0])
+    above = int(np.argmin(np.linalg.norm(cage_module.face_centroids(points, topo) - [0.25, 0.25, 0.15], axis=1)))
+    step = 2e-3
+    previous = None
+    for t in np.arange(0.0, 0.6 + step / 2, step):  # crosses the top plane (z = 0.15) at t = 0.3
+        current = points.copy()
+        current[v, 2] += t
+        motion = face_motions(points, current, topo)
+        assert motion.valid.all() and np.all(np.isfinite(motion.params))
+        A = matrices_from_params(motion.params)
+        assert np.linalg.det(A[:, :3, :3]).min() > 0.3
+        moving = affected_faces(points, current, topo)
+        assert np.array_equal(motion.params[~moving], np.zeros((np.count_nonzero(~moving), 12)))
+        if previous is not None:
+            assert np.abs(motion.params - previous).max() < 5.0 * step  # Lipschitz, no jumps
+        previous = motion.params
+    own = np.array([v in topo.loop_vertex_indices[s : s + k] for s, k in zip(topo.loop_start, topo.loop_total,
+                                                                               strict=True)])
+    assert not own[above] and moving[above] and np.abs(previous[above]).max() > 0.1
+    assert 4 < moving.sum() < topo.n_faces
+
+
+def test_fold_guard_keeps_faces_valid_when_a_vertex_crosses_the_cage(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A cube corner pushed down through the bottom face: without the guard the fitted apex of the
+    corners next to it falls through their plane (det ≤ 0, faces dropped, parameters jump)."""
+    points, topo = cube()
+    path = np.linspace(0.0, 1.2, 121)  # to 0.2 below the bottom face
+
+    def sweep() -> tuple[np.ndarray, float, float]:
+        invalid = np.zeros(topo.n_faces, dtype=int)
+        jump, det = 0.0, np.inf
+        previous = None
+        for t in path:
+            current = points.copy()
+            current[7] += [-0.2, -0.1, -t]
+            motion = face_motions(points, current, topo)
+            invalid += ~motion.valid
+            A = matrices_from_params(motion.params[motion.valid])
+            det = min(det, float(np.linalg.det(A[:, :3, :3]).min()))
+            if previous is not None:
+                jump = max(jump, float(np.abs(motion.params - previous).max()))
+            previous = motion.params
+        return invalid, jump, det
+
+    invalid, jump, det = sweep()
+    assert not invalid.any() and jump < 0.2 and det > 0.05
+    monkeypatch.setattr(cage_module, "FOLD_KAPPA", 0.0)
+    invalid, jump, _ = sweep()
+    assert invalid.sum() > 30 and jump > 1.0
+
+
+def test_face_of_loop_follows_the_storage_order() -> None:
+    points, topo = mixed_prism()
+    order = np.arange(topo.n_faces)[::-1]
+    blocks = [topo.loop_vertex_indices[topo.loop_start[f] : topo.loop_start[f] + topo.loop_total[f]]
+              for f in order]
+    start = np.empty_like(topo.loop_start)
+    start[order] = np.concatenate([[0], np.cumsum([b.size for b in blocks])[:-1]])
+    shuffled = CageTopology.from_arrays(np.concatenate(blocks), start, topo.loop_total.copy())
+    x = np.arange(points.shape[0], dtype=float) ** 2
+    for t in (topo, shuffled):
+        per_face = np.bincount(t.face_of_loop(), x[t.loop_vertex_indices], t.n_faces)
+        expected = [x[t.loop_vertex_indices[s : s + k]].sum() for s, k in zip(t.loop_start, t.loop_total,
+                                                                                strict=True)]
+        np.testing.assert_allclose(per_face, expected)
 
 
 @pytest.mark.parametrize("concave", [False, True])
@@ -224,8 +476,6 @@ def test_collapsed_face_is_reported_and_zeroed_never_nan() -> None:
 
 
 def test_corner_rejected_by_psi_invalidates_only_its_face(monkeypatch: pytest.MonkeyPatch) -> None:
-    import affine_deformers.core.cage as cage_module
-
     real = cage_module.params_from_matrices
 
     def picky(A: np.ndarray) -> np.ndarray:  # rejects batches and every non-identity matrix
@@ -234,14 +484,19 @@ def test_corner_rejected_by_psi_invalidates_only_its_face(monkeypatch: pytest.Mo
         return real(A)
 
     monkeypatch.setattr(cage_module, "params_from_matrices", picky)
-    points, topo = cube()
+    points, topo = box_cage((8, 1, 1), (8.0, 1.0, 1.0))
     current = points.copy()
-    current[7] += [0.1, 0.2, 0.3]
+    end = int(np.argmax(points @ [1.0, 1.0, 1.0]))  # a corner vertex at the +x end
+    current[end] += [0.1, 0.2, 0.3]
+    # Moving faces: those using the vertex as a corner or in an apex stencil; the others stay valid.
+    moving = affected_faces(points, current, topo)
+    assert 0 < moving.sum() < topo.n_faces // 2
     motion = face_motions(points, current, topo)
-    has_7 = np.array([7 in f for f in CUBE_FACES])
-    np.testing.assert_array_equal(motion.valid, ~has_7)
-    assert np.array_equal(motion.params, np.zeros((6, 12)))
-    assert "3 cage face(s) collapsed" in motion.messages[0]
+    np.testing.assert_array_equal(motion.valid, ~moving)
+    assert np.array_equal(motion.params, np.zeros((topo.n_faces, 12)))
+    assert f"{moving.sum()} cage face(s) collapsed" in motion.messages[0]
+    normal = face_motions(points, current, topo, apex="NORMAL")
+    np.testing.assert_array_equal(normal.valid, ~affected_faces(points, current, topo, apex="NORMAL"))
 
 
 def test_straight_rest_corner_of_an_ngon_is_skipped() -> None:

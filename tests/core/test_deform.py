@@ -255,8 +255,9 @@ def test_linear_blend_mode(cloud: np.ndarray) -> None:
         ({"indices": np.zeros((4, 2))}, "indices must be integers"),
         (
             {"indices": np.zeros((5, 2), dtype=np.int32), "values": np.zeros((5, 2))},
-            "indices have 5 rows for 4 points",
+            r"indices must have shape \(4, K\)",
         ),
+        ({"indices": np.zeros(4, dtype=np.int32)}, r"indices must have shape \(4, K\)"),
         ({"values": np.zeros((4, 3))}, "indices and values must both have shape"),
         ({"values": np.full((4, 2), np.nan)}, "weight values contain non-finite"),
     ],
@@ -312,3 +313,40 @@ def test_property_kernel_matches_reference(m: int, k: int, y_scale: float, w_sca
     val = rng.random((64, k))
     got = deform.deform_points_params(pts, P, idx, val)
     assert_matches_reference(pts, deform.blend_params(P, idx, val), got)
+
+
+def test_weights_cache_follows_the_contents_not_the_object(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(16)
+    params = aff3.params_from_matrices(random_affine(rng, 5))
+    idx, val = top_k_dense(rng.random((cloud.shape[0], 5)), 3)
+    kernel = deform.DeformKernel(threads=1)
+    first = kernel.deform(cloud, params, idx, val)
+    assert np.array_equal(kernel.deform(cloud, params, idx, val), first)  # cache hit, same result
+    val[:10] = 0.0  # mutated in place: the same object must not reuse the stale dense weights
+    idx[10:20, 0] = (idx[10:20, 0] + 1) % 5
+    fresh = deform.DeformKernel(threads=1).deform(cloud, params, idx, val)
+    assert np.array_equal(kernel.deform(cloud, params, idx, val), fresh)
+    assert np.array_equal(fresh[:10], cloud[:10])
+    # several weight sets in turn (deformers on different objects) all stay correct
+    other = top_k_dense(rng.random((cloud.shape[0], 5)), 2)
+    for _ in range(3):
+        assert np.array_equal(
+            kernel.deform(cloud, params, *other), deform.deform_points_params(cloud, params, *other)
+        )
+        assert np.array_equal(kernel.deform(cloud, params, idx, val), fresh)
+    assert len(kernel._weights_cache) == 3  # the stale copy, the mutated set and the other set
+    # fewer points than the cached weights have rows: rejected, not silently sliced
+    with pytest.raises(ValueError, match="indices must have shape"):
+        kernel.deform(cloud[:10], params, idx, val)
+    # a bad index after a good call is still caught
+    bad = idx.copy()
+    bad[5, 1] = 5
+    with pytest.raises(ValueError, match="indices must lie"):
+        kernel.deform(cloud, params, bad, val)
+
+
+def test_default_threads(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(deform.THREADS_ENV, "3")
+    assert deform.default_threads() == 3
+    monkeypatch.setenv(deform.THREADS_ENV, "zero")
+    assert 1 <= deform.default_threads() <= deform.MAX_DEFAULT_THREADS
