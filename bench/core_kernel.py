@@ -127,8 +127,8 @@ def main() -> None:
     idx, val = top_k_dense(dense_w, args.k, normalize="SUM")
     out = np.empty_like(points)
     K = idx.shape[1]
-    # two different weight arrays in turn defeat the kernel's weights cache
-    alternating = itertools.cycle([val, val * (1.0 + 2.0**-50)])
+    # more different weight arrays in turn than the kernel's weights cache holds
+    alternating = itertools.cycle([val * (1.0 + i * 2.0**-50) for i in range(deform.WEIGHTS_CACHE_SIZE + 1)])
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(

@@ -6,7 +6,7 @@ Each sample has a camera, a light, simple materials, keyframed controls and a fr
 bound to the Affine Deformers extension, so it plays in Blender with no further setup:
 
 - probe_bend      a bar bent, twisted and scaled by three probes (course notes, fig. 18)
-- probe_vortex    a disc swirled by one probe turning through 450° (fig. 19; needs multi-turn twists)
+- probe_vortex    a disc swirled by one probe turning through 450° (fig. 19; multi-turn twists)
 - cage_deform     a blob figure inside a coarse closed quad cage animated by shape keys (fig. 20)
 - comparison      the same end twist of a bar (±90°, then ±150°): 'LINEAR' blend (candy-wrapper
                   collapse), Blender's Armature with Preserve Volume (dual quaternions: no collapse, but
@@ -42,8 +42,6 @@ DIST_DIR = ROOT / "dist"
 DEFAULT_USER_DIR = ROOT / "out" / ".blender_user"
 EXTENSION_ID = "affine_deformers"
 ADDON_MODULE = f"bl_ext.user_default.{EXTENSION_ID}"
-
-CAGE_OPERATOR = "OBJECT_OT_affine_cage_deformer_add"
 
 # Colours are linear RGB.
 PROBE_RED = (0.8, 0.03, 0.02)
@@ -662,7 +660,6 @@ def build_probe_vortex() -> SampleInfo:
         todo,
     )
     mark_target(disc, "AFFINE_LOG")
-    todo.append("probe_vortex: turns past 180° only look right once multi-turn twists land")
     add_ground(-0.05)
     add_camera((0.0, -7.2, 6.6), (0.0, -0.2, 0.0), lens=40.0)
     add_lights()

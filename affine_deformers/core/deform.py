@@ -138,7 +138,7 @@ class DeformKernel:
         self._dense: FloatArray = np.empty(0)
         self._arange = np.arange(self.chunk_size, dtype=np.intp)
         self._helpers: list[DeformKernel] = []
-        self._weights_cache: list[tuple[IntArray, FloatArray, int, FloatArray]] = []
+        self._weights_cache: list[tuple[IntArray, FloatArray, int, FloatArray | None]] = []
 
     def _param_rows(self, n: int) -> FloatArray:
         """The (12, n) parameter rows of the current chunk."""
@@ -299,19 +299,20 @@ class DeformKernel:
     def _sparse_weights(
         self, indices: ArrayLike, values: ArrayLike, n_points: int, m: int
     ) -> tuple[IntArray, FloatArray, FloatArray | None]:
-        """Checked (indices, values) and, for few controls, the dense (m, N) weights.
+        """Checked (indices, values) and, when they were seen before, their dense (m, N) form.
 
-        Bind data comes back unchanged frame after frame, so the dense weights are kept together with
-        a copy of the sparse arrays they were built from (a few deformers' worth, least recently used
-        first out, within DENSE_CACHE_MAX_ENTRIES) and reused while both compare equal: two linear
-        scans instead of a scatter. A mismatch just rebuilds.
+        Bind data comes back unchanged frame after frame. The first call with a set of weights
+        blends chunk by chunk (scatter + product) and keeps a copy of the sparse arrays; a later call
+        with equal contents (two linear scans) builds the dense weights once and from then on the
+        blend is one BLAS product per chunk. A few sets are kept (deformers evaluated in turn), least
+        recently used first out, with at most DENSE_CACHE_MAX_ENTRIES dense entries in total.
         """
         idx = np.asarray(indices)
         val = np.asarray(values, dtype=np.float64)
         if idx.ndim != 2 or idx.shape[0] != n_points:
             raise ValueError(f"indices must have shape ({n_points}, K), got {idx.shape}")
-        for i, entry in enumerate(self._weights_cache):
-            c_idx, c_val, c_m, c_dense = entry
+        cache = self._weights_cache
+        for i, (c_idx, c_val, c_m, c_dense) in enumerate(cache):
             if (
                 c_m == m
                 and c_idx.shape == idx.shape
@@ -319,32 +320,28 @@ class DeformKernel:
                 and np.array_equal(c_idx, idx)
                 and np.array_equal(c_val, val)
             ):
-                self._weights_cache.insert(0, self._weights_cache.pop(i))
+                if (
+                    c_dense is None
+                    and m <= DENSE_BLEND_MAX_CONTROLS
+                    and m * n_points <= DENSE_CACHE_MAX_ENTRIES
+                ):
+                    c_dense = _dense_weights(c_idx, c_val, m)
+                cache.pop(i)
+                cache.insert(0, (c_idx, c_val, c_m, c_dense))
+                self._trim_weights_cache()
                 return c_idx, c_val, c_dense
         idx, val = _check_indices(idx, val, n_points, m)
-        N, K = idx.shape
-        if m > DENSE_BLEND_MAX_CONTROLS or m * N > DENSE_CACHE_MAX_ENTRIES:
-            return idx, val, None
-        dense = np.zeros((m, N))
-        flat = dense.reshape(-1)
-        cols = np.arange(N, dtype=np.intp)
-        for k in range(K):
-            pos = idx[:, k].astype(np.intp) * N
-            pos += cols
-            if k == 0:
-                flat[pos] = val[:, 0]
-            else:
-                # Each k hits every column once, so `+=` is exact even when a vertex lists a control
-                # twice (in different slots).
-                flat[pos] += val[:, k]
-        self._weights_cache.insert(0, (idx.copy(), val.copy(), m, dense))
+        cache.insert(0, (idx.copy(), val.copy(), m, None))
+        self._trim_weights_cache()
+        return idx, val, None
+
+    def _trim_weights_cache(self) -> None:
         budget = DENSE_CACHE_MAX_ENTRIES
         for i, entry in enumerate(self._weights_cache):
-            budget -= entry[3].size
-            if budget < 0 or i >= WEIGHTS_CACHE_SIZE:
+            budget -= 0 if entry[3] is None else entry[3].size
+            if i >= WEIGHTS_CACHE_SIZE or (budget < 0 and i > 0):
                 del self._weights_cache[i:]
-                break
-        return idx, val, dense
+                return
 
     def _blend(
         self,
@@ -632,6 +629,24 @@ def _exact_rotation_coeffs(
 
 # ----------------------------------------------------------------------------------------------
 # argument checks
+
+
+def _dense_weights(idx: IntArray, val: FloatArray, m: int) -> FloatArray:
+    """Sparse (N, K) weights as a dense (m, N) matrix."""
+    N, K = idx.shape
+    dense = np.zeros((m, N))
+    flat = dense.reshape(-1)
+    cols = np.arange(N, dtype=np.intp)
+    for k in range(K):
+        pos = idx[:, k].astype(np.intp) * N
+        pos += cols
+        if k == 0:
+            flat[pos] = val[:, 0]
+        else:
+            # Each k hits every column once, so `+=` is exact even when a vertex lists a control
+            # twice (in different slots).
+            flat[pos] += val[:, k]
+    return dense
 
 
 def _check_points(points: ArrayLike) -> FloatArray:

@@ -9,7 +9,7 @@ would get it. Evaluated vertex positions come back as .npz files and are checked
 - comparison.blend shows what it claims: at the ±90° end twist the 'LINEAR' bar's middle collapses
   (candy wrapper) while the dual-quaternion Armature and the Aff+(3) log blend keep its width; at ±150°
   dual quaternions flip the middle (short way round) and the log blend leaves it at rest;
-- probe_vortex.blend turns continuously through 180° (needs multi-turn twists);
+- probe_vortex.blend turns continuously through 180° (multi-turn twists);
 - render_samples.py writes non-empty PNGs that differ between frames and a contact sheet made of them.
 """
 
@@ -42,7 +42,7 @@ import build_samples
 args = json.loads(sys.argv[2])
 build_samples.start_blender(Path(args["user_dir"]), Path(args["package"]))
 import bpy
-summary = {"_cage_operator": build_samples.operator_available(build_samples.CAGE_OPERATOR)}
+summary = {}
 for name, extra_frames in args["samples"].items():
     bpy.ops.wm.open_mainfile(filepath=str(Path(args["blend_dir"]) / f"{name}.blend"), load_ui=False)
     scene = bpy.context.scene
@@ -155,22 +155,15 @@ def test_build_writes_every_sample_with_its_deformers(built: tuple[Path, str]) -
     for name in SAMPLE_NAMES:
         path = blend_dir / f"{name}.blend"
         assert path.stat().st_size > 10_000, f"{path} is missing or empty"
-    # A missing operator or an unknown property is reported as a TODO, never silently skipped. The
-    # cage operator comes later than the probe one; test_sample_deforms_at_its_key_frames says when.
-    missing = [
-        line
-        for line in stdout.splitlines()
-        if any(marker in line for marker in ("WITHOUT a deformer", "no property", "is not one of"))
-        and "cage deformer operator" not in line
-    ]
+    # A missing operator or an unknown property is reported as a TODO, never silently skipped.
+    markers = ("WITHOUT a deformer", "no property", "is not one of")
+    missing = [line for line in stdout.splitlines() if any(marker in line for marker in markers)]
     assert not missing, "\n".join(missing)
 
 
 @pytest.mark.parametrize("name", SAMPLE_NAMES)
 def test_sample_deforms_at_its_key_frames(evaluated: tuple[dict, dict], name: str) -> None:
     summary, positions = evaluated
-    if name == "cage_deform" and not summary["_cage_operator"]:
-        pytest.xfail("the cage deformer operator is not registered yet (build_samples leaves a TODO)")
     info, arrays = summary[name], positions[name]
     key_frames = info["key_frames"]
     assert len(key_frames) >= 3
@@ -229,7 +222,6 @@ def test_comparison_linear_collapses_where_log_blend_and_dual_quaternions_do_not
     np.testing.assert_allclose(middle_ring(arrays, bars["DQS"], 72), flipped, atol=1e-3)
 
 
-@pytest.mark.xfail(reason="multi-turn twists (continuous rotation-log branch) not landed yet", strict=False)
 def test_vortex_turns_continuously_through_180_degrees(evaluated: tuple[dict, dict]) -> None:
     summary, positions = evaluated
     arrays = positions["probe_vortex"]

@@ -320,20 +320,23 @@ def test_weights_cache_follows_the_contents_not_the_object(cloud: np.ndarray) ->
     params = aff3.params_from_matrices(random_affine(rng, 5))
     idx, val = top_k_dense(rng.random((cloud.shape[0], 5)), 3)
     kernel = deform.DeformKernel(threads=1)
-    first = kernel.deform(cloud, params, idx, val)
-    assert np.array_equal(kernel.deform(cloud, params, idx, val), first)  # cache hit, same result
+
+    def same(a: np.ndarray, b: np.ndarray) -> bool:  # the cached and scattered blends may round apart
+        return bool(np.allclose(a, b, rtol=0, atol=1e-13 * np.abs(b).max()))
+
+    first = kernel.deform(cloud, params, idx, val)  # first sight: blended chunk by chunk
+    assert same(kernel.deform(cloud, params, idx, val), first)  # seen again: dense weights built
+    assert same(kernel.deform(cloud, params, idx, val), first)  # and reused
     val[:10] = 0.0  # mutated in place: the same object must not reuse the stale dense weights
     idx[10:20, 0] = (idx[10:20, 0] + 1) % 5
     fresh = deform.DeformKernel(threads=1).deform(cloud, params, idx, val)
-    assert np.array_equal(kernel.deform(cloud, params, idx, val), fresh)
+    assert same(kernel.deform(cloud, params, idx, val), fresh)
     assert np.array_equal(fresh[:10], cloud[:10])
     # several weight sets in turn (deformers on different objects) all stay correct
     other = top_k_dense(rng.random((cloud.shape[0], 5)), 2)
     for _ in range(3):
-        assert np.array_equal(
-            kernel.deform(cloud, params, *other), deform.deform_points_params(cloud, params, *other)
-        )
-        assert np.array_equal(kernel.deform(cloud, params, idx, val), fresh)
+        assert same(kernel.deform(cloud, params, *other), deform.deform_points_params(cloud, params, *other))
+        assert same(kernel.deform(cloud, params, idx, val), fresh)
     assert len(kernel._weights_cache) == 3  # the stale copy, the mutated set and the other set
     # fewer points than the cached weights have rows: rejected, not silently sliced
     with pytest.raises(ValueError, match="indices must have shape"):
