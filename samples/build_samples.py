@@ -643,7 +643,7 @@ def build_probe_vortex() -> SampleInfo:
     disc = add_mesh_object(
         "Disc",
         polar_disc_mesh("Disc", radius=3.0, rings=30, segments=120),
-        checker_material("Disc", (0.08, 0.2, 0.6), (0.9, 0.92, 0.95), scale=(20.0, 2.0, 1.0), polar=True),
+        checker_material("Disc", (0.08, 0.2, 0.6), (0.9, 0.92, 0.95), scale=(16.0, 2.0, 1.0), polar=True),
     )
     probe = add_probe("Probe.Vortex", (0.0, 0.0, 0.0), marker_axis="X", size=0.8)
     # Constant speed: 150° every 32 frames, so the key frames 1, 33, 65, 97 show 0°, 150°, 300°, 450°.
@@ -725,7 +725,10 @@ def build_cage_deform() -> SampleInfo:
     cage_mesh = mesh_from_bmesh("Cage", box_bmesh(size=(3.4, 1.3, 2.9), cuts=(4, 1, 3), center=(0, 0, 1.3)))
     cage = link(bpy.data.objects.new("Cage", cage_mesh))
     cage.display_type = "WIRE"
-    cage.hide_render = True
+    # Invisible to every ray rather than hide_render: a render-hidden cage is left out of the render
+    # depsgraph, so its shape keys are not evaluated there and renders would show the rest pose.
+    for ray in ("camera", "diffuse", "glossy", "transmission", "volume_scatter", "shadow"):
+        setattr(cage, f"visible_{ray}", False)
     basis = cage.shape_key_add(name="Basis", from_mix=False)
     rest = np.empty(len(cage_mesh.vertices) * 3)
     basis.data.foreach_get("co", rest)
@@ -870,6 +873,7 @@ def build_sample(name: str, output_dir: Path) -> SampleInfo:
     scene.frame_set(scene.frame_start)
     frame_viewports_through_camera()
     path = output_dir / f"{name}.blend"
+    path.unlink(missing_ok=True)  # no .blend1 backup of the previous build
     bpy.ops.wm.save_as_mainfile(filepath=str(path), compress=True, relative_remap=True)
     return info
 

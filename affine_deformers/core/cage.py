@@ -103,8 +103,8 @@ STENCIL_SIZE = 16
 STENCIL_MIN_BETA = 1e-3
 
 # Fold guard (module docstring): the apex's normal component is floored smoothly once it drops below
-# this fraction of what a common motion of the stencil would give (m/μ); 1/2 lets a quarter of the
-# stencil's weight cross the face plane before the guard acts.
+# this fraction of what a common motion of the stencil would give (m/μ). With 1/2 and equal
+# per-vertex estimates, the guard acts once over a quarter of the fit's weight has crossed the plane.
 FOLD_KAPPA = 0.5
 
 # Ridge on the in-plane block of the stencil fit, relative to its mean diagonal (module docstring):
@@ -521,10 +521,11 @@ def corner_matrices(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(A (T, 4, 4), ok (T,)): the affine map taking each rest corner tetrahedron onto the current one.
 
-    The current apex is c′ + n′/√|n′| ('NORMAL'), or with `stencil` (rows matching `triples`) the
-    fitted c′ + h′ wherever that is available (module docstring). ok is False where either
-    tetrahedron is collapsed (sin of the corner angle ≤ COLLAPSED_SIN) or the result is non-finite
-    or has det ≤ 0; those rows of A are the identity.
+    rest and current are (V, 3). The current apex is c′ + n′/√|n′| ('NORMAL'), or with `stencil`
+    (rows matching `triples`) the fitted c′ + h′ wherever that is available (module docstring) and
+    some input of the corner has moved (bitwise), so a corner at rest is exactly the identity. ok is
+    False where either tetrahedron is collapsed (sin of the corner angle ≤ COLLAPSED_SIN) or the
+    result is non-finite or has det ≤ 0; those rows of A are the identity.
     """
     E_rest, c_rest, sin_rest = _corner_frames(rest, triples)
     E_cur, c_cur, sin_cur = _corner_frames(current, triples)
@@ -670,7 +671,8 @@ def affected_faces(
 ) -> np.ndarray:
     """(F,) bool: faces whose motion can differ from the identity — a corner vertex or (for the
     'NEIGHBOURS' apex) a stencil vertex of one of its corners is not bitwise at rest (NaN counts as
-    moved). Every other face has the identity motion, so a caller may skip it."""
+    moved). Every other face gets params exactly 0 from `face_motions` (unless w_ref lifts them to
+    another turn of the identity), so a caller may skip it."""
     rest = _check_points(rest_points, topology, "rest_points")
     cur = _check_points(current_points, topology, "current_points")
     if rest.shape != cur.shape:

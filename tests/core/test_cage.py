@@ -286,6 +286,29 @@ def test_stencil_fit_reaches_round_flat_sides_and_is_balanced() -> None:
     assert np.all(stencil.spread >= 1.0 - 1e-12)
 
 
+def test_stencil_matches_its_definition_corner_by_corner() -> None:
+    """Reference: for each corner, score every vertex by ω β² (|β| ≥ STENCIL_MIN_BETA), keep the 16
+    heaviest, and take γ = ω zᵀ (W + ρ diag(1, 1, 0))⁻¹ e₃ literally."""
+    rng = np.random.default_rng(12)
+    points, topo = box_cage((3, 2, 2), (1.5, 1.0, 1.0))
+    points += rng.normal(scale=0.01, size=points.shape)  # nearly flat sides: small but usable β
+    stencil = apex_stencils(points, topo)
+    triples, _, _ = topo.corner_triples()
+    E, c, _ = cage_module._corner_frames(points, triples)
+    for t in range(triples.shape[0]):
+        z = np.linalg.solve(E[t], (points - c[t]).T).T
+        d_rel_sq = ((points - c[t]) ** 2).sum(axis=1) / (E[t, :, 2] @ E[t, :, 2])
+        score = np.where(np.abs(z[:, 2]) >= STENCIL_MIN_BETA, z[:, 2] ** 2 / d_rel_sq**2, 0.0)
+        best = np.argsort(-score, kind="stable")[:16]
+        assert set(best.tolist()) == set(stencil.vertices[t].tolist())
+        w = 1.0 / d_rel_sq[best] ** 2
+        W = np.einsum("s,si,sj->ij", w, z[best], z[best])
+        W[[0, 1], [0, 1]] += cage_module.STENCIL_RIDGE * 0.5 * (W[0, 0] + W[1, 1])
+        gamma = w * (z[best] @ np.linalg.solve(W, [0.0, 0.0, 1.0]))
+        order = [int(np.flatnonzero(best == v)[0]) for v in stencil.vertices[t]]
+        np.testing.assert_allclose(stencil.gamma[t], gamma[order], rtol=1e-9, atol=1e-12)
+
+
 def test_stencils_are_cached_by_content() -> None:
     points, topo = box_cage((2, 2, 2), (1.0, 1.0, 1.0))
     first = apex_stencils(points, topo)
