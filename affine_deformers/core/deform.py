@@ -24,13 +24,18 @@ sin a from the same polynomial and cos a = √(1 − sin² a). Branches near 0 a
 whose error is bounded where they are applied, so there is no masked work.
 
 Accuracy: ≤ 2e-15 relative to ‖M‖‖v‖ + ‖t‖ against aff3.phi on an adversarial parameter set (tests).
-Throughput on the 2-core development box (AMD EPYC, numpy 1.26, 130k vertices, 8 controls, top-K 4,
-float64, one thread, steady state): ~9 ms per call, ≈ 14 M vertices/s (`bench/core_kernel.py`).
-Where the time goes (per call): map φ(p)v ≈ 6.5 ms (eigen-solution ≈ 2 ms, exp(Y)v ≈ 2 ms,
-θ-coefficients ≈ 1 ms, final assembly with the output transpose ≈ 1.3 ms, input transpose 0.2 ms),
-blend ≈ 1 ms (≈ 2.5 ms when the weights changed since the last call), checks ≈ 0.2 ms. About 250
-ufunc calls per chunk at ~0.2 ns per element each: the kernel is bound by memory traffic between
-the scratch rows (L2), not by arithmetic.
+
+Throughput on the shared 2-core development box (AMD EPYC, numpy 1.26, 130k vertices, 8 controls,
+top-K 4, float64, `bench/core_kernel.py`), one thread, weights as in the previous call (every frame
+after the first two): 8.3–9.6 ms per call, 13.5–15.5 M vertices/s; new weights every call
+11.5–13.3 ms (10–11 M/s); dense (N, 8) weights 8.3–9.5 ms. A second thread gains 10–25 % here
+(the other core is rarely idle).
+
+Where the time goes (per call, one thread): the map φ(p)v ≈ 7.2 ms (eigen-solution ≈ 2 ms,
+exp(Y)v ≈ 2 ms, θ-coefficients ≈ 1 ms, final assembly with the output transpose ≈ 1.3 ms, input
+transpose 0.2 ms), the blend ≈ 0.5 ms from cached dense weights (≈ 2.2 ms scattering them per
+chunk), checks ≈ 0.2 ms. That is ~250 ufunc calls per chunk at ~0.2 ns per element each: memory
+traffic between the scratch rows (L2), not arithmetic, is the limit for numpy code.
 """
 
 from __future__ import annotations
@@ -320,19 +325,16 @@ class DeformKernel:
                 and np.array_equal(c_idx, idx)
                 and np.array_equal(c_val, val)
             ):
-                if (
-                    c_dense is None
-                    and m <= DENSE_BLEND_MAX_CONTROLS
-                    and m * n_points <= DENSE_CACHE_MAX_ENTRIES
-                ):
+                if c_dense is None:  # only eligible sets are kept
                     c_dense = _dense_weights(c_idx, c_val, m)
                 cache.pop(i)
                 cache.insert(0, (c_idx, c_val, c_m, c_dense))
                 self._trim_weights_cache()
                 return c_idx, c_val, c_dense
         idx, val = _check_indices(idx, val, n_points, m)
-        cache.insert(0, (idx.copy(), val.copy(), m, None))
-        self._trim_weights_cache()
+        if m <= DENSE_BLEND_MAX_CONTROLS and m * n_points <= DENSE_CACHE_MAX_ENTRIES:
+            cache.insert(0, (idx.copy(), val.copy(), m, None))
+            self._trim_weights_cache()
         return idx, val, None
 
     def _trim_weights_cache(self) -> None:
@@ -627,10 +629,6 @@ def _exact_rotation_coeffs(
     cth[big] = np.cos(theta)
 
 
-# ----------------------------------------------------------------------------------------------
-# argument checks
-
-
 def _dense_weights(idx: IntArray, val: FloatArray, m: int) -> FloatArray:
     """Sparse (N, K) weights as a dense (m, N) matrix."""
     N, K = idx.shape
@@ -647,6 +645,10 @@ def _dense_weights(idx: IntArray, val: FloatArray, m: int) -> FloatArray:
             # twice (in different slots).
             flat[pos] += val[:, k]
     return dense
+
+
+# ----------------------------------------------------------------------------------------------
+# argument checks
 
 
 def _check_points(points: ArrayLike) -> FloatArray:

@@ -199,9 +199,12 @@ def probe_weights(
     """Sparse probe weights for points (N, 3) and probe rest positions centers (m, 3).
 
     mode 'INVERSE_DISTANCE': (radius/d)^exponent (radius is the reference distance, d floored);
-    'FALLOFF': smooth_falloff(d, radius) (exactly 0 at and beyond radius); 'VERTEX_GROUPS': the
-    dense painted weights `dense` (N, m) (negative paint is clamped to 0). `scales` (m,) multiplies
-    each probe's weight before the top-K selection. Returns (indices (N, K) int32, values (N, K)).
+    with normalize 'NONE' it is capped at 1 — a raw weight above 1 would apply a probe's motion more
+    than once (up to 1e12 times on top of it) — so vertices within `radius` follow the probe fully
+    and farther ones less. 'FALLOFF': smooth_falloff(d, radius) (exactly 0 at and beyond radius);
+    'VERTEX_GROUPS': the dense painted weights `dense` (N, m) (negative paint is clamped to 0).
+    `scales` (m,) multiplies each probe's weight before the top-K selection.
+    Returns (indices (N, K) int32, values (N, K)).
     """
     pts = np.asarray(points, dtype=np.float64)
     ctr = np.asarray(centers, dtype=np.float64)
@@ -237,7 +240,10 @@ def probe_weights(
             d = np.sqrt(np.einsum("nmi,nmi->nm", diff, diff))
             if mode == "FALLOFF":
                 return smooth_falloff(d, radius) * scale
-            return inverse_distance(d, exponent, radius) * scale
+            w = inverse_distance(d, exponent, radius)
+            if normalize == "NONE":
+                np.minimum(w, 1.0, out=w)
+            return w * scale
 
     else:
         raise ValueError(f"weight mode must be one of {WEIGHT_MODES}, got {mode!r}")

@@ -111,6 +111,15 @@ def test_probe_weights_inverse_distance() -> None:
     assert scaled[0][1, 0] == 1  # the zero-scaled probe drops out of the top-K
 
 
+def test_raw_inverse_distance_weights_are_capped_at_one() -> None:
+    centers = np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
+    pts = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    idx, val = wt.probe_weights(pts, centers, mode="INVERSE_DISTANCE", radius=1.0, normalize="NONE", k=2)
+    assert val[0].tolist() == [1.0, 1.0 / 16.0]  # on a probe: full motion, not 1e12 times it
+    assert val[1, 0] == 1.0 and idx[1, 0] == 0
+    assert val[2].tolist() == [0.25, 0.25]
+
+
 def test_probe_weights_falloff_locality() -> None:
     centers = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
     pts = np.array([[0.5, 0.0, 0.0], [5.0, 0.0, 0.0], [9.0, 0.0, 0.0]])
