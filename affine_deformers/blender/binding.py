@@ -5,7 +5,8 @@ remove and apply. Kind-specific work (rest data, weights, motions) is delegated 
 from __future__ import annotations
 
 import contextlib
-import secrets
+import itertools
+import zlib
 
 import bpy
 import numpy as np
@@ -57,12 +58,16 @@ def _kind(deformer):
 
 
 def _new_uid(obj: bpy.types.Object) -> str:
+    """A short id for attribute names, derived from the object's name so rebuilt files are
+    byte-stable; the counter skips ids already used by this object or present on its mesh (a mesh
+    shared with another object may carry that object's ids)."""
     used = {d.uid for d in obj.affine_deformers}
     names = {a.name for a in obj.data.attributes} if obj.type == "MESH" else set()
-    while True:
-        uid = secrets.token_hex(4)
+    for k in itertools.count():
+        uid = format(zlib.crc32(f"{obj.name}\0{k}".encode()), "08x")
         if uid not in used and storage.offset_name(uid) not in names:
             return uid
+    raise AssertionError("unreachable")
 
 
 def create(obj: bpy.types.Object, kind: str, name: str):

@@ -4,6 +4,12 @@ throw-away node evaluation that reads painted vertex-group weights without a loo
 The group is Group Input (Geometry, "Offset Attribute": String) → Named Attribute (FLOAT_VECTOR) →
 Set Position (Offset) → Group Output, so each deformer is a real entry in the modifier stack that adds
 the per-vertex offset attribute written by the evaluation handler; the mesh data keeps the rest shape.
+
+Version 2 adds two inputs that no node reads, "Cage" (Object) and "Probes" (Collection), hidden in the
+modifier panel: Geometry Nodes adds a depsgraph relation for every ID set on a modifier's inputs, used
+or not, so the controls named there are evaluated whenever the modifier is (see relations.py). Groups
+of version 1 (files saved before) are upgraded in place by `upgrade_group`; the geometry they output
+is unchanged.
 """
 
 from __future__ import annotations
@@ -13,40 +19,75 @@ import numpy as np
 
 GROUP_NAME = "AffineDeformer"
 GROUP_MARK = "affine_deformers_group"  # custom property identifying our group (value = version)
-GROUP_VERSION = 1
+GROUP_VERSION = 2
+KNOWN_VERSIONS = (1, 2)  # 1: Geometry + Offset Attribute; 2: + the Cage and Probes inputs
 OFFSET_SOCKET = "Offset Attribute"
+CAGE_SOCKET = "Cage"
+PROBES_SOCKET = "Probes"
+CONTROL_SOCKETS = (
+    (CAGE_SOCKET, "NodeSocketObject", "The cage of a cage deformer (set by the add-on; only makes the "
+                                      "depsgraph evaluate it)"),
+    (PROBES_SOCKET, "NodeSocketCollection", "The probes of a probe deformer (set by the add-on; only "
+                                            "makes the depsgraph evaluate them)"),
+)
 _READER_NAME = ".AffineDeformer VertexGroupReader"
 _READER_ATTR = "affdef_tmp_vg{}"
 
 
 def _is_our_group(ng: bpy.types.NodeTree | None) -> bool:
+    """Our group, of the current or an older version (older ones still deform; see upgrade_group)."""
     return (ng is not None and ng.bl_idname == "GeometryNodeTree" and ng.library is None
-            and ng.get(GROUP_MARK) == GROUP_VERSION and offset_socket_identifier(ng) is not None)
+            and ng.get(GROUP_MARK) in KNOWN_VERSIONS and offset_socket_identifier(ng) is not None)
 
 
-def offset_socket_identifier(ng: bpy.types.NodeTree) -> str | None:
-    """Identifier of the group's string input that names the offset attribute (e.g. "Socket_1")."""
+def _input_identifier(ng: bpy.types.NodeTree, name: str, socket_type: str) -> str | None:
     for item in ng.interface.items_tree:
         if (getattr(item, "item_type", "") == "SOCKET" and item.in_out == "INPUT"
-                and item.name == OFFSET_SOCKET and item.socket_type == "NodeSocketString"):
+                and item.name == name and item.socket_type == socket_type):
             return item.identifier
     return None
 
 
+def offset_socket_identifier(ng: bpy.types.NodeTree) -> str | None:
+    """Identifier of the group's string input that names the offset attribute (e.g. "Socket_1")."""
+    return _input_identifier(ng, OFFSET_SOCKET, "NodeSocketString")
+
+
+def is_current(ng: bpy.types.NodeTree | None) -> bool:
+    """Our group at GROUP_VERSION, with the control inputs."""
+    return (_is_our_group(ng) and ng.get(GROUP_MARK) == GROUP_VERSION
+            and all(_input_identifier(ng, name, kind) is not None for name, kind, _ in CONTROL_SOCKETS))
+
+
+def upgrade_group(ng: bpy.types.NodeTree) -> bool:
+    """Bring our group of an older version up to GROUP_VERSION in place (versioning of saved files):
+    add the missing control inputs. Modifiers keep their offset attribute. True when it changed."""
+    if not _is_our_group(ng) or is_current(ng):
+        return False
+    for name, socket_type, description in CONTROL_SOCKETS:
+        if _input_identifier(ng, name, socket_type) is None:
+            socket = ng.interface.new_socket(name, in_out="INPUT", socket_type=socket_type)
+            socket.description = description
+            socket.hide_in_modifier = True  # managed by the add-on: a hand-picked object would go stale
+    ng[GROUP_MARK] = GROUP_VERSION
+    return True
+
+
 def find_group() -> bpy.types.NodeTree | None:
-    for ng in bpy.data.node_groups:
-        if _is_our_group(ng):
-            return ng
-    return None
+    """Our group, preferring one at the current version."""
+    ours = [ng for ng in bpy.data.node_groups if _is_our_group(ng)]
+    return next((ng for ng in ours if is_current(ng)), ours[0] if ours else None)
 
 
 def ensure_group() -> bpy.types.NodeTree:
-    """The shared node group, created on first use (works on Blender 4.2 and 5.0)."""
+    """The shared node group at the current version, created or upgraded on first use (works on Blender
+    4.2 and 5.0)."""
     ng = find_group()
     if ng is not None:
+        upgrade_group(ng)
         return ng
     ng = bpy.data.node_groups.new(GROUP_NAME, "GeometryNodeTree")
-    ng[GROUP_MARK] = GROUP_VERSION
+    ng[GROUP_MARK] = 1
     ng.is_modifier = True
     ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
     ng.interface.new_socket(OFFSET_SOCKET, in_out="INPUT", socket_type="NodeSocketString")
@@ -60,20 +101,11 @@ def ensure_group() -> bpy.types.NodeTree:
     group_in.location, named.location = (-400, 0), (-200, -150)
     set_pos.location, group_out.location = (0, 0), (200, 0)
     links.new(group_in.outputs[0], set_pos.inputs["Geometry"])
-    links.new(group_in.outputs[1], named.inputs["Name"])
+    links.new(group_in.outputs[OFFSET_SOCKET], named.inputs["Name"])
     links.new(named.outputs["Attribute"], set_pos.inputs["Offset"])
     links.new(set_pos.outputs["Geometry"], group_out.inputs[0])
+    upgrade_group(ng)  # one code path for the control inputs, new or saved by an older version
     return ng
-
-
-def find_modifier(obj: bpy.types.Object, offset_attr: str) -> bpy.types.NodesModifier | None:
-    """Our modifier on `obj` that reads `offset_attr`, found by content so user renames don't matter."""
-    for mod in obj.modifiers:
-        if mod.type != "NODES" or not _is_our_group(mod.node_group):
-            continue
-        if mod.get(offset_socket_identifier(mod.node_group)) == offset_attr:
-            return mod
-    return None
 
 
 def ensure_modifier(obj: bpy.types.Object, offset_attr: str, label: str,
@@ -87,6 +119,35 @@ def ensure_modifier(obj: bpy.types.Object, offset_attr: str, label: str,
     mod[offset_socket_identifier(ng)] = offset_attr
     mod.show_viewport, mod.show_render = show_viewport, show_render
     return mod
+
+
+def controls(mod: bpy.types.NodesModifier) -> tuple[bpy.types.Object | None, bpy.types.Collection | None]:
+    """(cage, probe collection) named on our modifier's control inputs (None, None before version 2)."""
+    ng = mod.node_group
+    if not is_current(ng):
+        return None, None
+    cage = mod.get(_input_identifier(ng, CAGE_SOCKET, "NodeSocketObject"))
+    probes = mod.get(_input_identifier(ng, PROBES_SOCKET, "NodeSocketCollection"))
+    return cage, probes
+
+
+def set_controls(mod: bpy.types.NodesModifier, cage: bpy.types.Object | None,
+                 probes: bpy.types.Collection | None) -> bool:
+    """Name `cage` and `probes` (None = nothing) on our modifier's control inputs, upgrading its group
+    first when needed, and have the depsgraph rebuild its relations. True when something changed."""
+    ng = mod.node_group
+    changed = upgrade_group(ng)
+    if changed:
+        mod.node_group = ng  # let the modifier pick up the new inputs before they are set
+    for (name, socket_type, _), value in zip(CONTROL_SOCKETS, (cage, probes), strict=True):
+        identifier = _input_identifier(ng, name, socket_type)
+        if mod.get(identifier) != value:
+            mod[identifier] = value
+            changed = True
+    if changed:
+        # Assigning an ID property does not tag the depsgraph relations; re-assigning the group does.
+        mod.node_group = ng
+    return changed
 
 
 def remove_modifier(obj: bpy.types.Object, offset_attr: str) -> None:
