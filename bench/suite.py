@@ -121,7 +121,7 @@ def run_ours_probes(
 ) -> tuple[Samples | None, ours.OurRig | None, object]:
     """(samples, rig, dense weights or None) for our probe deformer; the scene is cleared afterwards.
 
-    samples.extra["influences"] holds (K, mean non-zero weights per vertex) of the bind when readable.
+    rig.influences holds (K, mean non-zero weights per vertex) of the bind when the attributes are readable.
     """
     try:
         target = common.sphere_object("Target", n_target)
@@ -132,6 +132,9 @@ def run_ours_probes(
         with ours.Instrument() as inst:
             samples = measure(rig, plan, label, report, inst)
         rig.influences = influences
+        status = getattr(target.affine_deformers[rig.deformer_index], "status", "")
+        if status:
+            report.notes.append(f"{label}: the deformer reported “{status}”")
         return samples, rig, weights
     except Exception as exc:  # a broken layer must not hide the native numbers
         traceback.print_exc()
@@ -238,6 +241,9 @@ def part_b(plan: Plan, have_ours: bool, report: Report) -> None:
             rig_ours = ours.cage_rig(target, cage)
             with ours.Instrument() as inst:
                 mine = measure(rig_ours, plan, "ours: cage", report, inst)
+            status = getattr(target.affine_deformers[rig_ours.deformer_index], "status", "")
+            if status:
+                report.notes.append(f"ours: cage: the deformer reported “{status}”")
             report.split_rows.append((f"(b) cage of {faces} faces, {n:,} verts", mine))
         except Exception as exc:
             traceback.print_exc()
@@ -423,10 +429,11 @@ def write_markdown(
         f"falloff radius is {plan.radius} for every method. Ratios are ours ÷ native: below 1 means we",
         "are faster.",
         "",
-        "Keep in mind: Blender's modifiers are multi-threaded C++; ours is numpy called from a Python",
-        "handler (the kernel runs vertex chunks on a small thread pool), so on a 2-core machine shared",
-        "with other work both sides are sensitive to load — compare numbers from the same run only.",
-        "Mesh Deform's bind is a one-off cost (Dynamic off); our bind is the add operator, which binds.",
+        "Keep in mind: Blender's modifiers are compiled C++ (Armature and Mesh Deform multi-threaded);",
+        "ours is numpy called from a Python handler. On a 2-core machine shared with other work both",
+        "sides are sensitive to load, so compare numbers from the same run only (the run itself keeps",
+        "about one core busy, which shows in the load average afterwards). Mesh Deform's bind is a",
+        "one-off cost (Dynamic off); our bind is the add operator, which binds.",
         "",
         "## Summary (computed from the tables below)",
         "",

@@ -5,9 +5,11 @@ Scripts: `evaluate.evaluate_object(obj, depsgraph)` / `evaluate.evaluate_all(sce
 
 from __future__ import annotations
 
+import traceback
+
 import bpy
 
-from . import bake, evaluate, operators, panels, props
+from . import bake, evaluate, operators, panels, props, relations
 
 CLASSES = (*props.CLASSES, *operators.CLASSES, *bake.CLASSES, *panels.CLASSES)
 
@@ -18,6 +20,17 @@ def register() -> None:
     props.register_properties()
     bpy.types.VIEW3D_MT_object.append(panels.draw_object_menu)
     evaluate.register_handlers()
+    _upgrade_open_file()
+
+
+def _upgrade_open_file() -> None:
+    """Enabled with a file already open (no load_post): upgrade its node groups and control inputs."""
+    if not isinstance(bpy.data, bpy.types.BlendData):  # restricted while Blender starts: load_post does it
+        return
+    try:
+        relations.upgrade_all()
+    except Exception:  # odd data must not stop the add-on from registering
+        traceback.print_exc()
 
 
 def unregister() -> None:

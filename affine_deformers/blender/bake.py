@@ -33,7 +33,7 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
-from . import binding, evaluate, nodes, storage
+from . import binding, evaluate, nodes, relations, storage
 from .pc2 import PC2Error, PC2Writer
 
 MODES = [
@@ -239,7 +239,9 @@ class _Capture:
         self.count = len(obj.data.vertices)
         self.object = bpy.data.objects.new(CAPTURE_NAME, obj.data)
         try:
-            nodes.ensure_modifier(self.object, offset_attr, "Capture")
+            capture = nodes.ensure_modifier(self.object, offset_attr, "Capture")
+            # Keeps the controls evaluated while the live modifier is muted (a re-bake).
+            relations.copy_controls(nodes.find_modifier(obj, offset_attr), capture)
             self.object.show_only_shape_key = True
             self.object.active_shape_key_index = 0
             self.object.hide_render = True

@@ -11,7 +11,7 @@ import zlib
 import bpy
 import numpy as np
 
-from . import nodes, storage
+from . import nodes, relations, storage
 from .kinds import KINDS, BindError
 
 __all__ = ["BindError", "apply", "bind", "create", "mask_weights", "rebind_probe_safely", "rebind_safely",
@@ -96,10 +96,15 @@ def bind(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
         raise BindError(problem)
     if not deformer.uid:  # an item added by a script without the operator
         deformer.uid = _new_uid(obj)
-    _kind(deformer).store_rest(obj, deformer, depsgraph, only)
+    kind = _kind(deformer)
+    # The modifier names the controls first, so the depsgraph evaluates them even when they are
+    # disabled in viewports (relations.py) and the rest poses read below are current.
     nodes.ensure_modifier(obj, storage.offset_name(deformer.uid), f"Affine {deformer.name}",
                           bool(deformer.get("stored_show_viewport", True)),
                           bool(deformer.get("stored_show_render", True)))
+    if relations.sync(obj, deformer):
+        depsgraph.update()
+    kind.store_rest(obj, deformer, depsgraph, only)
     reweight(obj, deformer)
 
 
@@ -130,6 +135,7 @@ def reweight(obj: bpy.types.Object, deformer) -> None:
         values = values * mask[:, None]
     warning = "; ".join(w for w in (warning, mask_warning) if w)
     storage.write_weights(mesh, deformer.uid, indices, values)
+    relations.sync(obj, deformer)  # e.g. a probe was removed
     deformer.bound_vertex_count = len(rest)
     deformer.bound_flag = True
     deformer.bind_warning = warning
@@ -170,7 +176,7 @@ def remove(obj: bpy.types.Object, index: int) -> None:
     """Remove deformer `index`: its modifier, its mesh attributes and the item (rest shape back)."""
     deformer = obj.affine_deformers[index]
     uid = deformer.uid
-    nodes.remove_modifier(obj, storage.offset_name(uid))
+    relations.remove_modifier(obj, uid)
     if obj.type == "MESH" and obj.data.library is None:
         storage.remove_all(obj.data, uid)
     obj.affine_deformers.remove(index)

@@ -21,12 +21,22 @@ to float32 like the probes' matrices) and q the cage's vertex positions in its o
   'NEIGHBOURS' apex), so it is reproduced exactly too. Only the faces the shape change can reach
   (core.cage.affected_faces) get parameters; the others are exactly at rest.
 
+At a strength s other than 1 the target gets φ(s·ψ(G)), where the branch of ψ's rotation log matters
+once the cage object has turned past 180°: as for probes (evaluate.motions_to_params), bind stores the
+cage's own rotation channels and each frame carries the reference rotation vector read from them and
+the cage's origin, so a cage keyed 0 → 720° at s = 0.5 turns the target by 0 → 360° continuously.
+
+The cage is read only when the depsgraph evaluates it: the deformer's modifier names it as an input
+(relations.py), so it is evaluated while that modifier is enabled even when it is disabled in
+viewports or renders.
+
 A face that collapses in the current pose (zero area or non-finite) is skipped: its weight goes to
 the vertex's other faces (evaluate.redistribute) and the status names how many faces are skipped.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import bpy
@@ -34,8 +44,17 @@ import numpy as np
 
 from ..core import aff3
 from ..core.cage import CageTopology, affected_faces, cage_weights, check_cage, face_motions
-from . import storage
-from .kinds import BindError, Motions, local_matrix, relative_motion, world_matrix
+from . import relations, storage
+from .kinds import (
+    BindError,
+    Motions,
+    channel_frame,
+    local_matrix,
+    reference_rotvecs,
+    relative_motion,
+    rotation_channels,
+    world_matrix,
+)
 
 REST_POINTS = "cage_rest_points"
 LOOP_VERTICES = "cage_loop_vertices"
@@ -90,15 +109,19 @@ def cage_problem(target: bpy.types.Object, cage: bpy.types.Object | None) -> str
     return ""
 
 
-def is_evaluated(cage: bpy.types.Object, evaluated: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> bool:
+def is_evaluated(cage: bpy.types.Object, evaluated: bpy.types.Object, depsgraph: bpy.types.Depsgraph,
+                 related: bool = False) -> bool:
     """Whether the depsgraph really evaluates the cage this update.
 
-    Nothing makes the target depend on its cage, so a cage disabled in viewports (or renders) is not
-    evaluated, yet `evaluated_get` may still return a stale copy (the deformer's pointer to the cage
-    puts an ID node in the depsgraph). Evaluated objects are those the depsgraph lists, plus objects
-    hidden only with the eye icon (evaluated but not listed)."""
+    `related`: an enabled modifier of ours names the cage on its inputs (relations.evaluates), so the
+    depsgraph evaluates it with the target. Otherwise a cage disabled in viewports (or renders) is
+    not evaluated, yet `evaluated_get` may still return a stale copy (the deformer's pointer to the
+    cage puts an ID node in the depsgraph). Evaluated objects are then those the depsgraph lists,
+    plus objects hidden only with the eye icon (evaluated but not listed)."""
     if not evaluated.is_evaluated:
         return False
+    if related:
+        return True
     try:
         if cage.hide_get(view_layer=depsgraph.view_layer):
             return True
@@ -108,13 +131,14 @@ def is_evaluated(cage: bpy.types.Object, evaluated: bpy.types.Object, depsgraph:
     return listed is not None and listed.original == cage
 
 
-def read_cage(cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> CageState:
-    """The evaluated cage (modifiers, shape keys, edit-mode edits and object animation included)."""
+def read_cage(cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph, related: bool = False) -> CageState:
+    """The evaluated cage (modifiers, shape keys, edit-mode edits and object animation included);
+    `related` as in `is_evaluated`."""
     evaluated = cage.evaluated_get(depsgraph)
-    if not is_evaluated(cage, evaluated, depsgraph):
+    if not is_evaluated(cage, evaluated, depsgraph, related):
         raise CageUnavailableError(
-            f"Cage '{cage.name}' is not evaluated (disabled in viewports or renders): hide it with the "
-            "eye icon or display it as Wire instead")
+            f"Cage '{cage.name}' is not evaluated (it is disabled in viewports or renders, and the "
+            "deformer is off there): enable the deformer, or show the cage")
     # to_mesh, not .data: an evaluated mesh in Edit Mode may be a wrapper without vertex arrays.
     mesh = evaluated.to_mesh()
     try:
@@ -152,6 +176,11 @@ def rest_matrix(deformer) -> np.ndarray:
     return np.array(deformer.cage_rest_matrix, dtype=np.float32).reshape(4, 4)
 
 
+def has_rest_channels(deformer) -> bool:
+    """Whether bind stored the cage's rotation channels (files bound before they were stored: no)."""
+    return deformer.is_property_set("cage_rest_rotation")
+
+
 def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarray, np.ndarray]:
     """Stored (p_rest (V, 3) float64, topology, loop_vertices, loop_start, loop_total); BindError when
     the bind data is missing or damaged."""
@@ -183,7 +212,7 @@ class CageKind:
             raise BindError(problem)
         try:
             target_world = world_matrix(obj, depsgraph)
-            state = read_cage(cage, depsgraph)
+            state = read_cage(cage, depsgraph, relations.evaluates(obj, deformer, cage, depsgraph))
             matrix = local_matrix(target_world, state.matrix_world)
         except np.linalg.LinAlgError:
             raise BindError(f"'{obj.name}' has a zero scale: fix its transform before binding") from None
@@ -202,6 +231,9 @@ class CageKind:
             hint = " (its object has a negative scale, which flips the normals)" if det < 0.0 else ""
             raise BindError(f"Cage '{cage.name}' cannot be bound{hint}: " + "; ".join(report.problems))
         deformer.cage_rest_matrix = matrix.ravel().tolist()
+        evaluated = cage.evaluated_get(depsgraph)  # the channels as evaluated, like the matrix
+        deformer.cage_rest_rotation_mode = evaluated.rotation_mode
+        deformer.cage_rest_rotation = rotation_channels(evaluated)
         store_array(deformer, REST_POINTS, points.ravel())
         store_array(deformer, LOOP_VERTICES, state.loop_vertices)
         store_array(deformer, LOOP_START, state.loop_start)
@@ -227,7 +259,7 @@ class CageKind:
         if problem:
             return Motions.invalid(F, problem)
         try:
-            state = read_cage(cage, depsgraph)
+            state = read_cage(cage, depsgraph, relations.evaluates(obj, deformer, cage, depsgraph))
         except CageUnavailableError as exc:
             return Motions.invalid(F, f"{exc}: the mesh shows its rest shape")
         same = (len(state.points) == len(rest) and np.array_equal(state.loop_vertices, loops)
@@ -253,19 +285,50 @@ class CageKind:
             except (np.linalg.LinAlgError, ValueError):
                 return Motions.invalid(F, f"Cage '{cage.name}' is scaled to zero, mirrored or non-finite "
                                           "as an object: the mesh shows its rest shape")
+        try:
+            outer, reference, pivot = _outer_branch(deformer, cage, depsgraph, target_world, matrix, outer)
+        except ValueError as exc:
+            return Motions.invalid(F, f"The motion of cage '{cage.name}' cannot be blended ({exc}): the "
+                                      "mesh shows its rest shape")
         # Every depsgraph update re-evaluates; the face motions are a pure function of these inputs.
         key = (rest.tobytes(), loops.tobytes(), start.tobytes(), total.tobytes(), stored.tobytes(),
-               matrix.tobytes(), state.points.tobytes())
+               state.points.tobytes())
         cached = _last_motions.get((obj.session_uid, deformer.uid))
         if cached is not None and cached[0] == key:
-            return cached[1]
-        motions = _face_motions(rest, to_target(stored, state.points), topology, outer)
-        _last_motions[(obj.session_uid, deformer.uid)] = (key, motions)
-        return motions
+            faces = cached[1]
+        else:
+            faces = _face_motions(rest, to_target(stored, state.points), topology)
+            _last_motions[(obj.session_uid, deformer.uid)] = (key, faces)
+        return dataclasses.replace(faces, outer=outer, outer_reference=reference, outer_pivot=pivot)
 
 
-def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
-                  outer: np.ndarray | None) -> Motions:
+def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph, target_world: np.ndarray,
+                  matrix: np.ndarray, outer: np.ndarray | None
+                  ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """(outer, reference rotation vector (3,), pivot (3,)) for scaling the cage object's motion G.
+
+    Only needed where the branch of log G matters: 'CHANNELS', a strength other than 0 and 1, and
+    channels stored at bind. The reference is the cage's own turn since bind read from its rotation
+    channels (kinds.reference_rotvecs, in the target's space), the pivot its current origin in the
+    target's space. A cage back at its rest matrix after whole turns (its channels differ) gets
+    G = identity so that the turns still count. ValueError when the channels cannot be unwrapped.
+    """
+    strength = deformer.strength
+    if deformer.branch_rule != "CHANNELS" or strength in (0.0, 1.0) or not has_rest_channels(deformer):
+        return outer, None, None
+    evaluated = cage.evaluated_get(depsgraph)
+    rest_mode, rest_channels = deformer.cage_rest_rotation_mode, tuple(deformer.cage_rest_rotation)
+    mode, channels = evaluated.rotation_mode, rotation_channels(evaluated)
+    if outer is None:
+        if mode == rest_mode and np.array_equal(np.float32(channels), np.float32(rest_channels)):
+            return None, None, None
+        outer = np.eye(4)
+    frame = channel_frame(evaluated, target_world)
+    reference = reference_rotvecs([rest_mode], [rest_channels], [mode], [channels], frame[None])[0]
+    return outer, reference, matrix[:3, 3].astype(np.float64)
+
+
+def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology) -> Motions:
     """Motions of the faces the cage's shape change can reach (core.cage.affected_faces); all other
     faces are exactly at rest (zero parameters, so the vertices they alone drive stay bit-for-bit)."""
     F = topology.n_faces
@@ -283,4 +346,4 @@ def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
     matrices = np.broadcast_to(np.eye(4), (F, 4, 4)).copy()
     if np.any(face_moved):
         matrices[face_moved] = aff3.matrices_from_params(params[face_moved])
-    return Motions(matrices, at_rest, "", params=params, outer=outer, valid=valid, warning=warning)
+    return Motions(matrices, at_rest, "", params=params, valid=valid, warning=warning)

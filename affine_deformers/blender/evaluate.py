@@ -20,7 +20,7 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from ..core import aff3, deform, unwrap
-from . import cage_kind, nodes, storage
+from . import cage_kind, nodes, relations, storage
 from .kinds import KINDS, Motions, channel_references
 
 # Branch lift tolerances for Blender's float32 matrices (relative noise ~1e-7); core.unwrap's defaults
@@ -110,16 +110,27 @@ def redistribute(indices: np.ndarray, values: np.ndarray, valid: np.ndarray) -> 
     return kept * scale[:, None]
 
 
-def _outer(motions: Motions, strength: float) -> np.ndarray | None:
-    """The motion applied after the blend, at `strength`: φ(s·ψ(G)) (exactly G at s = 1)."""
+def _outer(motions: Motions, deformer) -> np.ndarray | None:
+    """The motion applied after the blend, at strength s: φ(s·ψ(G)) (exactly G at s = 1).
+
+    With `branch_rule` 'CHANNELS' and a reference from the kind (Motions.outer_reference: the cage
+    object's own turn since bind), ψ(G) is lifted to the rotation-log branch nearest it about the
+    object's origin, exactly as probes are (`motions_to_params`): a cage keyed 0 → 720° at s = 0.5
+    turns the target 0 → 360° without a flip at 180°.
+    """
+    strength = deformer.strength
     if motions.outer is None or strength == 1.0:
         return motions.outer
-    return aff3.matrices_from_params(strength * aff3.params_from_matrices(motions.outer))
+    params = aff3.params_from_matrices(motions.outer)
+    if deformer.branch_rule == "CHANNELS" and motions.outer_reference is not None:
+        params = unwrap.lift_params(params, motions.outer_reference, motions.outer_pivot,
+                                    damping=LIFT_DAMPING, axis_tol=LIFT_AXIS_TOL)
+    return aff3.matrices_from_params(strength * params)
 
 
 def _offsets(mesh: bpy.types.Mesh, deformer, motions: Motions, rest: np.ndarray) -> np.ndarray:
     """v' − v for every rest vertex (N, 3) float64; exactly zero when every control is at rest."""
-    outer = _outer(motions, deformer.strength)
+    outer = _outer(motions, deformer)
     if deformer.strength == 0.0 or len(motions.matrices) == 0 or (np.all(motions.at_rest) and outer is None):
         return np.zeros(rest.shape, dtype=np.float64)
     points = rest.astype(np.float64)
@@ -159,7 +170,8 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
                                       motions.current_rotations.tobytes(), tuple(motions.rotation_modes),
                                       motions.channel_frames.tobytes(),
                                       *(None if a is None else a.tobytes()
-                                        for a in (motions.params, motions.outer, motions.valid)),
+                                        for a in (motions.params, motions.outer, motions.valid,
+                                                  motions.outer_reference, motions.outer_pivot)),
                                       motions.warning),
     )
     key = (obj.session_uid, deformer.uid)
@@ -254,6 +266,10 @@ def on_depsgraph_update_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgr
 @persistent
 def on_load_post(*_args) -> None:
     forget()
+    try:
+        relations.upgrade_all()  # versioning: node groups and control inputs of older files
+    except Exception:
+        traceback.print_exc()
     try:
         if bpy.context.scene is not None:
             _run(bpy.context.scene, bpy.context.evaluated_depsgraph_get())

@@ -48,7 +48,10 @@ class Motions:
     φ(params), for the linear blend); outer (4, 4): a motion applied after the blend,
     v' = outer · blend(v) (None = identity); valid (m,) bool: False marks a control to skip — its
     weight goes to the vertex's other controls (evaluate.redistribute); warning: a non-fatal status
-    (the deformation is still shown).
+    (the deformation is still shown); outer_reference (3,) and outer_pivot (3,): the reference
+    rotation vector (see `reference_rotvecs`) and current origin, in the target's space, of the object
+    whose motion `outer` is, for choosing the rotation-log branch when `outer` is scaled by a strength
+    (None = principal branch).
     """
 
     matrices: np.ndarray
@@ -64,6 +67,8 @@ class Motions:
     outer: np.ndarray | None = None
     valid: np.ndarray | None = None
     warning: str = ""
+    outer_reference: np.ndarray | None = None
+    outer_pivot: np.ndarray | None = None
 
     @classmethod
     def invalid(cls, m: int, error: str) -> Motions:
@@ -110,7 +115,8 @@ def probe_label(item) -> str:
     return obj.name if obj is not None else (item.name or "?")
 
 
-def _rotation_channels(obj: bpy.types.Object) -> tuple[float, float, float, float]:
+def rotation_channels(obj: bpy.types.Object) -> tuple[float, float, float, float]:
+    """The object's own rotation channels in the layout of props.AffineDeformerProbe.rest_rotation."""
     mode = obj.rotation_mode
     if mode == "QUATERNION":
         return tuple(obj.rotation_quaternion)
@@ -134,7 +140,7 @@ def channel_frame(evaluated: bpy.types.Object, target_world: np.ndarray) -> np.n
     negated first, since rotation vectors are pseudovectors). Identity when that matrix is singular
     or not finite: the motion is then rejected anyway, or the branch falls back to the shortest.
     """
-    R = _channel_matrix(evaluated.rotation_mode, _rotation_channels(evaluated))
+    R = _channel_matrix(evaluated.rotation_mode, rotation_channels(evaluated))
     scale = np.array(evaluated.scale, dtype=np.float64) * np.array(evaluated.delta_scale, dtype=np.float64)
     world = np.array(evaluated.matrix_world, dtype=np.float64)[:3, :3]
     with np.errstate(all="ignore"):
@@ -169,26 +175,35 @@ def rest_channels_in_mode(rest_mode: str, rest_rotation, mode: str) -> tuple[flo
     return (*matrix.to_euler(mode), 0.0)
 
 
-def channel_references(motions: Motions) -> np.ndarray:
+def reference_rotvecs(rest_modes: list[str], rest_rotations, modes: list[str], current_rotations,
+                      frames: np.ndarray | None = None) -> np.ndarray:
     """Reference rotation vectors (m, 3) in the target's space for choosing the rotation-log branch.
 
-    w_ref,i = Q_i · channel_rotvec(mode_i, rest_i, current_i): the controls' own turn since bind read
-    from their rotation channels (unwrapped along the straight channel path, so Rotation Z = 400°
-    means 400°), carried into the target's space by the channel frames Q_i. Depends on the current
-    frame's channels only. Zero rows (= shortest branch) for controls without channel data.
-    ValueError (from core.unwrap) when channels are non-finite or turn too often to unwrap.
+    w_ref,i = Q_i · channel_rotvec(mode_i, rest_i, current_i): control i's own turn since bind read
+    from its rotation channels (unwrapped along the straight channel path, so Rotation Z = 400°
+    means 400°; rest channels in another mode are converted, see `rest_channels_in_mode`), carried
+    into the target's space by its channel frame Q_i (`channel_frame`; None = identity frames).
+    Depends on the current frame's channels only. ValueError (from core.unwrap) when channels are
+    non-finite or turn too often to unwrap.
     """
-    m = len(motions.rotation_modes)
+    m = len(modes)
     if m == 0:
-        return np.zeros((len(motions.matrices), 3))
-    modes = list(motions.rotation_modes)
-    rest = np.array([rest_channels_in_mode(r_mode, r_rot, mode) for r_mode, r_rot, mode
-                     in zip(motions.rest_rotation_modes, motions.rest_rotations, modes, strict=True)])
-    w_channels = unwrap.channel_rotvec(modes, rest, np.asarray(motions.current_rotations, dtype=np.float64))
-    frames = motions.channel_frames
-    if len(frames) != m:
-        frames = np.broadcast_to(np.eye(3), (m, 3, 3))
+        return np.zeros((0, 3))
+    rest = np.array([rest_channels_in_mode(r_mode, r_rot, mode)
+                     for r_mode, r_rot, mode in zip(rest_modes, rest_rotations, modes, strict=True)])
+    w_channels = unwrap.channel_rotvec(list(modes), rest, np.asarray(current_rotations, dtype=np.float64))
+    if frames is None or len(frames) != m:
+        return w_channels
     return np.einsum("mij,mj->mi", frames, w_channels)
+
+
+def channel_references(motions: Motions) -> np.ndarray:
+    """`reference_rotvecs` of the controls of `motions` (m, 3); zero rows (= shortest branch) for
+    kinds without channel data."""
+    if len(motions.rotation_modes) == 0:
+        return np.zeros((len(motions.matrices), 3))
+    return reference_rotvecs(motions.rest_rotation_modes, motions.rest_rotations, motions.rotation_modes,
+                             motions.current_rotations, motions.channel_frames)
 
 
 class ProbeKind:
@@ -222,7 +237,7 @@ class ProbeKind:
             item.rest_matrix = rest.ravel().tolist()
             item.name = item.object.name
             item.rest_rotation_mode = item.object.rotation_mode
-            item.rest_rotation = _rotation_channels(item.object)
+            item.rest_rotation = rotation_channels(item.object)
 
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
@@ -268,7 +283,7 @@ class ProbeKind:
                                            "remove it from the deformer or link it back")
                 evaluated = probe.evaluated_get(depsgraph)
                 current = local_matrix(target_world, np.array(evaluated.matrix_world, dtype=np.float64))
-                current_rotations[i] = _rotation_channels(evaluated)
+                current_rotations[i] = rotation_channels(evaluated)
                 modes[i] = evaluated.rotation_mode
                 frames[i] = channel_frame(evaluated, target_world)
                 pivots[i] = current[:3, 3]

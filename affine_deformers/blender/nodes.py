@@ -108,6 +108,16 @@ def ensure_group() -> bpy.types.NodeTree:
     return ng
 
 
+def find_modifier(obj: bpy.types.Object, offset_attr: str) -> bpy.types.NodesModifier | None:
+    """Our modifier on `obj` that reads `offset_attr`, found by content so user renames don't matter."""
+    for mod in obj.modifiers:
+        if mod.type != "NODES" or not _is_our_group(mod.node_group):
+            continue
+        if mod.get(offset_socket_identifier(mod.node_group)) == offset_attr:
+            return mod
+    return None
+
+
 def ensure_modifier(obj: bpy.types.Object, offset_attr: str, label: str,
                     show_viewport: bool = True, show_render: bool = True) -> bpy.types.NodesModifier:
     mod = find_modifier(obj, offset_attr)
@@ -148,12 +158,6 @@ def set_controls(mod: bpy.types.NodesModifier, cage: bpy.types.Object | None,
         # Assigning an ID property does not tag the depsgraph relations; re-assigning the group does.
         mod.node_group = ng
     return changed
-
-
-def remove_modifier(obj: bpy.types.Object, offset_attr: str) -> None:
-    mod = find_modifier(obj, offset_attr)
-    if mod is not None:
-        obj.modifiers.remove(mod)
 
 
 def _reader_group(names: list[str]) -> bpy.types.NodeTree:

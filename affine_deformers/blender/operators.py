@@ -10,7 +10,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import IntProperty
 
-from . import binding, cage_kind, evaluate
+from . import binding, cage_kind, evaluate, relations
 from .kinds import BindError
 
 UNDOABLE = {"REGISTER", "UNDO"}
@@ -258,6 +258,7 @@ class AFFINE_OT_deformer_probe_add(bpy.types.Operator):
         except (BindError, ValueError) as exc:
             while len(deformer.probes) > first:
                 deformer.probes.remove(len(deformer.probes) - 1)
+            relations.sync(obj, deformer)  # bind named the new probes on the modifier already
             if created is not None:
                 bpy.data.objects.remove(created, do_unlink=True)
             self.report({"ERROR"}, str(exc))

@@ -92,10 +92,12 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         col.prop(deformer, "mask_group", icon="GROUP_VERTEX")
         col.prop(deformer, "strength")
         col.prop(deformer, "blend_mode")
-        if deformer.kind == "PROBE":
-            sub = col.column()
-            sub.active = deformer.blend_mode == "AFFINE_LOG"  # a linear blend has no rotation branches
-            sub.prop(deformer, "branch_rule")
+        sub = col.column()
+        # A linear blend of probes has no rotation branches; a cage's object motion is scaled in the
+        # log space in both modes, but its branch only matters at a strength other than 1.
+        sub.active = (deformer.blend_mode == "AFFINE_LOG" if deformer.kind == "PROBE"
+                      else deformer.strength != 1.0)
+        sub.prop(deformer, "branch_rule")
 
         if deformer.kind == "PROBE":
             layout.label(text="Probes")

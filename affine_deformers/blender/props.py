@@ -20,7 +20,7 @@ from bpy.props import (
     StringProperty,
 )
 
-from . import binding, nodes, storage
+from . import binding, nodes, relations, storage
 
 IDENTITY16 = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
@@ -43,6 +43,8 @@ def _on_cage_object(self: AffineDeformer, _context: bpy.types.Context) -> None:
         return
     if self.is_bound and self.cage is not None:
         binding.rebind_safely(obj, self, "the new cage")
+    else:
+        relations.sync(obj, self)  # a cleared cage is no longer evaluated for this deformer
 
 
 def _poll_cage(self: AffineDeformer, candidate: bpy.types.Object) -> bool:
@@ -97,6 +99,8 @@ def _on_probe_object(self: AffineDeformerProbe, _context: bpy.types.Context) -> 
     obj, deformer, index = owner
     if deformer.is_bound and self.object is not None:
         binding.rebind_probe_safely(obj, deformer, index)
+    else:
+        relations.sync(obj, deformer)
 
 
 class AffineDeformerProbe(bpy.types.PropertyGroup):
@@ -160,6 +164,14 @@ class AffineDeformer(bpy.types.PropertyGroup):
     cage_rest_matrix: FloatVectorProperty(
         name="Cage Rest Matrix", size=16, default=IDENTITY16,
         description="Cage object matrix at bind, in the target's local space (row-major 4x4)")
+    cage_rest_rotation_mode: EnumProperty(
+        name="Cage Rest Rotation Mode", items=ROTATION_MODES, default="XYZ",
+        description="Rotation mode of the cage object at bind")
+    cage_rest_rotation: FloatVectorProperty(
+        name="Cage Rest Rotation", size=4, default=(0.0, 0.0, 0.0, 0.0),
+        description="Rotation channels of the cage object at bind: quaternion WXYZ, axis-angle "
+                    "(angle, X, Y, Z) or Euler XYZ (unset in files bound before they were stored: the "
+                    "cage's turns then take the shortest way)")
     half_space: BoolProperty(
         name="Half-Space Rule", default=True, update=_on_weight_option,
         description="A cage face has no influence on vertices outside it (in its outer half-space): "
@@ -202,13 +214,14 @@ class AffineDeformer(bpy.types.PropertyGroup):
     branch_rule: EnumProperty(
         name="Turns", default="CHANNELS", update=_on_evaluation_option,
         items=[("CHANNELS", "Follow Rotation Channels",
-                "A probe turned past 180° twists by the full angle of its own rotation channels since "
-                "bind (Rotation Z = 400° twists 400°); turns from parents or constraints take the "
-                "nearest way. Quaternion channels hold at most one turn. After a rotation mode change "
-                "turns are counted from the rest orientation in the new mode"),
+                "A probe (or a cage object, at a strength other than 1) turned past 180° twists by the "
+                "full angle of its own rotation channels since bind (Rotation Z = 400° twists 400°); "
+                "turns from parents or constraints take the nearest way. Quaternion channels hold at "
+                "most one turn. After a rotation mode change turns are counted from the rest "
+                "orientation in the new mode"),
                ("SHORTEST", "Shortest",
-                "Every probe motion is blended as its shortest rotation (at most 180°): a twist "
-                "flips when it passes 180°")])
+                "Every probe or cage object motion is blended as its shortest rotation (at most 180°): "
+                "a twist flips when it passes 180°")])
     show_viewport: BoolProperty(
         name="Viewport", get=_mirrored_getter("show_viewport"), set=_mirrored_setter("show_viewport"),
         description="Show the deformer in the viewport (mirrors the modifier's toggle)")

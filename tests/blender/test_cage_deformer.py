@@ -594,30 +594,274 @@ def test_deleted_unlinked_or_zero_scaled_cage(bl):
     assert "Cage 'NotAMesh' is not a mesh (Empty)" in deformer.status
 
 
-def test_cage_disabled_in_viewports_is_reported(bl):
+# ---------------------------------------------------------------------------------------------- relations
+# The deformer's modifier names its controls on the node group's Cage / Probes inputs, so the depsgraph
+# evaluates them with the target even when they are disabled in viewports or renders (relations.py).
+
+
+@pytest.fixture
+def nodes(installed):
+    return importlib.import_module(f"{installed.package}.blender.nodes")
+
+
+def our_modifier(nodes, target, deformer):
+    mod = nodes.find_modifier(target, f"affdef_{deformer.uid}_offset")
+    assert mod is not None
+    return mod
+
+
+def control_inputs(group) -> dict:
+    return {item.name: item for item in group.interface.items_tree
+            if getattr(item, "item_type", "") == "SOCKET" and item.in_out == "INPUT"}
+
+
+def test_cage_disabled_in_viewports_is_evaluated_while_the_deformer_is_on(bl, nodes):
     target = bl.grid_cube(cuts=4)
     cage = box_cage()
     deformer = add_cage_deformer(target, cage)
-    rest = bl.rest_positions(target).copy()
-    cage.location.x = 0.4
+    mod = our_modifier(nodes, target, deformer)
+    assert nodes.controls(mod) == (cage, None)
+    assert mod.node_group.get(nodes.GROUP_MARK) == nodes.GROUP_VERSION == 2
+    inputs = control_inputs(mod.node_group)
+    assert inputs["Cage"].hide_in_modifier and inputs["Probes"].hide_in_modifier, "managed by the add-on"
+    rest = bl.rest_positions(target).astype(np.float64)
+
     cage.hide_viewport = True
-    assert_intact(bl, target, rest)
-    assert "is not evaluated (disabled in viewports or renders)" in deformer.status
-    cage.hide_viewport = False
-    cage.hide_set(True)  # the eye icon keeps it evaluated
+    cage.location.x = 0.4
     assert np.abs(bl.evaluated_positions(target) - rest - (0.4, 0, 0)).max() < 1e-5
+    assert deformer.status == ""
+    set_cage_points(cage, cage_points(cage) * 1.2)  # the hidden cage's shape is evaluated too
+    assert np.abs(bl.evaluated_positions(target) - (1.2 * rest + (0.4, 0, 0))).max() < 1e-5
+
+    # With the deformer off in viewports nothing asks for the cage: its stale copy is reported, not used.
+    deformer.show_viewport = False
+    cage.location.x = 0.6
+    assert np.array_equal(bl.evaluated_positions(target), rest.astype(np.float32))
+    assert "Cage 'Cage' is not evaluated" in deformer.status and "enable the deformer" in deformer.status
+    deformer.show_viewport = True
+    assert np.abs(bl.evaluated_positions(target) - (1.2 * rest + (0.6, 0, 0))).max() < 1e-5
+    assert deformer.status == ""
+
+    cage.hide_viewport = False
+    cage.hide_set(True)  # the eye icon
+    cage.location.x = 0.2
+    assert np.abs(bl.evaluated_positions(target) - (1.2 * rest + (0.2, 0, 0))).max() < 1e-5
     cage.hide_set(False)
-    cages = bpy.data.collections.new("Cages")  # so does the eye of a collection holding it
+    cages = bpy.data.collections.new("Cages")  # a hidden, then excluded collection holding it
     bpy.context.scene.collection.children.link(cages)
     cages.objects.link(cage)
     bpy.context.scene.collection.objects.unlink(cage)
     bpy.context.view_layer.layer_collection.children["Cages"].hide_viewport = True
-    cage.location.x = 0.6
-    assert np.abs(bl.evaluated_positions(target) - rest - (0.6, 0, 0)).max() < 1e-5
-    assert deformer.status == ""
+    cage.location.x = 0.7
+    assert np.abs(bl.evaluated_positions(target) - (1.2 * rest + (0.7, 0, 0))).max() < 1e-5
     bpy.context.view_layer.layer_collection.children["Cages"].exclude = True
-    assert_intact(bl, target, rest)
-    assert "is not evaluated" in deformer.status
+    cage.location.x = 0.8
+    assert np.abs(bl.evaluated_positions(target) - (1.2 * rest + (0.8, 0, 0))).max() < 1e-5
+    assert deformer.status == ""
+
+
+def test_cage_disabled_in_viewports_can_be_bound_at_its_current_pose(bl):
+    target = bl.grid_cube(cuts=4)
+    cage = box_cage()
+    cage.hide_viewport = True
+    bpy.context.evaluated_depsgraph_get()
+    cage.location.x = 0.3  # never evaluated at this pose before the bind
+    deformer = add_cage_deformer(target, cage)
+    assert deformer.status == ""
+    assert abs(np.array(deformer.cage_rest_matrix).reshape(4, 4)[0, 3] - 0.3) < 1e-7
+    rest = bl.rest_positions(target)
+    assert np.array_equal(bl.evaluated_positions(target), rest)
+    cage.location.x = 0.5
+    assert np.abs(bl.evaluated_positions(target) - rest - (0.2, 0, 0)).max() < 1e-5
+
+
+def test_picking_or_clearing_the_cage_renames_the_modifier_input(bl, nodes):
+    target = bl.grid_cube(cuts=4)
+    first, second = box_cage("First"), box_cage("Second", half=(1.7, 1.7, 1.7))
+    deformer = add_cage_deformer(target, first)
+    mod = our_modifier(nodes, target, deformer)
+    deformer.cage = second
+    assert nodes.controls(mod) == (second, None)
+    deformer.cage = None
+    assert nodes.controls(mod) == (None, None)
+    bl.evaluated_positions(target)
+    assert "has no cage object" in deformer.status
+
+
+def test_probes_disabled_in_viewports_are_evaluated_and_their_collection_follows_the_probes(bl, nodes):
+    target = bl.uv_sphere(segments=16, rings=8)
+    a, b = bl.empty("A"), bl.empty("B", (0.0, 0.0, 1.0))
+    deformer = bl.add_probe_deformer(target, [a])  # one probe, weights summing to 1: the mesh follows it
+    mod = our_modifier(nodes, target, deformer)
+    cage, probes = nodes.controls(mod)
+    assert cage is None and set(probes.objects) == {a}
+    assert probes.name.startswith(".AffineDeformer Probes") and probes.users == 1
+    assert probes not in set(bpy.context.scene.collection.children_recursive), "linked to no scene"
+    rest = bl.rest_positions(target).astype(np.float64)
+    a.hide_viewport = True
+    a.location = (0.2, -0.1, 0.3)
+    assert np.abs(bl.evaluated_positions(target) - rest - (0.2, -0.1, 0.3)).max() < 1e-5
+
+    with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, b]):
+        assert bpy.ops.object.affine_deformer_probe_add(index=0) == {"FINISHED"}
+    assert set(nodes.controls(mod)[1].objects) == {a, b}
+    removed = bl.run_op(bpy.ops.object.affine_deformer_probe_remove, target, index=0, probe_index=0)
+    assert removed == {"FINISHED"}
+    assert set(nodes.controls(mod)[1].objects) == {b}
+    c = bl.empty("C", (0.5, 0.0, 0.0))
+    deformer.probes[0].object = c  # a new pick is bound at its current pose
+    assert set(nodes.controls(mod)[1].objects) == {c}
+    c.hide_viewport = True
+    c.location.x = 0.9
+    assert np.abs(bl.evaluated_positions(target) - rest - (0.4, 0.0, 0.0)).max() < 1e-5
+    assert deformer.status == ""
+
+    name = nodes.controls(mod)[1].name
+    assert bl.run_op(bpy.ops.object.affine_deformer_remove, target, index=0) == {"FINISHED"}
+    assert bpy.data.collections.get(name) is None, "the deformer's probe collection goes with it"
+
+
+def test_a_render_sees_controls_disabled_in_renders_and_viewports(bl, installed, tmp_path):
+    """The render pipeline's depsgraph lists neither control; our handler runs in it at the rendered
+    frame (frame_change_post) and must see their current poses, not the viewport's frame 1."""
+    scene = bpy.context.scene
+    target = bl.grid_cube(cuts=4)
+    cage = box_cage()
+    cage_deformer = add_cage_deformer(target, cage)
+    sphere = bl.uv_sphere(segments=16, rings=8, location=(5.0, 0.0, 0.0))
+    probe = bl.empty("Probe", (5.0, 0.0, 0.0))
+    probe_deformer = bl.add_probe_deformer(sphere, [probe])
+    for obj, path, shift in ((cage, "location", (0.5, 0.0, 0.0)), (probe, "location", (5.0, 0.0, 0.5))):
+        obj.keyframe_insert(path, frame=1)
+        setattr(obj, path, shift)
+        obj.keyframe_insert(path, frame=5)
+        obj.hide_render = obj.hide_viewport = True
+    scene.frame_set(1)
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(camera)
+    camera.location, camera.rotation_euler = (2.5, -12.0, 0.0), (np.pi / 2, 0.0, 0.0)
+    scene.camera = camera
+    scene.render.engine = "CYCLES"
+    scene.cycles.samples, scene.cycles.device = 1, "CPU"
+    scene.render.resolution_x = scene.render.resolution_y = 8
+    scene.render.filepath = str(tmp_path / "frame_####")
+    scene.frame_start = scene.frame_end = 5
+    seen = []
+
+    def record(_scene, depsgraph=None):
+        if depsgraph is not None and depsgraph.mode == "RENDER":
+            seen.append((cage_deformer.status, probe_deformer.status,
+                         installed.storage.read_offsets(target.data, cage_deformer.uid).copy(),
+                         installed.storage.read_offsets(sphere.data, probe_deformer.uid).copy()))
+
+    bpy.app.handlers.frame_change_post.append(record)  # after ours
+    try:
+        bpy.ops.render.render(animation=True)
+    finally:
+        bpy.app.handlers.frame_change_post.remove(record)
+    assert seen, "no render depsgraph update seen"
+    cage_status, probe_status, cage_offsets, probe_offsets = seen[-1]
+    assert cage_status == "" and probe_status == ""
+    assert np.abs(cage_offsets - (0.5, 0.0, 0.0)).max() < 1e-5
+    assert np.abs(probe_offsets - (0.0, 0.0, 0.5)).max() < 1e-5
+
+
+def test_rebake_with_the_cage_disabled_in_viewports(bl):
+    """The first bake mutes the live modifier; the bake's stand-in then names the cage, so the second
+    bake still sees the hidden, animated cage."""
+    target = bl.grid_cube(cuts=3)
+    cage = box_cage()
+    deformer = add_cage_deformer(target, cage)
+    cage.keyframe_insert("location", frame=1)
+    cage.location.x = 0.5
+    cage.keyframe_insert("location", frame=5)
+    cage.hide_viewport = True
+    bpy.context.scene.frame_set(1)
+    rest = bl.rest_positions(target).astype(np.float64)
+    for _ in range(2):
+        assert bl.run_op(bpy.ops.object.affine_deformer_bake, target, index=0, mode="SHAPE_KEYS",
+                         frame_start=1, frame_end=5) == {"FINISHED"}
+        assert not deformer.show_viewport
+    assert len(target.data.shape_keys.key_blocks) == 6
+    bpy.context.scene.frame_set(5)
+    assert np.abs(bl.evaluated_positions(target) - rest - (0.5, 0.0, 0.0)).max() < 1e-5
+    bpy.context.scene.frame_set(3)
+    assert np.abs(bl.evaluated_positions(target) - rest - (0.25, 0.0, 0.0)).max() < 1e-5
+
+
+def _as_version_1(nodes) -> None:
+    """Turn this session's data into what version 1 saved: a group without the control inputs, marked
+    1, and no probe collections."""
+    for group in bpy.data.node_groups:
+        if group.get(nodes.GROUP_MARK) is not None:
+            for name in ("Cage", "Probes"):
+                group.interface.remove(control_inputs(group)[name])
+            group[nodes.GROUP_MARK] = 1
+    for collection in list(bpy.data.collections):
+        if collection.get("affine_deformers_probes"):
+            bpy.data.collections.remove(collection)
+
+
+def test_files_with_the_version_1_node_group_are_upgraded_in_place_on_load(bl, nodes, tmp_path):
+    target = bl.grid_cube(cuts=4)
+    cage = box_cage()
+    add_cage_deformer(target, cage)
+    sphere = bl.uv_sphere(segments=16, rings=8, location=(5.0, 0.0, 0.0))
+    probe = bl.empty("Probe", (5.0, 0.0, 0.0))
+    bl.add_probe_deformer(sphere, [probe])
+    cage.location.x, probe.location.z = 0.4, 0.5
+    expected = {obj.name: bl.evaluated_positions(obj).copy() for obj in (target, sphere)}
+    _as_version_1(nodes)
+    group = nodes.find_group()
+    assert group.get(nodes.GROUP_MARK) == 1 and set(control_inputs(group)) == {"Geometry", "Offset Attribute"}
+    for obj in (target, sphere):  # a version 1 group still deforms (without the relations)
+        mod = our_modifier(nodes, obj, obj.affine_deformers[0])
+        assert nodes.controls(mod) == (None, None)
+        obj.affine_deformers[0].strength = 0.5
+        obj.affine_deformers[0].strength = 1.0
+        assert np.array_equal(bl.evaluated_positions(obj), expected[obj.name])
+        assert obj.affine_deformers[0].status == ""
+    cage.hide_viewport = probe.hide_viewport = True
+    path = tmp_path / "version1.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+
+    bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)  # load_post upgrades
+    groups = [g for g in bpy.data.node_groups if g.get(nodes.GROUP_MARK) is not None]
+    assert len(groups) == 1 and groups[0].name == "AffineDeformer" and nodes.is_current(groups[0])
+    target, sphere = bpy.data.objects["Cube"], bpy.data.objects["Sphere"]
+    cage, probe = bpy.data.objects["Cage"], bpy.data.objects["Probe"]
+    assert nodes.controls(our_modifier(nodes, target, target.affine_deformers[0])) == (cage, None)
+    probes = nodes.controls(our_modifier(nodes, sphere, sphere.affine_deformers[0]))[1]
+    assert set(probes.objects) == {probe}
+    for obj in (target, sphere):  # the upgraded group outputs the same geometry
+        assert np.array_equal(bl.evaluated_positions(obj), expected[obj.name])
+    rest = {obj.name: bl.rest_positions(obj).astype(np.float64) for obj in (target, sphere)}
+    cage.location.x, probe.location.z = 0.7, 0.8  # hidden controls are evaluated now
+    assert np.abs(bl.evaluated_positions(target) - rest["Cube"] - (0.7, 0.0, 0.0)).max() < 1e-5
+    assert np.abs(bl.evaluated_positions(sphere) - rest["Sphere"] - (0.0, 0.0, 0.8)).max() < 1e-5
+    assert target.affine_deformers[0].status == "" and sphere.affine_deformers[0].status == ""
+
+
+@pytest.mark.parametrize("name", ["cage_deform", "probe_bend"])
+def test_sample_files_open_with_a_current_group_naming_every_control(bl, nodes, name):
+    path = os.path.join(os.path.dirname(__file__), "..", "..", "samples", f"{name}.blend")
+    if not os.path.exists(path):
+        pytest.skip(f"samples/{name}.blend is not built")
+    bpy.ops.wm.open_mainfile(filepath=path, load_ui=False)
+    groups = [g for g in bpy.data.node_groups if g.get(nodes.GROUP_MARK) is not None]
+    assert len(groups) == 1 and nodes.is_current(groups[0])
+    bpy.context.evaluated_depsgraph_get()
+    count = 0
+    for obj in bpy.data.objects:
+        for deformer in getattr(obj, "affine_deformers", ()):
+            cage, probes = nodes.controls(our_modifier(nodes, obj, deformer))
+            if deformer.kind == "CAGE":
+                assert cage == deformer.cage and probes is None
+            else:
+                assert cage is None and set(probes.objects) == {p.object for p in deformer.probes}
+            assert deformer.status == "", (obj.name, deformer.status)
+            count += 1
+    assert count > 0
 
 
 # ---------------------------------------------------------------------------------------------- options
@@ -867,6 +1111,27 @@ with bpy.context.temp_override(active_object=target, object=target, selected_obj
     assert bpy.ops.object.affine_deformer_bind(index=0) == {"FINISHED"}
 assert deformer.status == "" and len(deformer["cage_loop_total"]) == len(cage.data.polygons)
 assert np.array_equal(positions(), rest)
+# a cage disabled in viewports is evaluated through the modifier's Cage input
+cage.hide_viewport = True
+cage.location = (0.1, 0.2, -0.1)
+assert np.abs(positions() - rest - (-0.2, 0.4, -0.6)).max() < 1e-5
+assert deformer.status == "", deformer.status
+# a file saved with the version 1 group (no control inputs) is upgraded in place on load
+group = next(g for g in bpy.data.node_groups if g.get("affine_deformers_group"))
+for item in [i for i in group.interface.items_tree
+             if getattr(i, "item_type", "") == "SOCKET" and i.name in ("Cage", "Probes")]:
+    group.interface.remove(item)
+group["affine_deformers_group"] = 1
+path = os.path.join(tempfile.mkdtemp(prefix="affdef_lts_"), "version1.blend")
+target_name = target.name
+bpy.ops.wm.save_as_mainfile(filepath=path)
+bpy.ops.wm.open_mainfile(filepath=path, load_ui=False)
+groups = [g for g in bpy.data.node_groups if g.get("affine_deformers_group")]
+assert len(groups) == 1 and groups[0]["affine_deformers_group"] == 2, groups
+target, cage = bpy.data.objects[target_name], bpy.data.objects["Cage"]
+cage.location = (0.0, 0.0, 0.0)
+assert np.abs(positions() - rest - (-0.3, 0.2, -0.5)).max() < 1e-5
+assert target.affine_deformers[0].status == "", target.affine_deformers[0].status
 print("LTS CAGE OK", bpy.app.version_string)
 """
 

@@ -84,6 +84,10 @@ deformer.weight_mode = "VERTEX_GROUPS"
 assert deformer.status == "", deformer.status
 half = positions()
 assert np.abs(half - rest - 0.5 * np.array([0.25, -0.5, 1.0], np.float32)).max() < 1e-5
+# a probe disabled in viewports is evaluated through the modifier's Probes input
+probe.hide_viewport = True
+probe.location = (0.5, 0.0, 0.0)
+assert np.abs(positions() - rest - np.array([0.25, 0.0, 0.0], np.float32)).max() < 1e-5
 print("LTS OK", bpy.app.version_string)
 """
 

@@ -6,6 +6,10 @@ The scene: an elliptic tube along Z (elliptic, so a full turn of a cross-section
 render), a probe at its top, FALLOFF weights without normalisation (the top follows the probe, the
 bottom has weight 0 and stays). A probe turning by θ about the tube's axis through its own origin then
 moves each vertex by exactly v' = Rz(w_v·θ)·v (w_v its weight), which the tests check to 1e-4.
+
+The same rule for a cage object turned by its own rotation channels (the cage deformer applies the
+object's motion G after the blend, at strength s as φ(s·ψ(G))): a cage keyed 0 → 720° at s = 0.5
+turns the whole target by s·θ about the cage's origin, continuously.
 """
 
 from __future__ import annotations
@@ -306,3 +310,112 @@ def test_channels_too_large_to_unwrap_give_a_clear_status_and_the_rest_shape(bl)
     angle = math.remainder(1e6, 2.0 * math.pi)
     np.testing.assert_allclose(bl.evaluated_positions(target), rotate_z(rest, w * angle), atol=1e-3)
     assert deformer.status == ""
+
+
+# ------------------------------------------------------------------------------------- cage objects
+
+
+CAGE_ORIGIN = (0.3, -0.2, 0.1)
+
+
+def cage_twist_scene(bl, strength: float = 0.5):
+    """A cube (turned and moved, so the target's space is not the world's) inside a box cage whose
+    origin is off the cube's centre; the cage's rotation_euler.z keyed 0 → 720° over frames 1..73.
+    Returns (target, cage, deformer)."""
+    target = bl.grid_cube(cuts=4, size=2.0, name="Target")
+    target.location, target.rotation_euler = (0.2, 0.1, -0.3), (0.4, 0.0, 0.0)
+    cage = bl.grid_cube(cuts=1, size=3.6, name="CageBox")
+    cage.location = CAGE_ORIGIN
+    bpy.context.view_layer.update()
+    with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, cage]):
+        assert bpy.ops.object.affine_cage_deformer_add() == {"FINISHED"}
+    deformer = target.affine_deformers[0]
+    deformer.strength = strength
+    assert deformer.status == "" and deformer.branch_rule == "CHANNELS"
+    key_linear_spin(cage)
+    bpy.context.scene.frame_set(1)
+    return target, cage, deformer
+
+
+def world_points(target, local: np.ndarray) -> np.ndarray:
+    matrix = np.array(target.matrix_world, dtype=np.float64)
+    return local.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def cage_turn(points_world: np.ndarray, degrees: float) -> np.ndarray:
+    """World points turned about the vertical axis through the cage's origin."""
+    centre = np.array(CAGE_ORIGIN)
+    return rotate_z(points_world - centre, np.full(len(points_world), math.radians(degrees))) + centre
+
+
+def test_cage_object_spun_to_720_at_half_strength_turns_continuously_to_360(bl):
+    target, _cage, deformer = cage_twist_scene(bl)
+    rest = world_points(target, bl.rest_positions(target))
+    got = {f: world_points(target, p) for f, p in step_frames(bl, target, range(1, LAST_FRAME + 1)).items()}
+    assert deformer.status == ""
+    assert max_jump_ratio(got) <= 3.0, "a vertex jumps between consecutive frames"
+    for frame in (1, 10, 19, 20, 28, 37, 55, 73):
+        half_turn = 0.5 * 10.0 * (frame - 1)
+        np.testing.assert_allclose(got[frame], cage_turn(rest, half_turn), atol=1e-4,
+                                   err_msg=f"frame {frame}")
+    assert np.abs(got[37] - rest).max() > 0.3, "360° at half strength is a half turn, not the rest pose"
+    assert np.abs(got[73] - rest).max() < 1e-4, "720° at half strength is a full turn"
+
+
+def test_cage_object_shortest_rule_flips_and_files_without_rest_channels_fall_back_to_it(bl):
+    target, cage, deformer = cage_twist_scene(bl)
+    deformer.branch_rule = "SHORTEST"
+    rest = world_points(target, bl.rest_positions(target))
+    got = {f: world_points(target, p) for f, p in step_frames(bl, target, range(1, LAST_FRAME + 1)).items()}
+    assert max_jump_ratio(got) > 10.0, "the principal log flips at 180°"
+    np.testing.assert_allclose(got[28], cage_turn(rest, -45.0), atol=1e-4)  # 270° → −90°, halved
+    np.testing.assert_allclose(got[37], rest, atol=1e-4)  # 360° reads as the rest pose
+
+    bpy.context.scene.frame_set(37)
+    deformer.branch_rule = "CHANNELS"  # live: the same frame follows the channels again
+    np.testing.assert_allclose(world_points(target, bl.evaluated_positions(target)), cage_turn(rest, 180.0),
+                               atol=1e-4)
+    deformer.strength = 1.0  # at full strength the branch does not matter: exactly the cage's motion
+    np.testing.assert_allclose(world_points(target, bl.evaluated_positions(target)), cage_turn(rest, 360.0),
+                               atol=1e-5)
+    deformer.strength = 0.5
+    # A cage bound before the rest channels were stored has no reference: the shortest way is taken.
+    assert deformer.is_property_set("cage_rest_rotation")
+    deformer.property_unset("cage_rest_rotation")
+    bpy.context.scene.frame_set(28)
+    np.testing.assert_allclose(world_points(target, bl.evaluated_positions(target)), cage_turn(rest, -45.0),
+                               atol=1e-4)
+    assert deformer.status == ""
+    # Channels beyond what the unwrap follows: a clear status and the rest shape, not a wrong turn.
+    assert bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=0) == {"FINISHED"}
+    cage.animation_data_clear()
+    cage.rotation_euler.z = 1e6
+    assert np.array_equal(bl.evaluated_positions(target), bl.rest_positions(target))
+    assert "The motion of cage 'CageBox' cannot be blended" in deformer.status
+    assert "too many turns" in deformer.status
+
+
+def test_cage_object_turn_at_frame_37_in_a_fresh_process_matches_stepping(bl, tmp_path):
+    target, _cage, _deformer = cage_twist_scene(bl)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, LAST_FRAME
+    stepped = step_frames(bl, target, range(1, 38))[37]
+    scene.frame_set(1)
+    path = tmp_path / "cage_twist.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))  # saved at frame 1: the file holds rest offsets
+    out = tmp_path / "fresh.npy"
+    bl.run_blender(f"""
+        import numpy as np
+        enable_addon()
+        bpy.ops.wm.open_mainfile(filepath={str(path)!r}, load_ui=False)
+        bpy.context.scene.frame_set(37)
+        target = bpy.data.objects["Target"]
+        assert target.affine_deformers[0].status == "", target.affine_deformers[0].status
+        mesh = target.evaluated_get(bpy.context.evaluated_depsgraph_get()).data
+        co = np.empty(len(mesh.vertices) * 3, np.float32)
+        mesh.vertices.foreach_get("co", co)
+        np.save({str(out)!r}, co.reshape(-1, 3))
+    """)
+    fresh = np.load(out).astype(np.float64)
+    assert np.abs(fresh - stepped).max() <= 1e-5
+    assert np.abs(stepped - bl.rest_positions(target)).max() > 0.3

@@ -27,18 +27,25 @@ class _OperatorProps:
 class RecordingLayout:
     """Accepts the UILayout calls the add-on makes, validating their targets."""
 
-    def __init__(self, log: list) -> None:
+    def __init__(self, log: list, parent: RecordingLayout | None = None) -> None:
         self.log = log
+        self.parent = parent
+        self.active = True
 
     def _child(self, *_args, **_kwargs) -> RecordingLayout:
-        return RecordingLayout(self.log)
+        return RecordingLayout(self.log, self)
 
     row = column = box = split = _child
+
+    def _is_active(self) -> bool:
+        return self.active and (self.parent is None or self.parent._is_active())
 
     def prop(self, data, name: str, **_kwargs) -> None:
         assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
         getattr(data, name)
         self.log.append(("prop", name))
+        if not self._is_active():  # drawn greyed out
+            self.log.append(("inactive", name))
 
     def operator(self, idname: str, **_kwargs) -> _OperatorProps:
         self.log.append(("operator", idname))
@@ -96,6 +103,31 @@ def test_panel_draws_in_every_state(bl, panels):
         panels.AFFINE_UL_deformers.draw_item(None, None, RecordingLayout([]), None, item, 0, None, "")
         for probe in item.probes:
             panels.AFFINE_UL_probes.draw_item(None, None, RecordingLayout([]), None, probe, 0, None, "")
+
+
+def test_turns_rule_is_shown_for_both_kinds_and_greyed_out_where_it_cannot_matter(bl, panels):
+    target = bl.grid_cube(cuts=2)
+    cage = bl.grid_cube(cuts=1, size=3.0, name="CageBox")
+    with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, cage]):
+        assert bpy.ops.object.affine_cage_deformer_add() == {"FINISHED"}
+    deformer = target.affine_deformers[0]
+    log = _draw_panel(panels, target)
+    # at strength 1 the cage object's motion is applied exactly: no branch to choose
+    assert ("prop", "branch_rule") in log and ("inactive", "branch_rule") in log
+    assert ("list", "probes") not in log
+    deformer.strength = 0.5
+    log = _draw_panel(panels, target)
+    assert ("prop", "branch_rule") in log and ("inactive", "branch_rule") not in log
+    deformer.blend_mode = "LINEAR"  # the object motion is still scaled in the log space
+    assert ("inactive", "branch_rule") not in _draw_panel(panels, target)
+    panels.AFFINE_UL_deformers.draw_item(None, None, RecordingLayout([]), None, deformer, 0, None, "")
+
+    sphere = bl.uv_sphere()
+    probe_deformer = bl.add_probe_deformer(sphere, [bl.empty("P")])
+    log = _draw_panel(panels, sphere)
+    assert ("prop", "branch_rule") in log and ("inactive", "branch_rule") not in log
+    probe_deformer.blend_mode = "LINEAR"  # a linear blend of probe matrices has no branches
+    assert ("inactive", "branch_rule") in _draw_panel(panels, sphere)
 
 
 def test_menu_draws(panels):
