@@ -725,10 +725,9 @@ def build_cage_deform() -> SampleInfo:
     cage_mesh = mesh_from_bmesh("Cage", box_bmesh(size=(3.4, 1.3, 2.9), cuts=(4, 1, 3), center=(0, 0, 1.3)))
     cage = link(bpy.data.objects.new("Cage", cage_mesh))
     cage.display_type = "WIRE"
-    # Invisible to every ray rather than hide_render: a render-hidden cage is left out of the render
-    # depsgraph, so its shape keys are not evaluated there and renders would show the rest pose.
-    for ray in ("camera", "diffuse", "glossy", "transmission", "volume_scatter", "shadow"):
-        setattr(cage, f"visible_{ray}", False)
+    # Hidden in renders as artists do; the deformer's modifier references the cage, so Blender still
+    # evaluates it (shape keys included) in the render depsgraph.
+    cage.hide_render = True
     basis = cage.shape_key_add(name="Basis", from_mix=False)
     rest = np.empty(len(cage_mesh.vertices) * 3)
     basis.data.foreach_get("co", rest)

@@ -129,8 +129,12 @@ def deformer_problems() -> list[str]:
     return problems
 
 
-def render_sample(blend: Path, out_dir: Path, frames: Sequence[int] | None, settings: dict) -> list[Path]:
-    """Open blend afresh, render the frames to out_dir and write out_dir/contact_sheet.png."""
+def render_sample(
+    blend: Path, out_dir: Path, frames: Sequence[int] | None, settings: dict
+) -> tuple[list[Path], list[str]]:
+    """Open blend afresh, render the frames to out_dir and write out_dir/contact_sheet.png.
+
+    Returns the written images (the sheet last) and the deformer problems seen at any frame."""
     import bpy
 
     bpy.ops.wm.open_mainfile(filepath=str(blend), load_ui=False)
@@ -139,9 +143,11 @@ def render_sample(blend: Path, out_dir: Path, frames: Sequence[int] | None, sett
     configure_render(scene, **settings)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
+    problems = []
     for frame in frames:
         scene.frame_set(frame)
         for problem in deformer_problems():
+            problems.append(f"{blend.stem}, frame {frame}: {problem}")
             print(f"  warning, frame {frame}: {problem}")
         path = out_dir / f"frame_{frame:04d}.png"
         scene.render.filepath = str(path)
@@ -151,7 +157,7 @@ def render_sample(blend: Path, out_dir: Path, frames: Sequence[int] | None, sett
         written.append(path)
     sheet = out_dir / "contact_sheet.png"
     save_png(compose_sheet([image_pixels(path) for path in written]), sheet)
-    return [*written, sheet]
+    return [*written, sheet], problems
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
@@ -234,9 +240,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         "threads": args.threads,
     }
     output_dir = args.output_dir.resolve()
+    problems: list[str] = []
     for name in args.samples:
         started = time.perf_counter()
-        paths = render_sample(blend_dir / f"{name}.blend", output_dir / name, args.frames, settings)
+        paths, sample_problems = render_sample(blend_dir / f"{name}.blend", output_dir / name, args.frames, settings)
+        problems += sample_problems
         print(f"{name}: {len(paths) - 1} frames in {time.perf_counter() - started:.1f} s")
         for path in paths:
             print(f"  {path}")
@@ -246,6 +254,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             shutil.copyfile(paths[-1], copy)
             print(f"  {copy} ({copy.stat().st_size // 1024} KB)")
     print(f"contact sheets: {output_dir}/<sample>/contact_sheet.png")
+    if problems:
+        # Images of a deformer that fell back to its rest shape are not a demo: fail loudly.
+        print(f"{len(problems)} deformer problem(s) while rendering:", *problems, sep="\n  ")
+        return 1
     return 0
 
 
