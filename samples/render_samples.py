@@ -243,7 +243,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     problems: list[str] = []
     for name in args.samples:
         started = time.perf_counter()
-        paths, sample_problems = render_sample(blend_dir / f"{name}.blend", output_dir / name, args.frames, settings)
+        blend = blend_dir / f"{name}.blend"
+        paths, sample_problems = render_sample(blend, output_dir / name, args.frames, settings)
         problems += sample_problems
         print(f"{name}: {len(paths) - 1} frames in {time.perf_counter() - started:.1f} s")
         for path in paths:
