@@ -55,7 +55,8 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         row.template_list("AFFINE_UL_deformers", "", obj, "affine_deformers",
                           obj, "affine_deformers_active_index", rows=2)
         col = row.column(align=True)
-        col.operator("object.affine_probe_deformer_add", icon="ADD", text="")
+        col.operator("object.affine_probe_deformer_add", icon="EMPTY_AXIS", text="")
+        col.operator("object.affine_cage_deformer_add", icon="MESH_CUBE", text="")
         index = obj.affine_deformers_active_index
         if not 0 <= index < len(obj.affine_deformers):
             return

@@ -84,7 +84,11 @@ def _draw_panel(panels, obj) -> list:
 def test_panel_draws_in_every_state(bl, panels):
     target = bl.uv_sphere()
     log = _draw_panel(panels, target)
-    assert log == [("list", "affine_deformers"), ("operator", "object.affine_probe_deformer_add")]
+    assert log == [
+        ("list", "affine_deformers"),
+        ("operator", "object.affine_probe_deformer_add"),
+        ("operator", "object.affine_cage_deformer_add"),
+    ]
     probes = [bl.empty("A"), bl.empty("B", (0, 0, 1))]
     deformer = bl.add_probe_deformer(target, probes)
     for mode in ("INVERSE_DISTANCE", "FALLOFF", "VERTEX_GROUPS"):
