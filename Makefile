@@ -46,7 +46,7 @@ test-blender: build
 	$(PY) -m pytest tests/blender
 
 bench: build
-	$(PY) bench/run.py
+	$(PY) bench/run.py --markdown docs/benchmarks.md
 
 lint: venv
 	$(PY) -m ruff check .

@@ -57,6 +57,17 @@ def move_object(ob: bpy.types.Object) -> Callable[[int], None]:
     return move
 
 
+def move_objects(objects: list[bpy.types.Object]) -> Callable[[int], None]:
+    """move(i): give every object of `objects` its own new small translation + rotation."""
+    moves = [move_object(ob) for ob in objects]
+
+    def move(i: int) -> None:
+        for j, mv in enumerate(moves):
+            mv(i * len(moves) + j)
+
+    return move
+
+
 def hooks(target: bpy.types.Object, empties: list[bpy.types.Object], radius: float) -> Rig:
     """One Hook modifier per Empty, Smooth falloff of `radius`, acting on every vertex."""
     t0 = time.perf_counter()

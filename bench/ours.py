@@ -49,6 +49,7 @@ STAGE_POINTS = (
     ("core.cage", "affected_faces", "psi"),  # cage: which faces moved, then their tetrahedra → params
     ("core.cage", "face_motions", "psi"),
     ("core.deform", "deform_points_params", "kernel"),
+    ("core.deform", "deform_points_params_rows", "kernel"),
     ("core.deform", "blend_linear_sparse", "kernel"),
     ("core.deform", "deform_points", "kernel"),
     ("blender.storage", "write_offsets", "write"),

@@ -5,7 +5,9 @@ is stale during renders), form A_i = C_i · C_rest,i⁻¹ in the target's local 
 into blend parameters P_i = ψ(A_i) (`motions_to_params`, the single place for that), read the sparse
 weights from the mesh, and write v' − v with v' = φ(Σ_k w_vk P_idx(v,k)) v (or the linear blend) as the
 offset attribute our Geometry Nodes modifier adds. The result at frame f depends only on the inputs at
-frame f; `_signatures` is a cache of those inputs (not bind data) so unchanged deformers cost nothing.
+frame f; `_signatures` is a cache of those inputs (not bind data) so unchanged deformers cost nothing,
+and `_bound` caches the bind data read from the mesh plus the last result, so an update recomputes
+only the vertices influenced by controls that moved (bit-identical to a full recompute; `_Bound`).
 
 Handlers are @persistent, guarded against re-entrancy, and never let an exception escape: bad input
 becomes the deformer's `status` and zero offsets (the mesh shows its rest shape).
@@ -13,7 +15,9 @@ becomes the deformer's `status` and zero offsets (the mesh shows its rest shape)
 
 from __future__ import annotations
 
+import itertools
 import traceback
+from dataclasses import dataclass
 
 import bpy
 import numpy as np
@@ -33,9 +37,67 @@ from .kinds import KINDS, Motions, channel_references
 LIFT_AXIS_TOL = 3e-3
 LIFT_DAMPING = 1e-3
 
+#: Above this fraction of the vertices, an update recomputes everything (gathering and scattering the
+#: affected rows would cost more than it saves).
+INCREMENTAL_MAX_FRACTION = 0.6
+
 _signatures: dict[tuple[int, str], tuple] = {}
 _errors: dict[tuple[int, str], str] = {}
+_bound: dict[tuple[int, str], _Bound] = {}
+_serial = itertools.count(1)
 _busy = False
+
+
+@dataclass
+class _Bound:
+    """Bind data of one deformer read once per bind generation, plus its last result (a cache: the .blend
+    holds the truth, and every value here is recomputed from it when the key no longer matches).
+
+    key = (mesh session uid, bind generation, vertex count, control count); `rest32` is checked against
+    the mesh on every evaluation (a cheap array compare), so edits of the rest shape (Edit Mode, Sculpt
+    Mode, scripts) are seen without rebinding. `serial` changes whenever the entry is rebuilt.
+    The last result (`state`, `params`, `offsets`) lets an update recompute only the vertices with a
+    non-zero weight on a control whose blend parameters changed: every vertex's result depends only on
+    its own rest position, weights and the parameters of its controls, so this is bit-identical to a
+    full recompute.
+    """
+
+    key: tuple
+    serial: int
+    rest32: np.ndarray  # (N, 3) float32, exactly as stored in the mesh
+    points: np.ndarray  # (N, 3) float64
+    indices: np.ndarray  # (N, K) int32
+    values: np.ndarray  # (N, K) float64, strength not applied
+    scaled: tuple[float, np.ndarray] | None = None  # (strength, values · strength)
+    csr: tuple[np.ndarray, np.ndarray] | None = None  # per control: the rows it influences
+    state: tuple | None = None  # settings `params` and `offsets` were computed with
+    params: np.ndarray | None = None  # (m, 12) blend parameters of the last result
+    offsets: np.ndarray | None = None  # (N, 3) float64 last offsets
+
+    def scaled_values(self, strength: float) -> np.ndarray:
+        if self.scaled is None or self.scaled[0] != strength:
+            self.scaled = (strength, self.values * strength)
+        return self.scaled[1]
+
+    def affected_rows(self, controls: np.ndarray) -> np.ndarray:
+        """Sorted vertices with a non-zero weight on any of `controls`; O(affected) to gather (plus
+        one boolean pass over the vertices), from per-control row lists built once per generation."""
+        if self.csr is None:
+            m = len(self.params) if self.params is not None else int(self.indices.max(initial=-1)) + 1
+            rows, slots = np.nonzero(self.values)
+            cols = self.indices[rows, slots]
+            order = np.argsort(cols, kind="stable")
+            ptr = np.zeros(m + 1, dtype=np.intp)
+            np.cumsum(np.bincount(cols, minlength=m), out=ptr[1:])
+            self.csr = (ptr, rows[order].astype(np.intp))
+        ptr, rows = self.csr
+        mask = np.zeros(len(self.points), dtype=bool)
+        for i in controls:
+            mask[rows[ptr[i] : ptr[i + 1]]] = True
+        return np.flatnonzero(mask)
+
+    def forget_result(self) -> None:
+        self.state = self.params = self.offsets = None
 
 
 def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
@@ -43,11 +105,30 @@ def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
     if obj is None:
         _signatures.clear()
         _errors.clear()
+        _bound.clear()
         cage_kind.forget()
     else:
         _signatures.pop((obj.session_uid, uid), None)
         _errors.pop((obj.session_uid, uid), None)
+        _bound.pop((obj.session_uid, uid), None)
         cage_kind.forget((obj.session_uid, uid))
+
+
+def _bind_data(obj: bpy.types.Object, deformer, n_controls: int) -> _Bound:
+    """The cached bind data of `deformer`, re-read when the bind generation, mesh, vertex or control
+    count changed or the rest positions differ from the cached ones. Raises storage.StorageError."""
+    mesh = obj.data
+    rest = storage.read_positions(mesh)
+    key = (mesh.session_uid, deformer.bind_generation, len(rest), n_controls)
+    cache_key = (obj.session_uid, deformer.uid)
+    bound = _bound.get(cache_key)
+    if bound is not None and bound.key == key and np.array_equal(bound.rest32, rest):
+        return bound
+    _bound.pop(cache_key, None)
+    indices, values = storage.read_weights(mesh, deformer.uid, n_controls)
+    bound = _Bound(key, next(_serial), rest, rest.astype(np.float64), indices, values)
+    _bound[cache_key] = bound
+    return bound
 
 
 def motions_to_params(motions: Motions, deformer) -> np.ndarray:
@@ -128,19 +209,29 @@ def _outer(motions: Motions, deformer) -> np.ndarray | None:
     return aff3.matrices_from_params(strength * params)
 
 
-def _offsets(mesh: bpy.types.Mesh, deformer, motions: Motions, rest: np.ndarray) -> np.ndarray:
-    """v' − v for every rest vertex (N, 3) float64; exactly zero when every control is at rest."""
+def _offsets(deformer, motions: Motions, bound: _Bound) -> np.ndarray:
+    """v' − v for every rest vertex (N, 3) float64; exactly zero when every control is at rest.
+
+    The returned array may be the cache's own (`bound.offsets`): callers must not modify it.
+    """
     outer = _outer(motions, deformer)
+    points = bound.points
     if deformer.strength == 0.0 or len(motions.matrices) == 0 or (np.all(motions.at_rest) and outer is None):
-        return np.zeros(rest.shape, dtype=np.float64)
-    points = rest.astype(np.float64)
+        bound.forget_result()
+        return np.zeros(points.shape, dtype=np.float64)
     if np.all(motions.at_rest):
+        bound.forget_result()
         deformed = points.copy()
+    elif (deformer.blend_mode != "LINEAR" and outer is None
+          and (motions.valid is None or np.all(motions.valid))):
+        return _offsets_affine(deformer, motions, bound)
     else:
-        indices, values = storage.read_weights(mesh, deformer.uid, len(motions.matrices))
+        bound.forget_result()
+        indices, values = bound.indices, bound.values
         if motions.valid is not None and not np.all(motions.valid):
-            values = redistribute(indices, values, motions.valid)
-        values *= deformer.strength
+            values = redistribute(indices, values, motions.valid) * deformer.strength
+        else:
+            values = bound.scaled_values(deformer.strength)
         if deformer.blend_mode == "LINEAR":
             deformed = deform.blend_linear_sparse(points, motions.matrices, indices, values)
         else:
@@ -149,6 +240,34 @@ def _offsets(mesh: bpy.types.Mesh, deformer, motions: Motions, rest: np.ndarray)
     if outer is not None:
         deformed = deformed @ outer[:3, :3].T + outer[:3, 3]
     return deformed - points
+
+
+def _offsets_affine(deformer, motions: Motions, bound: _Bound) -> np.ndarray:
+    """`_offsets` for the plain affine blend, recomputing only the vertices whose result can differ
+    from the cached one: those with a non-zero weight on a control whose parameters changed bitwise.
+    The others keep their cached offsets, which equal a recomputation bit for bit (a vertex's result
+    depends only on its rest position, its weights and its controls' parameters; the kernel's rows
+    are independent of how vertices are grouped). Controls at rest have zero parameters, so vertices
+    that only they influence keep offset 0, exactly what φ(0) gives."""
+    params = motions_to_params(motions, deformer)
+    values = bound.scaled_values(deformer.strength)
+    points = bound.points
+    state = (deformer.strength, deformer.branch_rule)
+    offsets = bound.offsets
+    if offsets is not None and bound.state == state and bound.params.shape == params.shape:
+        changed = np.flatnonzero((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1))
+        rows = bound.affected_rows(changed)
+        if len(rows) <= INCREMENTAL_MAX_FRACTION * len(points):
+            if len(rows):
+                deform.deform_points_params_rows(points, params, bound.indices, values, rows, offsets,
+                                                 offsets=True)
+            bound.params = params
+            return offsets
+    bound.forget_result()
+    offsets = deform.deform_points_params(points, params, bound.indices, values)
+    offsets -= points
+    bound.state, bound.params, bound.offsets = state, params, offsets
+    return offsets
 
 
 def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> str:
@@ -162,10 +281,15 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         _set_status(deformer, error)
         return error
     mesh = obj.data
-    rest = storage.read_positions(mesh)
+    bound = None
+    if not error:
+        try:
+            bound = _bind_data(obj, deformer, len(motions.matrices))
+        except storage.StorageError as exc:
+            error = str(exc)
     signature = (
-        mesh.session_uid, len(rest), hash(rest.tobytes()), error, deformer.strength, deformer.blend_mode,
-        deformer.branch_rule, deformer.bind_generation,
+        mesh.session_uid, None if bound is None else bound.serial, error, deformer.strength,
+        deformer.blend_mode, deformer.branch_rule, deformer.bind_generation,
         None if motions is None else (motions.matrices.tobytes(), motions.at_rest.tobytes(),
                                       motions.current_rotations.tobytes(), tuple(motions.rotation_modes),
                                       motions.channel_frames.tobytes(),
@@ -180,15 +304,17 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     offsets = None
     if not error:
         try:
-            offsets = _offsets(mesh, deformer, motions, rest)
+            offsets = _offsets(deformer, motions, bound)
         except storage.StorageError as exc:
             error = str(exc)
         except ValueError as exc:  # core refuses to blend (e.g. a motion too degenerate for its log)
             error = f"The controls' motions cannot be blended ({exc}): the mesh shows its rest shape"
-    if not error and not np.all(np.isfinite(offsets)):
-        error = "The deformation is not finite: the mesh shows its rest shape"
+        if not error and not np.all(np.isfinite(offsets)):
+            error = "The deformation is not finite: the mesh shows its rest shape"
+        if error:
+            bound.forget_result()  # start the next update from a full recompute
     if error:
-        offsets = np.zeros(rest.shape)
+        offsets = np.zeros((len(mesh.vertices), 3))
     if mesh.library is None:
         storage.write_offsets(mesh, deformer.uid, offsets)
     status = error or "; ".join(m for m in (motions.warning if motions else "", deformer.bind_warning) if m)

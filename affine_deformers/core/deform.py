@@ -28,8 +28,10 @@ Accuracy: ≤ 2e-15 relative to ‖M‖‖v‖ + ‖t‖ against aff3.phi on an 
 Throughput on the shared 2-core development box (AMD EPYC, numpy 1.26, 130k vertices, 8 controls,
 top-K 4, float64, `bench/core_kernel.py`), one thread, weights as in the previous call (every frame
 after the first two): 8.3–9.6 ms per call, 13.5–15.5 M vertices/s; new weights every call
-11.5–13.3 ms (10–11 M/s); dense (N, 8) weights 8.3–9.5 ms. A second thread gains 10–25 % here
-(the other core is rarely idle).
+11.5–13.3 ms (10–11 M/s); dense (N, 8) weights 8.3–9.5 ms. The default is one thread per core
+(the frame handler blocks Blender's main thread anyway), but on this box a second thread gains
+0–5 % (8.8 vs 9.0 ms median): the ufuncs are short (~15 µs per chunk row) and the threads spend
+their gains re-acquiring the GIL between them. Chunking and threads never change the values.
 
 Where the time goes (per call, one thread): the map φ(p)v ≈ 7.2 ms (eigen-solution ≈ 2 ms,
 exp(Y)v ≈ 2 ms, θ-coefficients ≈ 1 ms, final assembly with the output transpose ≈ 1.3 ms, input
@@ -60,6 +62,7 @@ __all__ = [
     "blend_params",
     "deform_points",
     "deform_points_params",
+    "deform_points_params_rows",
 ]
 
 #: Vertices per chunk: 40-odd scratch rows of this length stay in a core's L2 cache.
@@ -190,12 +193,18 @@ class DeformKernel:
         indices: ArrayLike,
         values: ArrayLike,
         out: FloatArray | None = None,
+        *,
+        cache_weights: bool = True,
     ) -> FloatArray:
         """Sparse hot path; see `deform_points_params`."""
         pts = _check_points(points)
         table = _check_table(params, 12, "params")
         out = _check_out(out, pts)
-        idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], table.shape[0])
+        if cache_weights:
+            idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], table.shape[0])
+        else:
+            idx, val = _check_indices(indices, values, pts.shape[0], table.shape[0])
+            dense = None
         if not table.any():
             # Every control at rest: the exact input, so "probes at rest ⇒ mesh unchanged" holds bit
             # for bit (the general path gives the same values but may turn −0.0 into +0.0).
@@ -213,6 +222,61 @@ class DeformKernel:
 
         self._run(pts.shape[0], work)
         return out
+
+    def deform_rows(
+        self,
+        points: ArrayLike,
+        params: ArrayLike,
+        indices: ArrayLike,
+        values: ArrayLike,
+        rows: ArrayLike,
+        out: FloatArray,
+        *,
+        offsets: bool = False,
+    ) -> FloatArray:
+        """Only the listed rows; see `deform_points_params_rows`."""
+        pts = _check_points(points)
+        table = _check_table(params, 12, "params")
+        if not isinstance(out, np.ndarray) or out.shape != pts.shape or out.dtype != np.float64:
+            raise ValueError(f"out must be a float64 array of shape {pts.shape}")
+        sel = np.asarray(rows)
+        if sel.ndim != 1 or not np.issubdtype(sel.dtype, np.integer):
+            raise ValueError(f"rows must be a 1-D integer array, got {sel.dtype} {sel.shape}")
+        if sel.size and (int(sel.min()) < 0 or int(sel.max()) >= pts.shape[0]):
+            raise ValueError(f"rows must lie in [0, {pts.shape[0]})")
+        idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], table.shape[0])
+        table_t = np.ascontiguousarray(table.T)
+        m = table.shape[0]
+
+        def work(kernel: DeformKernel, lo: int, hi: int) -> None:
+            for a in range(lo, hi, kernel.chunk_size):
+                b = min(a + kernel.chunk_size, hi)
+                r = sel[a:b]
+                n = b - a
+                P = kernel._param_rows(n)
+                if dense is not None:
+                    # The same product as the full call's, on gathered columns: same values per row.
+                    W = kernel._dense_block(m, n)
+                    np.take(dense, r, axis=1, out=W)
+                    np.matmul(table_t, W, out=P)
+                else:
+                    kernel._blend_sparse(table_t, idx[r], val[r], P)
+                p = pts[r]
+                res = np.empty_like(p)
+                kernel._apply_chunk(p, P, res)
+                if offsets:
+                    res -= p
+                out[r] = res
+
+        self._run(sel.shape[0], work)
+        return out
+
+    def _dense_block(self, m: int, n: int) -> FloatArray:
+        """An (m, n) view of the scratch used for per-chunk dense weights (padded row stride)."""
+        stride = self._rows.stride
+        if self._dense.size < m * stride:
+            self._dense = np.empty(m * stride)
+        return self._dense[: m * stride].reshape(m, stride)[:, :n]
 
     def deform_dense(self, points: ArrayLike, params: ArrayLike, weights: ArrayLike) -> FloatArray:
         """v' = φ(Σ_i weights[v, i] params[i]) v with dense weights (N, m)."""
@@ -710,12 +774,13 @@ THREADS_ENV = "AFFINE_DEFORMERS_THREADS"
 
 
 def default_threads() -> int:
-    """Threads a new kernel uses: $AFFINE_DEFORMERS_THREADS, else one core fewer than the machine has
-    (Blender keeps working on the others), between 1 and MAX_DEFAULT_THREADS."""
+    """Threads a new kernel uses: $AFFINE_DEFORMERS_THREADS, else every core the machine has, at most
+    MAX_DEFAULT_THREADS. The frame handler blocks Blender's main thread while the kernel runs, so
+    leaving a core idle for Blender gains nothing."""
     env = os.environ.get(THREADS_ENV, "").strip()
     if env.isdigit() and int(env) > 0:
         return int(env)
-    return max(1, min((os.cpu_count() or 1) - 1, MAX_DEFAULT_THREADS))
+    return max(1, min(os.cpu_count() or 1, MAX_DEFAULT_THREADS))
 
 
 def _pool() -> ThreadPoolExecutor:
@@ -741,14 +806,39 @@ def deform_points_params(
     indices: ArrayLike,
     values: ArrayLike,
     out: FloatArray | None = None,
+    *,
+    cache_weights: bool = True,
 ) -> FloatArray:
     """Sparse hot path: v' = φ(p_v) v with p_v = Σ_k values[v, k] · params[indices[v, k]].
 
     points (N, 3), params (m, 12) (layout of docs/DEVELOPING.md), indices (N, K) integer in [0, m),
     values (N, K) (unused slots: value 0, any valid index). Returns (N, 3) float64 (`out` if given;
-    it may be `points` itself). All-zero params return the input bit for bit.
+    it may be `points` itself). All-zero params return the input bit for bit. Each row's result
+    depends only on that row (not on N, chunking or threads), so a subset of rows gives bit-identical
+    values. cache_weights=False skips the weights cache (for one-off subsets that would evict the
+    weights that come back every frame).
     """
-    return _kernel().deform(points, params, indices, values, out)
+    return _kernel().deform(points, params, indices, values, out, cache_weights=cache_weights)
+
+
+def deform_points_params_rows(
+    points: ArrayLike,
+    params: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    rows: ArrayLike,
+    out: FloatArray,
+    *,
+    offsets: bool = False,
+) -> FloatArray:
+    """`deform_points_params` for the vertices `rows` only: out[v] = φ(p_v) points[v] (minus points[v]
+    when `offsets`) for v in rows; other rows of `out` (float64, (N, 3)) are left as they are.
+
+    Takes the full (N, ...) arrays so the weights cache applies. Each written row is bit-identical to
+    the same row of a full call, so an incremental update (recompute the vertices a changed control
+    influences, keep the rest) equals a full recompute exactly.
+    """
+    return _kernel().deform_rows(points, params, indices, values, rows, out, offsets=offsets)
 
 
 def blend_params(params: ArrayLike, indices: ArrayLike, values: ArrayLike) -> FloatArray:

@@ -353,3 +353,59 @@ def test_default_threads(monkeypatch: pytest.MonkeyPatch) -> None:
     assert deform.default_threads() == 3
     monkeypatch.setenv(deform.THREADS_ENV, "zero")
     assert 1 <= deform.default_threads() <= deform.MAX_DEFAULT_THREADS
+
+
+def test_default_threads_use_every_core(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(deform.THREADS_ENV, raising=False)
+    monkeypatch.setattr(deform.os, "cpu_count", lambda: 2)
+    assert deform.default_threads() == 2
+    monkeypatch.setattr(deform.os, "cpu_count", lambda: 64)
+    assert deform.default_threads() == deform.MAX_DEFAULT_THREADS
+    monkeypatch.setattr(deform.os, "cpu_count", lambda: None)
+    assert deform.default_threads() == 1
+
+
+@pytest.mark.parametrize("m", [8, 60])  # dense-blend and gather paths
+def test_any_subset_of_rows_is_bit_identical_to_the_full_call(m: int) -> None:
+    """The Blender layer recomputes only the vertices a changed control influences and keeps the
+    others: that is exact only if a row's result does not depend on the other rows, the thread count
+    or whether the weights came from the cache."""
+    rng = np.random.default_rng(23)
+    n = 3 * deform.DEFAULT_CHUNK + 77
+    pts = rng.normal(scale=3.0, size=(n, 3))
+    params = aff3.params_from_matrices(random_affine(rng, m))
+    params[1] = 0.0  # a control at rest
+    idx, val = top_k_dense(rng.random((n, m)) ** 3, 4)
+    one = deform.DeformKernel(threads=1)
+    full = one.deform(pts, params, idx, val).copy()  # first sight: scattered per chunk
+    assert np.array_equal(one.deform(pts, params, idx, val), full)  # cached dense weights
+    assert np.array_equal(deform.DeformKernel(threads=3).deform(pts, params, idx, val), full)
+    for fraction in (1e-4, 0.03, 0.5, 0.97):
+        rows = np.flatnonzero(rng.random(n) < fraction)
+        sub = deform.deform_points_params(pts[rows], params, idx[rows], val[rows], cache_weights=False)
+        assert np.array_equal(sub, full[rows]), fraction
+    # cache_weights=False leaves the kernel's cache alone
+    kernel = deform.DeformKernel(threads=1)
+    kernel.deform(pts[:50], params, idx[:50], val[:50], cache_weights=False)
+    assert kernel._weights_cache == []
+
+
+@pytest.mark.parametrize("m", [8, 60])
+def test_rows_entry_point_writes_exactly_the_full_rows(m: int) -> None:
+    rng = np.random.default_rng(29)
+    n = 2 * deform.DEFAULT_CHUNK + 5
+    pts = rng.normal(scale=2.0, size=(n, 3))
+    params = aff3.params_from_matrices(random_affine(rng, m))
+    idx, val = top_k_dense(rng.random((n, m)) ** 3, 4)
+    full = deform.deform_points_params(pts, params, idx, val).copy()
+    deform.deform_points_params(pts, params, idx, val)  # now the dense weights are cached (m = 8)
+    rows = np.flatnonzero(rng.random(n) < 0.3)
+    out = np.full((n, 3), 7.0)
+    deform.deform_points_params_rows(pts, params, idx, val, rows, out)
+    assert np.array_equal(out[rows], full[rows])
+    untouched = np.setdiff1d(np.arange(n), rows)
+    assert np.all(out[untouched] == 7.0)
+    deform.deform_points_params_rows(pts, params, idx, val, rows, out, offsets=True)
+    assert np.array_equal(out[rows], full[rows] - pts[rows])
+    with pytest.raises(ValueError, match="rows must lie"):
+        deform.deform_points_params_rows(pts, params, idx, val, np.array([n]), out)
