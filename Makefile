@@ -32,8 +32,9 @@ build: venv
 demo: build
 	$(PY) samples/render_samples.py --output-dir out
 
-samples: build
-	$(PY) samples/build_samples.py
+# The committed samples are saved by Blender 4.2 LTS: files saved by 5.0 do not open in 4.2.
+samples: build venv-lts
+	$(PY_LTS) samples/build_samples.py
 
 test: build venv-lts
 	$(PY) -m ruff check .

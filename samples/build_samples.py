@@ -1,6 +1,8 @@
 """Rebuild every sample scene (.blend) from code, deterministically.
 
-Run with the project venv: `.venv/bin/python samples/build_samples.py [--samples NAME...]`.
+Run with the Blender 4.2 LTS venv, so the files open in 4.2 and newer (`make samples`, or
+`.venv42/bin/python samples/build_samples.py [--samples NAME...]`); `.venv/bin/python` works too but
+saves files that only Blender 5.0+ opens.
 
 Each sample has a camera, a light, simple materials, keyframed controls and a frame range, and is
 bound to the Affine Deformers extension, so it plays in Blender with no further setup:

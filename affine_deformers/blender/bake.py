@@ -34,6 +34,7 @@ import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
 from . import binding, evaluate, nodes, relations, storage
+from .operators import active_target
 from .pc2 import PC2Error, PC2Writer
 
 MODES = [
@@ -258,13 +259,7 @@ class _Capture:
         mesh = self.object.evaluated_get(depsgraph).data
         if len(mesh.vertices) != self.count:
             raise BakeError(f"The evaluated mesh has {len(mesh.vertices)} vertices, expected {self.count}")
-        co = np.empty(self.count * 3, dtype=np.float32)
-        attr = mesh.attributes.get("position")
-        if attr is not None and attr.data_type == "FLOAT_VECTOR" and attr.domain == "POINT":
-            attr.data.foreach_get("vector", co)
-        else:
-            mesh.vertices.foreach_get("co", co)
-        return co.reshape(-1, 3)
+        return storage.read_positions(mesh)
 
     def remove(self) -> None:
         if self.object is not None:
@@ -369,9 +364,12 @@ class BakeJob:
         self.scene.frame_set(frame)
         obj = self.object
         _index, deformer = _find(obj, self.uid)
-        status = evaluate.evaluate_deformer(obj, deformer, context.evaluated_depsgraph_get())
-        if status and status != deformer.bind_warning:
-            raise BakeError(f"Frame {frame}: {status}")
+        evaluate.evaluate_deformer(obj, deformer, context.evaluated_depsgraph_get())
+        # Only errors stop the bake; warnings (a missing vertex group, collapsed cage faces) still
+        # deform, and the bake captures what the live deformer shows.
+        error = evaluate.blocking_error(obj, deformer)
+        if error:
+            raise BakeError(f"Frame {frame}: {error}")
         positions = self._capture.positions(context.evaluated_depsgraph_get())
         if not np.all(np.isfinite(positions)):
             raise BakeError(f"Frame {frame}: the deformed positions are not finite")
@@ -425,6 +423,8 @@ class BakeJob:
         live_flags = ((previous["show_viewport"], previous["show_render"]) if previous is not None
                       else (deformer.show_viewport, deformer.show_render))
         deformer.show_viewport = deformer.show_render = False
+        if STATE_KEY in deformer:  # a re-bake: never assign over an ID property of another shape
+            del deformer[STATE_KEY]
         deformer[STATE_KEY] = {
             "mode": self.mode, "frame_start": self.frames[0], "frame_end": self.frames[-1],
             "filepath": self.filepath, "modifier": created_mod.name if created_mod is not None else "",
@@ -512,10 +512,6 @@ def unbake(obj: bpy.types.Object, index: int) -> str:
 # ------------------------------------------------------------------------------------------ operators
 
 
-def _target(context: bpy.types.Context) -> bpy.types.Object | None:
-    return context.active_object if context.active_object is not None else context.object
-
-
 class AFFINE_OT_deformer_bake(bpy.types.Operator):
     """Bake the deformer over a frame range into a PC2 cache (Mesh Cache modifier) or shape keys, so
     renders and exports work without the add-on. The live deformer is muted, not deleted (Esc cancels)"""
@@ -547,7 +543,7 @@ class AFFINE_OT_deformer_bake(bpy.types.Operator):
             if not self.properties.is_property_set("frame_end"):
                 self.frame_end = scene.frame_end
         try:
-            job = BakeJob(context, _target(context), self.index, self.mode, self.frame_start,
+            job = BakeJob(context, active_target(context), self.index, self.mode, self.frame_start,
                           self.frame_end, self.filepath)
         except BakeError as exc:
             self.report({"ERROR"}, str(exc))
@@ -684,7 +680,7 @@ class AFFINE_OT_deformer_unbake(bpy.types.Operator):
     index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        obj = _target(context)
+        obj = active_target(context)
         try:
             summary = unbake(obj, self.index)
         except BakeError as exc:

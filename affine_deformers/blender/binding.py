@@ -58,8 +58,8 @@ def _kind(deformer):
 
 
 def _new_uid(obj: bpy.types.Object) -> str:
-    """A short id for attribute names, derived from the object's name so rebuilt files are
-    byte-stable; the counter skips ids already used by this object or present on its mesh (a mesh
+    """A short id for attribute names, derived from the object's name so rebuilt files keep
+    the same attribute names; the counter skips ids already used by this object or present on its mesh (a mesh
     shared with another object may carry that object's ids)."""
     used = {d.uid for d in obj.affine_deformers}
     names = {a.name for a in obj.data.attributes} if obj.type == "MESH" else set()

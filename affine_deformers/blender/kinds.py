@@ -234,10 +234,11 @@ class ProbeKind:
         except np.linalg.LinAlgError:
             raise BindError(f"'{obj.name}' has a zero scale: fix its transform before binding") from None
         for item, rest in zip(items, rests, strict=True):
+            evaluated = item.object.evaluated_get(depsgraph)  # the channels as evaluated, like the matrix
             item.rest_matrix = rest.ravel().tolist()
             item.name = item.object.name
-            item.rest_rotation_mode = item.object.rotation_mode
-            item.rest_rotation = rotation_channels(item.object)
+            item.rest_rotation_mode = evaluated.rotation_mode
+            item.rest_rotation = rotation_channels(evaluated)
 
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:

@@ -16,7 +16,8 @@ from .kinds import BindError
 UNDOABLE = {"REGISTER", "UNDO"}
 
 
-def _target(context: bpy.types.Context) -> bpy.types.Object | None:
+def active_target(context: bpy.types.Context) -> bpy.types.Object | None:
+    """The object operators act on: the active object, else the context object."""
     return context.active_object if context.active_object is not None else context.object
 
 
@@ -46,7 +47,7 @@ def _lock_render_interface(context: bpy.types.Context) -> None:
 
 def _deformer(op: bpy.types.Operator, context: bpy.types.Context):
     """(object, deformer) addressed by op.index on the active object, or (None, None) after a report."""
-    obj = _target(context)
+    obj = active_target(context)
     problem = binding.target_problem(obj)
     if problem:
         op.report({"ERROR"}, problem)
@@ -72,7 +73,7 @@ class AFFINE_OT_probe_deformer_add(bpy.types.Operator):
     bl_options = UNDOABLE
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        target = _target(context)
+        target = active_target(context)
         problem = binding.target_problem(target)
         if problem:
             self.report({"ERROR"}, problem)
@@ -112,7 +113,7 @@ class AFFINE_OT_cage_deformer_add(bpy.types.Operator):
     bl_options = UNDOABLE
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        target = _target(context)
+        target = active_target(context)
         problem = binding.target_problem(target)
         if problem:
             self.report({"ERROR"}, problem)
@@ -182,7 +183,7 @@ class AFFINE_OT_deformer_remove(bpy.types.Operator):
     index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        obj = _target(context)
+        obj = active_target(context)
         if obj is None or not 0 <= self.index < len(obj.affine_deformers):
             self.report({"ERROR"}, f"No affine deformer #{self.index} on the active object")
             return {"CANCELLED"}

@@ -602,14 +602,7 @@ def face_motions(
     as in unwrap.se3_log_lifted), otherwise onto the branch of the face's first corner, so corners
     near a half turn do not average to zero.
     """
-    rest = _check_points(rest_points, topology, "rest_points")
-    cur = _check_points(current_points, topology, "current_points")
-    if rest.shape != cur.shape:
-        raise ValueError(
-            f"rest and current cage differ in vertex count: {rest.shape[0]} vs {cur.shape[0]}"
-        )
-    if apex not in APEX_MODES:
-        raise ValueError(f"apex must be one of {', '.join(APEX_MODES)}, got {apex!r}")
+    rest, cur = _check_pose_pair(rest_points, current_points, topology, apex)
     F = topology.n_faces
     triples, face, _ = topology.corner_triples()
     usable, weight = _usable_rest_triples(rest, topology)
@@ -662,6 +655,21 @@ def face_motions(
     return FaceMotions(params=params, valid=valid, messages=tuple(messages))
 
 
+def _check_pose_pair(
+    rest_points: np.ndarray, current_points: np.ndarray, topology: CageTopology, apex: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """Checked float64 (rest, current) cage vertices of equal shape; ValueError on a bad apex mode."""
+    rest = _check_points(rest_points, topology, "rest_points")
+    cur = _check_points(current_points, topology, "current_points")
+    if rest.shape != cur.shape:
+        raise ValueError(
+            f"rest and current cage differ in vertex count: {rest.shape[0]} vs {cur.shape[0]}"
+        )
+    if apex not in APEX_MODES:
+        raise ValueError(f"apex must be one of {', '.join(APEX_MODES)}, got {apex!r}")
+    return rest, cur
+
+
 def affected_faces(
     rest_points: np.ndarray,
     current_points: np.ndarray,
@@ -673,14 +681,7 @@ def affected_faces(
     'NEIGHBOURS' apex) a stencil vertex of one of its corners is not bitwise at rest (NaN counts as
     moved). Every other face gets params exactly 0 from `face_motions` (unless w_ref lifts them to
     another turn of the identity), so a caller may skip it."""
-    rest = _check_points(rest_points, topology, "rest_points")
-    cur = _check_points(current_points, topology, "current_points")
-    if rest.shape != cur.shape:
-        raise ValueError(
-            f"rest and current cage differ in vertex count: {rest.shape[0]} vs {cur.shape[0]}"
-        )
-    if apex not in APEX_MODES:
-        raise ValueError(f"apex must be one of {', '.join(APEX_MODES)}, got {apex!r}")
+    rest, cur = _check_pose_pair(rest_points, current_points, topology, apex)
     moved = np.any(cur != rest, axis=1)
     triples, face, _ = topology.corner_triples()
     corner = moved[triples].any(axis=1)

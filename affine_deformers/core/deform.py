@@ -430,22 +430,9 @@ class DeformKernel:
         m = table_t.shape[1]
         n, K = idx.shape
         if m <= DENSE_BLEND_MAX_CONTROLS:
-            stride = self._rows.stride
-            if self._dense.size < m * stride:
-                self._dense = np.empty(m * stride)
-            flat = self._dense[: m * stride]
-            dense = flat.reshape(m, stride)[:, :n]
+            dense = self._dense_block(m, n)
             dense.fill(0.0)
-            cols = self._arange[:n]
-            for k in range(K):
-                pos = idx[:, k].astype(np.intp) * stride
-                pos += cols
-                if k == 0:
-                    flat[pos] = val[:, 0]
-                else:
-                    # Each k hits every column once, so `+=` is exact even when a vertex lists a
-                    # control twice (in different slots).
-                    flat[pos] += val[:, k]
+            _scatter_weights(self._dense, self._rows.stride, self._arange[:n], idx, val)
             np.matmul(table_t, dense, out=P)
         else:
             gathered = np.empty_like(P)
@@ -695,12 +682,18 @@ def _exact_rotation_coeffs(
 
 def _dense_weights(idx: IntArray, val: FloatArray, m: int) -> FloatArray:
     """Sparse (N, K) weights as a dense (m, N) matrix."""
-    N, K = idx.shape
+    N = idx.shape[0]
     dense = np.zeros((m, N))
-    flat = dense.reshape(-1)
-    cols = np.arange(N, dtype=np.intp)
-    for k in range(K):
-        pos = idx[:, k].astype(np.intp) * N
+    _scatter_weights(dense.reshape(-1), N, np.arange(N, dtype=np.intp), idx, val)
+    return dense
+
+
+def _scatter_weights(flat: FloatArray, stride: int, cols: NDArray[np.intp], idx: IntArray,
+                     val: FloatArray) -> None:
+    """flat[idx[v, k]·stride + cols[v]] += val[v, k] for every slot k: the sparse (n, K) weights as the
+    columns `cols` of a zeroed dense (m, stride) row-major matrix."""
+    for k in range(idx.shape[1]):
+        pos = idx[:, k].astype(np.intp) * stride
         pos += cols
         if k == 0:
             flat[pos] = val[:, 0]
@@ -708,7 +701,6 @@ def _dense_weights(idx: IntArray, val: FloatArray, m: int) -> FloatArray:
             # Each k hits every column once, so `+=` is exact even when a vertex lists a control
             # twice (in different slots).
             flat[pos] += val[:, k]
-    return dense
 
 
 # ----------------------------------------------------------------------------------------------

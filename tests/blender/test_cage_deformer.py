@@ -536,6 +536,26 @@ def test_collapsed_face_is_skipped_and_reported(bl, installed, core_cage):
     assert np.array_equal(bl.evaluated_positions(target), rest) and deformer.status == ""
 
 
+def test_collapsed_face_warning_does_not_stop_a_bake(bl, installed):
+    """A collapsed face is a warning (the deformation is still shown), not an error: the bake captures
+    the shape the live deformer shows at every frame, as it does without the warning."""
+    target = bl.grid_cube(cuts=5, size=1.2)
+    cage = cage_from_polygons("Octa", *OCTAHEDRON)
+    deformer = add_cage_deformer(target, cage)
+    collapsed = cage_points(cage)
+    collapsed[4] = (0.8, 0.8, 0.0)
+    set_cage_points(cage, collapsed)
+    live = bl.evaluated_positions(target).copy()
+    assert deformer.status.startswith("1 cage face(s) collapsed")
+    frame = bpy.context.scene.frame_current
+    assert bl.run_op(bpy.ops.object.affine_deformer_bake, target, mode="SHAPE_KEYS", frame_start=frame,
+                     frame_end=frame) == {"FINISHED"}
+    key = target.data.shape_keys.key_blocks[-1]
+    baked = np.empty(len(key.data) * 3, dtype=np.float32)
+    key.data.foreach_get("co", baked)
+    assert np.array_equal(baked.reshape(-1, 3), live)
+
+
 def test_non_finite_cage_vertex_is_contained(bl):
     target = bl.grid_cube(cuts=5, size=1.2)
     cage = cage_from_polygons("Octa", *OCTAHEDRON)
