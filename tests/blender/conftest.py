@@ -191,6 +191,30 @@ def run_blender(script: str, python: str | None = None, env_extra: dict | None =
     return proc
 
 
+def reopened_positions(path: Path, object_name: str, frames, out: Path) -> dict:
+    """Open `path` in a fresh bpy process and return the evaluated positions of `object_name` right
+    after opening ("opened") and after frame_set(f) for each frame (str(f)), plus its first
+    deformer's status ("status")."""
+    run_blender(f"""
+        import numpy as np
+        enable_addon()
+        bpy.ops.wm.open_mainfile(filepath={str(path)!r}, load_ui=False)
+        target = bpy.data.objects[{object_name!r}]
+        def positions():
+            mesh = target.evaluated_get(bpy.context.evaluated_depsgraph_get()).data
+            co = np.empty(len(mesh.vertices) * 3, np.float32)
+            mesh.vertices.foreach_get("co", co)
+            return co.reshape(-1, 3)
+        result = {{"opened": positions()}}
+        for frame in {list(frames)!r}:
+            bpy.context.scene.frame_set(frame)
+            result[str(frame)] = positions()
+        result["status"] = np.array(target.affine_deformers[0].status)
+        np.savez({str(out)!r}, **result)
+    """)
+    return dict(np.load(out))
+
+
 @pytest.fixture
 def bl() -> SimpleNamespace:
     """Helper functions for driving Blender in tests."""
@@ -198,4 +222,5 @@ def bl() -> SimpleNamespace:
         uv_sphere=uv_sphere, grid_cube=grid_cube, empty=empty, add_probe_deformer=add_probe_deformer,
         run_op=run_op, evaluated_positions=evaluated_positions, rest_positions=rest_positions,
         dense_weights=dense_weights, local_motion=local_motion, run_blender=run_blender,
+        reopened_positions=reopened_positions,
     )

@@ -430,25 +430,7 @@ def test_animated_cage_survives_save_and_reopen_in_a_fresh_process(bl, tmp_path)
     bpy.context.scene.frame_set(10)
     path = tmp_path / "cage.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path))
-    out = tmp_path / "positions.npz"
-    bl.run_blender(f"""
-        import numpy as np
-        enable_addon()
-        bpy.ops.wm.open_mainfile(filepath={str(path)!r}, load_ui=False)
-        target = bpy.data.objects["Cube"]
-        def positions():
-            mesh = target.evaluated_get(bpy.context.evaluated_depsgraph_get()).data
-            co = np.empty(len(mesh.vertices) * 3, np.float32)
-            mesh.vertices.foreach_get("co", co)
-            return co.reshape(-1, 3)
-        result = {{"opened": positions()}}
-        for frame in (20, 1, 10):
-            bpy.context.scene.frame_set(frame)
-            result[str(frame)] = positions()
-        result["status"] = np.array(target.affine_deformers[0].status)
-        np.savez({str(out)!r}, **result)
-    """)
-    got = np.load(out)
+    got = bl.reopened_positions(path, "Cube", (20, 1, 10), tmp_path / "positions.npz")
     assert str(got["status"]) == ""
     assert np.array_equal(got["opened"], expected[10]), "offsets saved in the .blend"
     for frame in FRAMES:
