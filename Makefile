@@ -39,6 +39,8 @@ samples: build venv-lts
 test: build venv-lts
 	$(PY) -m ruff check .
 	AFFINE_LTS_PYTHON=$(abspath $(PY_LTS)) $(PY) -m pytest tests
+	@echo "--- the Blender suite again on Blender 4.2 LTS ---"
+	$(PY_LTS) -m pytest tests/blender -q -p no:cacheprovider
 
 test-core: venv
 	$(PY) -m pytest tests/core

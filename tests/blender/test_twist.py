@@ -74,8 +74,11 @@ def key_linear_spin(probe, degrees: float = 720.0) -> None:
         probe.rotation_euler.z = angle
         probe.keyframe_insert("rotation_euler", index=2, frame=frame)
     animation = probe.animation_data
-    channelbag = anim_utils.action_get_channelbag_for_slot(animation.action, animation.action_slot)
-    for fcurve in channelbag.fcurves:
+    if hasattr(animation.action, "fcurves"):  # Blender < 4.4: legacy actions
+        fcurves = animation.action.fcurves
+    else:
+        fcurves = anim_utils.action_get_channelbag_for_slot(animation.action, animation.action_slot).fcurves
+    for fcurve in fcurves:
         for point in fcurve.keyframe_points:
             point.interpolation = "LINEAR"
 
