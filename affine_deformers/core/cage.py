@@ -60,13 +60,15 @@ import contextlib
 import hashlib
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 import numpy as np
 
 from .aff3 import params_from_matrices
+from .deform import default_threads
 from .unwrap import lift_params
 from .weights import normalize, top_k
 
@@ -86,8 +88,16 @@ HALF_SPACE_TOL = 1e-9
 # dominant weight from the faces it touches instead of 1/0.
 DISTANCE_FLOOR = 1e-6
 
-# Elements per (vertices × fan triangles) work array; a chunk's rows are split to stay below it.
+# Elements per (corners × vertices) work array when building apex stencils.
 CHUNK_ELEMENTS = 1 << 17
+
+# Elements per work array of cage_weights ((chunks × faces) in its first pass, (chunk points ×
+# candidate faces) in its second): bounds memory and keeps the arrays in cache.
+BATCH_ELEMENTS = 1 << 17
+
+# Slack on cage_weights' pruning bounds, relative to the cage size. It covers their rounding (dot
+# products of coordinates of the order of the cage size, some expanded), never the geometry.
+BOUND_SLACK = 1e-6
 
 _MAX_LISTED = 10
 
@@ -738,10 +748,6 @@ def _triangle_table(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> dict[str, np
     }
 
 
-def _table_subset(table: dict[str, np.ndarray], idx: np.ndarray) -> dict[str, np.ndarray]:
-    return {key: value[idx] for key, value in table.items()}
-
-
 def _distance_sq_block(p: np.ndarray, tab: dict[str, np.ndarray]) -> np.ndarray:
     """Exact squared distances (C, T) from points p (C, 3) to triangles (a, a + ab, a + ac).
 
@@ -792,18 +798,69 @@ def point_triangle_distance_sq(
     return _distance_sq_block(np.asarray(points, dtype=np.float64).reshape(-1, 3) - origin, table)
 
 
+# Columns of the stacked triangle table that `_pair_distance_sq` gathers per (point, triangle) pair.
+_PAIR_COLUMNS = ("a", "ab", "ac", "n", "abab", "acac", "abac", "bcbc", "inv_abab", "inv_acac",
+                 "inv_bcbc", "cv1", "cv2", "cw1", "cw2", "v0", "inv_nn")
+
+
+def _stack_table(table: dict[str, np.ndarray]) -> np.ndarray:
+    """(25, T): the `_PAIR_COLUMNS` of a triangle table as rows, so one fancy index gathers a pair's
+    constants as contiguous rows."""
+    return np.concatenate([np.atleast_2d(table[key].T) for key in _PAIR_COLUMNS], axis=0)
+
+
+def _pair_distance_sq(p: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Exact squared distance (P,) from each point p (P, 3) to its triangle, whose `_stack_table`
+    column is `rows` (25, P): the regions of `_distance_sq_block`, with every dot product taken on
+    ap = p − a directly (no expanded |p|² − 2 p·a + |a|², which cancels near the triangle)."""
+    ap = [p[:, k] - rows[k] for k in range(3)]
+    d1 = ap[0] * rows[3] + ap[1] * rows[4] + ap[2] * rows[5]  # ab·ap
+    d2 = ap[0] * rows[6] + ap[1] * rows[7] + ap[2] * rows[8]  # ac·ap
+    n_ap = ap[0] * rows[9] + ap[1] * rows[10] + ap[2] * rows[11]
+    ap2 = ap[0] * ap[0] + ap[1] * ap[1] + ap[2] * ap[2]
+    abab, acac, abac, bcbc = rows[12], rows[13], rows[14], rows[15]
+
+    def clamp01(x: np.ndarray) -> np.ndarray:
+        np.maximum(x, 0.0, out=x)
+        return np.minimum(x, 1.0, out=x)
+
+    t = clamp01(d1 * rows[16])
+    edge = ap2 - t * (2.0 * d1 - t * abab)
+    t = clamp01(d2 * rows[17])
+    np.minimum(edge, ap2 - t * (2.0 * d2 - t * acac), out=edge)
+    bc_bp = (d2 - abac) - (d1 - abab)  # (ac − ab)·(p − b)
+    t = clamp01(bc_bp * rows[18])
+    np.minimum(edge, (ap2 - 2.0 * d1 + abab) - t * (2.0 * bc_bp - t * bcbc), out=edge)
+    v = d1 * rows[19] + d2 * rows[20] + rows[23]
+    w = d1 * rows[21] + d2 * rows[22]
+    inside = (v >= 0.0) & (w >= 0.0) & (v + w <= 1.0)
+    return np.maximum(np.where(inside, n_ap * n_ap * rows[24], edge), 0.0)
+
+
 @dataclass(frozen=True)
 class _CageFields:
-    """What cage_weights needs of the rest cage, relative to `origin` (the mean vertex)."""
+    """What cage_weights needs of the rest cage, relative to `origin` (the mean vertex).
+
+    Two cheap bounds on the distance from a point p to face f's polygon prune the exact distances:
+
+        dist(p, box_f) ≤ d_f(p) ≤ |p − s_f| + δ_f,
+
+    box_f the face's oriented bounding box (rows of `frame`: û along the first edge, v̂, n̂ the unit
+    Newell normal; `lo`, `hi` the extent of frame·v over its vertices — the polygon, made of convex
+    combinations of them, lies inside), s_f the vertex mean and δ_f its exact distance to the
+    polygon (0 for a planar convex face)."""
 
     origin: np.ndarray
     size: float
-    triangles: dict[str, np.ndarray]  # fan triangles, grouped by face
-    fan_face: np.ndarray  # (Tf,)
-    unit_normals: np.ndarray  # (F, 3), zero for a zero-area face
-    plane_offsets: np.ndarray  # (F,) unit normal · centroid
-    centers: np.ndarray  # (F, 3) bounding-sphere centres (vertex means)
-    radii: np.ndarray  # (F,) bounding-sphere radii
+    table: np.ndarray  # (25, Tf) fan triangles (`_stack_table`), grouped by face
+    fan_start: np.ndarray  # (F,) first fan triangle of each face
+    fan_count: np.ndarray  # (F,)
+    plane_offsets: np.ndarray  # (F,) n̂·s_f; +inf for a zero-area face (never "outside")
+    centers: np.ndarray  # (F, 3) s_f
+    reach: np.ndarray  # (F,) δ_f
+    frame: np.ndarray  # (F, 3, 3) rows û, v̂, n̂ (n̂ = unit normal; any frame for a zero-area face)
+    lo: np.ndarray  # (F, 3)
+    hi: np.ndarray  # (F, 3)
 
     @classmethod
     def build(cls, cage: np.ndarray, topology: CageTopology) -> _CageFields:
@@ -811,44 +868,44 @@ class _CageFields:
         local = cage - origin
         size = float(np.ptp(cage, axis=0).max()) or 1.0
         fan, fan_face = topology.fan_triangles()
-        triangles = _triangle_table(*(local[fan[:, k]] for k in range(3)))
+        table = _stack_table(_triangle_table(*(local[fan[:, k]] for k in range(3))))
+        fan_count = topology.loop_total - 2
+        fan_start = np.cumsum(fan_count) - fan_count
         normals = face_normals(local, topology)
         length = _norm(normals)
-        unit = normals / np.where(length > 0.0, length, 1.0)[:, None]
+        flat = ~(length > 0.0)
+        unit = normals / np.where(flat, 1.0, length)[:, None]
         centers = face_centroids(local, topology)
+        offsets = np.where(flat, np.inf, np.einsum("ij,ij->i", unit, centers))
+        frame = _face_frames(local, topology, np.where(flat[:, None], [0.0, 0.0, 1.0], unit))
         vertex, face = topology.corners()
-        radii = np.zeros(topology.n_faces)
-        np.maximum.at(radii, face, _norm(local[vertex] - centers[face]))
-        offsets = np.einsum("ij,ij->i", unit, centers)
-        return cls(origin, size, triangles, fan_face, unit, offsets, centers, radii)
+        coords = np.einsum("rki,ri->rk", frame[face], local[vertex])
+        lo = np.full((topology.n_faces, 3), np.inf)
+        hi = np.full((topology.n_faces, 3), -np.inf)
+        np.minimum.at(lo, face, coords)
+        np.maximum.at(hi, face, coords)
+        own = _pair_distance_sq(centers[fan_face], table)
+        reach = np.sqrt(np.minimum.reduceat(own, fan_start))
+        return cls(origin, size, table, fan_start, fan_count, offsets, centers, reach, frame, lo, hi)
 
-    def candidate_faces(self, p: np.ndarray, k: int, half_space: bool) -> np.ndarray:
-        """Faces (bool mask) that can be among the k nearest allowed faces of any point of p (C, 3).
 
-        With q, ρ the centre and radius of the points' bounding sphere and (s_f, r_f) the faces',
-        every point is within |q − s_f| + ρ + r_f of face f. Faces whose half-space holds the whole
-        sphere are allowed for every point, so the k-th smallest of those bounds, τ, bounds every
-        point's k-th nearest allowed distance; a face with |q − s_f| − r_f − ρ > τ is then farther
-        than that from every point. Without k such faces all faces are returned.
-        """
-        q = 0.5 * (p.min(axis=0) + p.max(axis=0))
-        rho = float(_norm(p - q).max())
-        dq = _norm(self.centers - q)
-        if half_space:
-            safe = (self.unit_normals @ q - self.plane_offsets) + rho <= HALF_SPACE_TOL * self.size
-        else:
-            safe = np.ones(dq.shape, dtype=bool)
-        if np.count_nonzero(safe) < k:
-            return np.ones(dq.shape, dtype=bool)
-        upper = (dq + self.radii + rho)[safe]
-        tau = np.partition(upper, k - 1)[k - 1]
-        slack = 1e-9 * self.size  # rounding of the bounds
-        return dq - self.radii - rho <= tau + slack
+def _face_frames(local: np.ndarray, topology: CageTopology, normal: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) orthonormal rows (û, v̂, n̂): û is the face's first edge made orthogonal to the unit
+    vector n̂ (a box aligned with it is tight on rectangles and trapezoids), or any unit vector
+    orthogonal to n̂ when that edge is (nearly) along it."""
+    loops, start = topology.loop_vertex_indices, topology.loop_start
+    edge = local[loops[start + 1]] - local[loops[start]]
+    u = edge - np.einsum("ij,ij->i", edge, normal)[:, None] * normal
+    other = np.cross(normal, np.eye(3)[np.argmin(np.abs(normal), axis=1)])
+    bad = ~(_norm(u) > 1e-6 * _norm(edge))
+    u = np.where(bad[:, None], other, u)
+    u /= _norm(u)[:, None]
+    return np.stack([u, np.cross(normal, u), normal], axis=1)
 
 
 def _morton_order(p: np.ndarray) -> np.ndarray:
     """Permutation sorting points along a Z-order curve (10 bits per axis), so consecutive chunks are
-    spatially compact and candidate_faces can prune."""
+    spatially compact and the chunk bounds can prune."""
     lo = p.min(axis=0)
     span = float(np.ptp(p, axis=0).max()) or 1.0
     cells = np.clip(((p - lo) / span * 1023.0).astype(np.int64), 0, 1023)
@@ -866,46 +923,157 @@ def _morton_order(p: np.ndarray) -> np.ndarray:
 def polygon_distance_sq(points: np.ndarray, cage_points: np.ndarray, topology: CageTopology) -> np.ndarray:
     """Squared distance (N, F) from points to each face polygon: minimum over its fan triangles. Dense."""
     cage = _check_points(cage_points, topology, "cage_points")
-    fields = _CageFields.build(cage, topology)
-    starts = np.flatnonzero(np.r_[True, fields.fan_face[1:] != fields.fan_face[:-1]])
-    d2 = _distance_sq_block(np.asarray(points, dtype=np.float64) - fields.origin, fields.triangles)
+    origin = cage.mean(axis=0)
+    local = cage - origin
+    fan, _ = topology.fan_triangles()
+    table = _triangle_table(*(local[fan[:, k]] for k in range(3)))
+    starts = np.cumsum(topology.loop_total - 2) - (topology.loop_total - 2)
+    d2 = _distance_sq_block(np.asarray(points, dtype=np.float64) - origin, table)
     return np.minimum.reduceat(d2, starts, axis=1)
 
 
-def _chunk_weights(
-    p: np.ndarray, fields: _CageFields, k: int, exponent: float, half_space: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    """(face indices (C, k), normalised weights (C, k)) for points p relative to fields.origin."""
-    faces_mask = fields.candidate_faces(p, k, half_space)
-    tri = np.flatnonzero(faces_mask[fields.fan_face])
-    tri_face = fields.fan_face[tri]
-    starts = np.flatnonzero(np.r_[True, tri_face[1:] != tri_face[:-1]])
-    faces = tri_face[starts]
-    table = _table_subset(fields.triangles, tri)
-    floor_sq = (DISTANCE_FLOOR * fields.size) ** 2
-    indices = np.empty((p.shape[0], k), dtype=np.int32)
-    values = np.empty((p.shape[0], k))
-    rows = max(1, CHUNK_ELEMENTS // max(tri.size, 1))
-    for lo in range(0, p.shape[0], rows):
-        pb = p[lo : lo + rows]
-        d2 = np.minimum.reduceat(_distance_sq_block(pb, table), starts, axis=1)
-        d2 = np.maximum(d2, floor_sq)
-        w = 1.0 / d2 if exponent == 2.0 else d2 ** (-0.5 * exponent)
-        if half_space:
-            outside = (pb @ fields.unit_normals[faces].T - fields.plane_offsets[faces]) > (
-                HALF_SPACE_TOL * fields.size
-            )
-            cut = np.where(outside, 0.0, w)
-            # A vertex outside every face's half-space (only possible outside an open or broken
-            # cage, where all faces are candidates) keeps plain inverse-distance weights.
-            keep_all = ~np.any(cut > 0.0, axis=1)
-            w = np.where(keep_all[:, None], w, cut)
-        cols, vals = top_k(w, k)
-        idx = faces[cols]
-        idx = np.where(vals > 0.0, idx, idx[:, :1])  # zero-weight slots point at the row's best face
-        indices[lo : lo + rows] = idx
-        values[lo : lo + rows] = normalize(vals, "SUM")
-    return indices, values
+def _dot3(x: Sequence[np.ndarray], y: Sequence[np.ndarray]) -> np.ndarray:
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+
+
+def _chunk_candidates(
+    fields: _CageFields, q: np.ndarray, rho: np.ndarray, k: int, half_space: bool
+) -> np.ndarray:
+    """(C, F) bool: faces that can be among the k nearest allowed faces of some point within rho (C,)
+    of q (C, 3), one row per chunk of points.
+
+    Every point of a chunk is within dist(q, box_f) − ρ of face f at least and |q − s_f| + δ_f + ρ
+    at most. Faces whose inner half-space holds the chunk's whole sphere are allowed for all its
+    points, so the k-th smallest of their upper bounds, τ, bounds every point's k-th nearest allowed
+    distance; faces with a lower bound above τ are dropped. A chunk with fewer than k such faces keeps
+    all faces."""
+    F = fields.centers.shape[0]
+    coords = (q @ fields.frame.reshape(-1, 3).T).reshape(-1, F, 3)
+    gap = np.maximum(np.maximum(fields.lo - coords, coords - fields.hi), 0.0)
+    lower = np.sqrt(np.einsum("cfk,cfk->cf", gap, gap)) - rho[:, None]
+    centre_sq = (np.einsum("ci,ci->c", q, q)[:, None] - 2.0 * (q @ fields.centers.T)
+                 + np.einsum("fi,fi->f", fields.centers, fields.centers))
+    upper = np.sqrt(np.maximum(centre_sq, 0.0)) + (fields.reach + rho[:, None])
+    if half_space:
+        safe = coords[:, :, 2] - fields.plane_offsets + rho[:, None] <= HALF_SPACE_TOL * fields.size
+        upper = np.where(safe, upper, np.inf)
+    tau = np.partition(upper, k - 1, axis=1)[:, k - 1]
+    return lower <= tau[:, None] + BOUND_SLACK * fields.size
+
+
+def _batch_weights(
+    local: np.ndarray,
+    rows: np.ndarray,
+    slots: np.ndarray,
+    fields: _CageFields,
+    k: int,
+    exponent: float,
+    half_space: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weights of a batch of chunks: rows (B, C) point indices (−1 = padding), slots (B, M) candidate
+    faces in increasing order (−1 = padding). Returns (points (R,), face indices (R, k), values (R, k)).
+
+    Per point, the k-th smallest upper bound over its allowed candidates, τ_p, bounds its k-th
+    nearest allowed distance, so only candidates with dist(p, box_f) ≤ τ_p get exact distances.
+    Kept pairs are listed point by point in increasing face order, so `top_k` breaks ties by face
+    index as over all faces."""
+    size = fields.size
+    real_slot = slots >= 0
+    f = np.where(real_slot, slots, 0)
+    p = local[np.where(rows >= 0, rows, rows.max())]  # (B, C, 3)
+    pc = [p[:, :, i, None] for i in range(3)]  # (B, C, 1) each
+    frame = fields.frame[f]  # (B, M, 3, 3)
+    box_sq = None
+    coords = []
+    for axis in range(3):
+        c = _dot3(pc, [frame[:, None, :, axis, i] for i in range(3)])  # (B, C, M)
+        lo, hi = fields.lo[f, axis][:, None, :], fields.hi[f, axis][:, None, :]
+        gap = np.maximum(np.maximum(lo - c, c - hi), 0.0)
+        box_sq = gap * gap if box_sq is None else box_sq + gap * gap
+        coords.append(c)
+    centre = fields.centers[f]
+    diff = [pc[i] - centre[:, None, :, i] for i in range(3)]
+    upper = np.sqrt(_dot3(diff, diff)) + fields.reach[f][:, None, :]
+    eligible = np.broadcast_to(real_slot[:, None, :], upper.shape)
+    if half_space:
+        allowed = coords[2] - fields.plane_offsets[f][:, None, :] <= HALF_SPACE_TOL * size
+        allowed &= eligible
+        # A vertex outside every face's half-space (only possible outside an open or broken cage,
+        # where every face is a candidate) keeps plain inverse-distance weights over all faces.
+        eligible = allowed | (eligible & ~allowed.any(axis=2, keepdims=True))
+    tau = np.partition(np.where(eligible, upper, np.inf), k - 1, axis=2)[:, :, k - 1]
+    floor = DISTANCE_FLOOR * size
+    tau = np.maximum(tau, floor) + BOUND_SLACK * size
+    keep = eligible & (box_sq <= (tau * tau)[:, :, None]) & (rows >= 0)[:, :, None]
+
+    b, c, m = np.nonzero(keep)
+    pair_point = rows[b, c]
+    pair_face = slots[b, m]
+    # exact distance to each kept polygon: minimum over its fan triangles
+    count = fields.fan_count[pair_face]
+    if np.all(count == 1):
+        d2 = _pair_distance_sq(local[pair_point], fields.table[:, fields.fan_start[pair_face]])
+    else:
+        first = np.cumsum(count) - count
+        pair_of_tri = np.repeat(np.arange(pair_face.size), count)
+        tri = fields.fan_start[pair_face][pair_of_tri] + (np.arange(pair_of_tri.size) - first[pair_of_tri])
+        d2 = _pair_distance_sq(local[pair_point[pair_of_tri]], fields.table[:, tri])
+        d2 = np.minimum.reduceat(d2, first) if d2.size else d2
+    d2 = np.maximum(d2, floor * floor)
+    w = 1.0 / d2 if exponent == 2.0 else d2 ** (-0.5 * exponent)
+
+    # one row per point (kept pairs are grouped by point), padded with zero weights
+    per_row = keep.sum(axis=2).ravel()
+    row_start = np.cumsum(per_row) - per_row
+    row_of_pair = b * rows.shape[1] + c
+    column = np.arange(pair_face.size) - row_start[row_of_pair]
+    width = max(int(per_row.max()) if per_row.size else 0, k)
+    W = np.zeros((per_row.size, width))
+    faces = np.zeros((per_row.size, width), dtype=np.int32)
+    W[row_of_pair, column] = w
+    faces[row_of_pair, column] = pair_face
+    cols, vals = top_k(W, k)
+    idx = np.take_along_axis(faces, cols, axis=1)
+    idx = np.where(vals > 0.0, idx, idx[:, :1])  # zero-weight slots point at the row's best face
+    real = rows.ravel() >= 0
+    return rows.ravel()[real], idx[real], normalize(vals[real], "SUM")
+
+
+def _group_weights(
+    local: np.ndarray, rows: np.ndarray, fields: _CageFields, k: int, exponent: float, half_space: bool
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(points, indices, values) of the chunks rows (B, C) (−1 = padding), batch by batch: chunks
+    with similar candidate counts are measured together, so little of a batch is padding."""
+    C = rows.shape[1]
+    candidates = _chunk_candidates(fields, *_chunk_spheres(local, rows), k, half_space)
+    count = candidates.sum(axis=1)
+    order = np.argsort(count, kind="stable")
+    start = 0
+    while start < order.size:
+        stop, total = start + 1, int(count[order[start]])
+        while stop < order.size:
+            # padded size of the batch if it took one more chunk; at most a quarter is padding
+            width = int(count[order[stop]])
+            padded = (stop - start + 1) * width
+            if padded * C > BATCH_ELEMENTS or padded > 1.25 * (total + width):
+                break
+            total += width
+            stop += 1
+        batch = order[start:stop]
+        width = max(int(count[batch[-1]]), k)  # k ≤ count unless rounding defeats the slack
+        r, f = np.nonzero(candidates[batch])
+        slots = np.full((batch.size, width), -1, dtype=np.intp)
+        slots[r, np.arange(r.size) - (np.cumsum(count[batch]) - count[batch])[r]] = f
+        yield _batch_weights(local, rows[batch], slots, fields, k, exponent, half_space)
+        start = stop
+
+
+def _chunk_spheres(local: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (B, 3), radii (B,)) of bounding spheres of the chunks' points (rows (B, C), −1 padding)."""
+    p = local[np.where(rows >= 0, rows, rows[:, :1])]  # padding repeats the chunk's first point
+    q = 0.5 * (p.min(axis=1) + p.max(axis=1))
+    rho = np.sqrt(np.einsum("bci,bci->bc", p - q[:, None], p - q[:, None]).max(axis=1))
+    return q, rho
 
 
 def cage_weights(
@@ -916,7 +1084,7 @@ def cage_weights(
     exponent: float = 2.0,
     half_space: bool = True,
     k: int = 8,
-    chunk_size: int = 32,
+    chunk_size: int = 64,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sparse cage weights: (indices (N, K) int32, values (N, K) float64), K = min(k, F), rows sum to 1.
 
@@ -927,10 +1095,11 @@ def cage_weights(
     cage) falls back to plain inverse distance, so no row is zero. The K largest weights per vertex
     are kept (weights.top_k; zero-weight slots repeat the row's first index) and renormalised.
 
-    Vertices are processed in spatially sorted chunks of chunk_size; per chunk only faces that can
-    reach some vertex's top K are measured (`_CageFields.candidate_faces`), so memory is
-    O(chunk · faces). The result does not depend on chunk_size, except which of several faces
-    exactly tied at the K-th weight is kept.
+    Only distances that can matter are measured exactly: vertices are grouped in spatially sorted
+    chunks of chunk_size, each chunk keeps the faces its bounding sphere can reach
+    (`_chunk_candidates`), and each vertex the candidates its own bounds cannot rule out
+    (`_batch_weights`). Memory is O(N·K + BATCH_ELEMENTS). The result does not depend on chunk_size,
+    except which of several faces exactly tied at the K-th weight is kept.
     """
     cage = _check_points(cage_points, topology, "cage_points")
     points = np.asarray(points, dtype=np.float64)
@@ -950,10 +1119,27 @@ def cage_weights(
         return indices, values
     fields = _CageFields.build(cage, topology)
     local = points - fields.origin
-    order = _morton_order(local)
-    for lo in range(0, N, chunk_size):
-        rows = order[lo : lo + chunk_size]
-        indices[rows], values[rows] = _chunk_weights(local[rows], fields, K, exponent, half_space)
+    C = int(chunk_size)
+    n_chunks = -(-N // C)
+    chunk_rows = np.full(n_chunks * C, -1, dtype=np.intp)
+    chunk_rows[:N] = _morton_order(local)
+    chunk_rows = chunk_rows.reshape(n_chunks, C)
+    group = max(1, 4 * BATCH_ELEMENTS // topology.n_faces)
+    groups = [chunk_rows[lo : lo + group] for lo in range(0, n_chunks, group)]
+
+    def run(rows: np.ndarray) -> None:
+        for pts, idx, val in _group_weights(local, rows, fields, K, exponent, half_space):
+            indices[pts], values[pts] = idx, val  # groups own disjoint rows
+
+    threads = min(default_threads(), len(groups))
+    if threads == 1:
+        for rows in groups:
+            run(rows)
+    else:
+        # The work is large numpy calls, which release the GIL.
+        with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="affine_cage_weights") as pool:
+            for future in [pool.submit(run, rows) for rows in groups]:
+                future.result()
     return indices, values
 
 

@@ -688,9 +688,13 @@ def test_vertex_outside_every_half_space_falls_back_to_plain_weights() -> None:
     assert np.all(val[1] > 0.0)
 
 
-def dense_reference_weights(points, cage, topo, k, exponent=2.0):  # type: ignore[no-untyped-def]
+def dense_reference_weights(points, cage, topo, k, exponent=2.0, half_space=True):  # type: ignore[no-untyped-def]
     d2 = polygon_distance_sq(points, cage, topo)
     w = np.maximum(d2, (1e-6 * np.ptp(cage, axis=0).max()) ** 2) ** (-exponent / 2)
+    if not half_space:
+        order = np.argsort(-w, axis=1, kind="stable")[:, :k]
+        vals = np.take_along_axis(w, order, axis=1)
+        return order, vals / vals.sum(axis=1, keepdims=True)
     normals = face_normals(cage, topo)
     unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     centroid = np.array([cage[topo.loop_vertex_indices[s : s + n]].mean(axis=0)
@@ -743,6 +747,60 @@ def test_weights_match_a_dense_reference_for_any_chunking() -> None:
         got = dense_rows(idx, val, topo.n_faces)
         np.testing.assert_allclose(got[~boundary_tie], expected[~boundary_tie], rtol=1e-9, atol=1e-15)
         np.testing.assert_allclose(np.sort(val, axis=1), np.sort(ref_val, axis=1), rtol=1e-9, atol=1e-15)
+
+
+def bumpy_sphere_cage(rng: np.random.Generator, segments: int, rings: int) -> tuple[np.ndarray, CageTopology]:
+    """A UV sphere of quads with triangle fans at the poles, one cap merged into an n-gon, vertices
+    moved radially at random (non-planar quads, no symmetric ties)."""
+    theta = np.pi * np.arange(1, rings) / rings
+    phi = 2.0 * np.pi * np.arange(segments) / segments
+    ring = np.stack([np.outer(np.sin(theta), np.cos(phi)), np.outer(np.sin(theta), np.sin(phi)),
+                     np.outer(np.cos(theta), np.ones(segments))], axis=-1).reshape(-1, 3)
+    points = np.concatenate([[[0.0, 0.0, 1.0]], ring])
+    points *= rng.uniform(0.85, 1.15, size=(len(points), 1))
+    faces = [[0, 1 + j, 1 + (j + 1) % segments] for j in range(segments)]
+    for r in range(rings - 2):
+        base = 1 + r * segments
+        nxt = (np.arange(segments) + 1) % segments
+        faces += [[base + j, base + segments + j, base + segments + n, base + n]
+                  for j, n in zip(range(segments), nxt, strict=True)]
+    last = 1 + (rings - 2) * segments
+    faces.append([last + j for j in range(segments)][::-1])  # the bottom cap as one n-gon
+    return points, CageTopology.from_polygons(faces)
+
+
+@pytest.mark.parametrize(("k", "exponent", "half_space"), [(1, 2.0, True), (4, 2.0, True), (6, 3.0, True),
+                                                            (4, 2.0, False)])
+def test_pruned_weights_equal_the_dense_computation_on_a_random_cage(
+    k: int, exponent: float, half_space: bool
+) -> None:
+    """cage_weights measures exact distances only where its bounds cannot rule a face out; the result
+    must equal measuring every face (the dense reference) to rounding, index sets included."""
+    rng = np.random.default_rng(20 + k)
+    cage, topo = bumpy_sphere_cage(rng, 14, 9)
+    assert check_cage(cage, topo).ok
+    direction = rng.normal(size=(3000, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    radius = np.concatenate([rng.uniform(0.0, 0.8, 2000),  # inside
+                             rng.uniform(0.8, 1.2, 800),  # around the surface: both half-spaces
+                             rng.uniform(1.2, 2.0, 200)])  # outside
+    points = direction * radius[:, None]
+    ref_idx, ref_val = dense_reference_weights(points, cage, topo, k + 1, exponent, half_space)
+    # Faces sharing a vertex's closest edge are at equal distance: where the k-th and (k+1)-th weights
+    # tie, rounding decides which is kept, so those rows are compared on their values only.
+    tie = np.isclose(ref_val[:, k - 1], ref_val[:, k], rtol=1e-9) & (ref_val[:, k] > 0.0)
+    assert np.count_nonzero(~tie) > 2000
+    ref_idx, ref_val = ref_idx[:, :k], ref_val[:, :k] / ref_val[:, :k].sum(axis=1, keepdims=True)
+    expected = dense_rows(ref_idx, ref_val, topo.n_faces)[~tie]
+    for chunk in (1, 64):
+        idx, val = cage_weights(points, cage, topo, k=k, exponent=exponent, half_space=half_space,
+                                chunk_size=chunk)
+        got = dense_rows(idx, val, topo.n_faces)[~tie]
+        np.testing.assert_array_equal(got > 0.0, expected > 0.0)  # the same faces
+        # The reference expands |p − a|² = |p|² − 2 p·a + |a|², which cancels for vertices near the
+        # cage (relative error ~1e-16 |p|²/d²); cage_weights takes p − a first.
+        np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-15)
+        np.testing.assert_allclose(val, ref_val, rtol=1e-9, atol=1e-15)
 
 
 def test_weight_input_errors() -> None:
