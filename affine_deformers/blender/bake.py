@@ -34,7 +34,7 @@ import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
 from . import binding, evaluate, nodes, relations, storage
-from .operators import active_target
+from .operators import DeformerIndexed, active_target
 from .pc2 import PC2Error, PC2Writer
 
 MODES = [
@@ -43,7 +43,6 @@ MODES = [
     ("SHAPE_KEYS", "Shape Keys", "One shape key per frame, keyed to 1 at its frame and 0 at its neighbours"),
 ]
 STATE_KEY = "affdef_bake"  # ID property on the deformer item: what the bake created, for Un-bake
-UNDOABLE = {"REGISTER", "UNDO"}
 # Blender 4.5+ warns when '//' is given to a path property that does not declare it understands it.
 _PATH_OPTIONS = {"SKIP_SAVE"} | ({"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) else set())
 CAPTURE_NAME = ".affdef_bake_capture"
@@ -512,15 +511,13 @@ def unbake(obj: bpy.types.Object, index: int) -> str:
 # ------------------------------------------------------------------------------------------ operators
 
 
-class AFFINE_OT_deformer_bake(bpy.types.Operator):
+class AFFINE_OT_deformer_bake(DeformerIndexed, bpy.types.Operator):
     """Bake the deformer over a frame range into a PC2 cache (Mesh Cache modifier) or shape keys, so
     renders and exports work without the add-on. The live deformer is muted, not deleted (Esc cancels)"""
 
     bl_idname = "object.affine_deformer_bake"
     bl_label = "Bake Affine Deformer"
-    bl_options = UNDOABLE
 
-    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
     mode: EnumProperty(name="Bake To", items=MODES, default="PC2")
     frame_start: IntProperty(
         name="Start", default=1, min=-MAX_FRAME, max=MAX_FRAME, options={"SKIP_SAVE"},
@@ -669,15 +666,13 @@ class AFFINE_OT_deformer_bake(bpy.types.Operator):
                 job.finish()
 
 
-class AFFINE_OT_deformer_unbake(bpy.types.Operator):
+class AFFINE_OT_deformer_unbake(DeformerIndexed, bpy.types.Operator):
     """Remove the bake (Mesh Cache modifier or baked shape keys; the cache file stays on disk) and turn
     the live deformer back on"""
 
     bl_idname = "object.affine_deformer_unbake"
     bl_label = "Un-bake Affine Deformer"
-    bl_options = UNDOABLE
 
-    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj = active_target(context)

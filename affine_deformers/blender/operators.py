@@ -16,6 +16,14 @@ from .kinds import BindError
 UNDOABLE = {"REGISTER", "UNDO"}
 
 
+class DeformerIndexed:
+    """Mixin for operators that address one deformer of the active object by `index`; undoable."""
+
+    bl_options = UNDOABLE
+
+    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
+
+
 def active_target(context: bpy.types.Context) -> bpy.types.Object | None:
     """The object operators act on: the active object, else the context object."""
     return context.active_object if context.active_object is not None else context.object
@@ -148,14 +156,12 @@ class AFFINE_OT_cage_deformer_add(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class AFFINE_OT_deformer_bind(bpy.types.Operator):
+class AFFINE_OT_deformer_bind(DeformerIndexed, bpy.types.Operator):
     """Rebind: the controls' current poses become the rest pose and the weights are recomputed"""
 
     bl_idname = "object.affine_deformer_bind"
     bl_label = "Bind Affine Deformer"
-    bl_options = UNDOABLE
 
-    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj, deformer = _deformer(self, context)
@@ -173,14 +179,12 @@ class AFFINE_OT_deformer_bind(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class AFFINE_OT_deformer_remove(bpy.types.Operator):
+class AFFINE_OT_deformer_remove(DeformerIndexed, bpy.types.Operator):
     """Remove the deformer (its modifier and stored data): the mesh shows its exact rest shape"""
 
     bl_idname = "object.affine_deformer_remove"
     bl_label = "Remove Affine Deformer"
-    bl_options = UNDOABLE
 
-    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj = active_target(context)
@@ -196,14 +200,12 @@ class AFFINE_OT_deformer_remove(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class AFFINE_OT_deformer_apply(bpy.types.Operator):
+class AFFINE_OT_deformer_apply(DeformerIndexed, bpy.types.Operator):
     """Write the current deformed shape into the mesh and remove the deformer"""
 
     bl_idname = "object.affine_deformer_apply"
     bl_label = "Apply Affine Deformer"
-    bl_options = UNDOABLE
 
-    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj, deformer = _deformer(self, context)
@@ -225,15 +227,13 @@ class AFFINE_OT_deformer_apply(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class AFFINE_OT_deformer_probe_add(bpy.types.Operator):
+class AFFINE_OT_deformer_probe_add(DeformerIndexed, bpy.types.Operator):
     """Add the selected Empties (none selected: a new Empty at the mesh's origin) as probes of the
     deformer; their current poses become their rest poses, the other probes keep theirs"""
 
     bl_idname = "object.affine_deformer_probe_add"
     bl_label = "Add Probes"
-    bl_options = UNDOABLE
 
-    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj, deformer = _deformer(self, context)
@@ -269,14 +269,12 @@ class AFFINE_OT_deformer_probe_add(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class AFFINE_OT_deformer_probe_remove(bpy.types.Operator):
+class AFFINE_OT_deformer_probe_remove(DeformerIndexed, bpy.types.Operator):
     """Remove a probe from the deformer and recompute the weights (the other rest poses are kept)"""
 
     bl_idname = "object.affine_deformer_probe_remove"
     bl_label = "Remove Probe"
-    bl_options = UNDOABLE
 
-    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
     probe_index: IntProperty(name="Probe", default=0, min=0, description="Probe index in the deformer")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
