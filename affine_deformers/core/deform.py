@@ -162,8 +162,14 @@ class DeformKernel:
         self._rows._next = 18
         return self._rows
 
-    def _run(self, n_total: int, work: Callable[[DeformKernel, int, int], None]) -> None:
-        """work(kernel, lo, hi) over [0, n_total) in chunk-aligned runs, one run per thread."""
+    def _run(self, n_total: int, chunk: Callable[[DeformKernel, int, int], None]) -> None:
+        """chunk(kernel, a, b) for every chunk [a, b) of [0, n_total); contiguous runs of chunks go to
+        different threads, each with its own kernel (scratch buffers)."""
+
+        def work(kernel: DeformKernel, lo: int, hi: int) -> None:
+            for a in range(lo, hi, kernel.chunk_size):
+                chunk(kernel, a, min(a + kernel.chunk_size, hi))
+
         n_chunks = -(-n_total // self.chunk_size)
         n_runs = min(self.threads, n_chunks)
         if n_runs <= 1:
@@ -206,19 +212,13 @@ class DeformKernel:
             idx, val = _check_indices(indices, values, pts.shape[0], table.shape[0])
             dense = None
         if not table.any():
-            # Every control at rest: the exact input, so "probes at rest ⇒ mesh unchanged" holds bit
-            # for bit (the general path gives the same values but may turn −0.0 into +0.0).
-            if out is not pts:
-                np.copyto(out, pts)
-            return out
+            return _unchanged(pts, out)
         table_t = np.ascontiguousarray(table.T)
 
-        def work(kernel: DeformKernel, lo: int, hi: int) -> None:
-            for a in range(lo, hi, kernel.chunk_size):
-                b = min(a + kernel.chunk_size, hi)
-                P = kernel._param_rows(b - a)
-                kernel._blend(table_t, idx, val, dense, a, b, P)
-                kernel._apply_chunk(pts[a:b], P, out[a:b])
+        def work(kernel: DeformKernel, a: int, b: int) -> None:
+            P = kernel._param_rows(b - a)
+            kernel._blend(table_t, idx, val, dense, a, b, P)
+            kernel._apply_chunk(pts[a:b], P, out[a:b])
 
         self._run(pts.shape[0], work)
         return out
@@ -248,25 +248,23 @@ class DeformKernel:
         table_t = np.ascontiguousarray(table.T)
         m = table.shape[0]
 
-        def work(kernel: DeformKernel, lo: int, hi: int) -> None:
-            for a in range(lo, hi, kernel.chunk_size):
-                b = min(a + kernel.chunk_size, hi)
-                r = sel[a:b]
-                n = b - a
-                P = kernel._param_rows(n)
-                if dense is not None:
-                    # The same product as the full call's, on gathered columns: same values per row.
-                    W = kernel._dense_block(m, n)
-                    np.take(dense, r, axis=1, out=W)
-                    np.matmul(table_t, W, out=P)
-                else:
-                    kernel._blend_sparse(table_t, idx[r], val[r], P)
-                p = pts[r]
-                res = np.empty_like(p)
-                kernel._apply_chunk(p, P, res)
-                if offsets:
-                    res -= p
-                out[r] = res
+        def work(kernel: DeformKernel, a: int, b: int) -> None:
+            r = sel[a:b]
+            n = b - a
+            P = kernel._param_rows(n)
+            if dense is not None:
+                # The same product as the full call's, on gathered columns: same values per row.
+                W = kernel._dense_block(m, n)
+                np.take(dense, r, axis=1, out=W)
+                np.matmul(table_t, W, out=P)
+            else:
+                kernel._blend_sparse(table_t, idx[r], val[r], P)
+            p = pts[r]
+            res = np.empty_like(p)
+            kernel._apply_chunk(p, P, res)
+            if offsets:
+                res -= p
+            out[r] = res
 
         self._run(sel.shape[0], work)
         return out
@@ -290,12 +288,10 @@ class DeformKernel:
         out = np.empty_like(pts)
         table_t = np.ascontiguousarray(table.T)
 
-        def work(kernel: DeformKernel, lo: int, hi: int) -> None:
-            for a in range(lo, hi, kernel.chunk_size):
-                b = min(a + kernel.chunk_size, hi)
-                P = kernel._param_rows(b - a)
-                np.matmul(table_t, W[a:b].T, out=P)
-                kernel._apply_chunk(pts[a:b], P, out[a:b])
+        def work(kernel: DeformKernel, a: int, b: int) -> None:
+            P = kernel._param_rows(b - a)
+            np.matmul(table_t, W[a:b].T, out=P)
+            kernel._apply_chunk(pts[a:b], P, out[a:b])
 
         self._run(pts.shape[0], work)
         return out
@@ -334,30 +330,26 @@ class DeformKernel:
         out = _check_out(out, pts)
         idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], table.shape[0])
         if not table.any():
-            if out is not pts:
-                np.copyto(out, pts)
-            return out
+            return _unchanged(pts, out)
         table_t = np.ascontiguousarray(table.T)
 
-        def work(kernel: DeformKernel, lo: int, hi: int) -> None:
-            for a in range(lo, hi, kernel.chunk_size):
-                b = min(a + kernel.chunk_size, hi)
-                n = b - a
-                Dv = kernel._param_rows(n)
-                kernel._blend(table_t, idx, val, dense, a, b, Dv)
-                V = kernel._point_rows(n)
-                np.copyto(V, pts[a:b].T)
-                O = kernel._result_rows(n)
-                tmp = kernel._scratch().take(n, 1)[0]
-                for i in range(3):
-                    np.multiply(Dv[4 * i], V[0], out=O[i])
-                    np.multiply(Dv[4 * i + 1], V[1], out=tmp)
-                    O[i] += tmp
-                    np.multiply(Dv[4 * i + 2], V[2], out=tmp)
-                    O[i] += tmp
-                    O[i] += Dv[4 * i + 3]
-                    O[i] += V[i]
-                np.copyto(out[a:b], O.T)
+        def work(kernel: DeformKernel, a: int, b: int) -> None:
+            n = b - a
+            Dv = kernel._param_rows(n)
+            kernel._blend(table_t, idx, val, dense, a, b, Dv)
+            V = kernel._point_rows(n)
+            np.copyto(V, pts[a:b].T)
+            O = kernel._result_rows(n)
+            tmp = kernel._scratch().take(n, 1)[0]
+            for i in range(3):
+                np.multiply(Dv[4 * i], V[0], out=O[i])
+                np.multiply(Dv[4 * i + 1], V[1], out=tmp)
+                O[i] += tmp
+                np.multiply(Dv[4 * i + 2], V[2], out=tmp)
+                O[i] += tmp
+                O[i] += Dv[4 * i + 3]
+                O[i] += V[i]
+            np.copyto(out[a:b], O.T)
 
         self._run(pts.shape[0], work)
         return out
@@ -705,6 +697,14 @@ def _scatter_weights(flat: FloatArray, stride: int, cols: NDArray[np.intp], idx:
 
 # ----------------------------------------------------------------------------------------------
 # argument checks
+
+
+def _unchanged(pts: FloatArray, out: FloatArray) -> FloatArray:
+    """Every control at the identity: the exact input, so "controls at rest ⇒ mesh unchanged" holds bit
+    for bit (the general path gives the same values but may turn −0.0 into +0.0)."""
+    if out is not pts:
+        np.copyto(out, pts)
+    return out
 
 
 def _check_points(points: ArrayLike) -> FloatArray:
