@@ -24,8 +24,8 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from ..core import aff3, deform, unwrap
-from . import cage_kind, nodes, relations, storage
-from .kinds import KINDS, Motions, channel_references
+from . import cage_kind, kinds, nodes, relations, storage
+from .kinds import KINDS, Motions, reference_rotvecs
 
 # Branch lift tolerances for Blender's float32 matrices (relative noise ~1e-7); core.unwrap's defaults
 # suit exact input. Near a full turn the principal rotation is tiny, so its axis is noise/θ, which the
@@ -106,6 +106,8 @@ def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
         _signatures.clear()
         _errors.clear()
         _bound.clear()
+        _param_rows.clear()
+        kinds.forget()
         cage_kind.forget()
     else:
         _signatures.pop((obj.session_uid, uid), None)
@@ -139,23 +141,87 @@ def motions_to_params(motions: Motions, deformer) -> np.ndarray:
 
     The rotation log is multivalued (ω + 2πk·ω/|ω|); ψ as printed takes |ω| ≤ π, so a control turned
     past 180° flips the blend. With `branch_rule` 'CHANNELS' each ω is lifted to the branch nearest the
-    control's own rotation channels (kinds.channel_references: Rotation Z keyed 0 → 720° gives 720°;
+    control's own rotation channels (kinds.reference_rotvecs: Rotation Z keyed 0 → 720° gives 720°;
     turns from parents or constraints take the nearest branch) and u is recomputed about the control's
     origin (core.unwrap.lift_params). The reference comes from the current frame alone, so any frame
     evaluates the same in any order or process. 'SHORTEST' keeps the principal branch.
     """
-    if len(motions.matrices) == 0:
+    m = len(motions.matrices)
+    if m == 0:
         return np.zeros((0, 12))
     if motions.params is not None:
         params = np.array(motions.params, dtype=np.float64)
         params[motions.at_rest] = 0.0
         return params
-    params = np.asarray(aff3.params_from_matrices(motions.matrices), dtype=np.float64)
-    if deformer.branch_rule == "CHANNELS" and len(motions.rotation_modes) == len(params):
-        pivots = motions.pivots if len(motions.pivots) == len(params) else None
-        params = unwrap.lift_params(params, channel_references(motions), pivots,
+    lift = deformer.branch_rule == "CHANNELS" and len(motions.rotation_modes) == m
+    pivots = motions.pivots if len(motions.pivots) == m else None
+    keys = _param_keys(motions, lift, pivots)
+    params = np.empty((m, 12))
+    missing = []
+    for i, key in enumerate(keys):
+        row = _param_rows.get(key)
+        if row is None:
+            missing.append(i)
+        else:
+            params[i] = row
+    if missing:
+        params[missing] = _params_of_rows(motions, np.array(missing), lift, pivots)
+        if len(_param_rows) + len(missing) > PARAM_MEMO_SIZE:
+            _param_rows.clear()
+        for i in missing:
+            _param_rows[keys[i]] = params[i].copy()
+    return params
+
+
+#: Per-control memo of `motions_to_params`: a control whose inputs (its motion, at-rest flag, rotation
+#: channels and modes, channel frame, pivot, and whether it is lifted) are bitwise unchanged gets its
+#: previous parameter row back. Every row of ψ and of the lift is computed independently of the other
+#: rows (tests/core/test_psi_batch.py), so this is a pure-function memo: the result of a frame does not
+#: depend on which controls were computed together before. Bounded: cleared when full.
+PARAM_MEMO_SIZE = 4096
+_param_rows: dict[tuple, np.ndarray] = {}
+
+
+def _param_keys(motions: Motions, lift: bool, pivots: np.ndarray | None) -> list[tuple]:
+    """One hashable key per control holding the exact bits of everything its parameter row depends on."""
+    m = len(motions.matrices)
+    parts = [motions.matrices.reshape(m, 16), motions.at_rest.reshape(m, 1).astype(np.float64)]
+    framed = len(motions.channel_frames) == m
+    if lift:
+        parts += [motions.rest_rotations.reshape(m, -1), motions.current_rotations.reshape(m, -1)]
+        if framed:
+            parts.append(motions.channel_frames.reshape(m, 9))
+        if pivots is not None:
+            parts.append(pivots.reshape(m, 3))
+    bits = np.ascontiguousarray(np.concatenate(parts, axis=1, dtype=np.float64))
+    if not lift:
+        return [(row.tobytes(),) for row in bits]
+    return [(row.tobytes(), rest_mode, mode, framed, pivots is None)
+            for row, rest_mode, mode in zip(bits, motions.rest_rotation_modes, motions.rotation_modes,
+                                            strict=True)]
+
+
+def _params_of_rows(motions: Motions, rows: np.ndarray, lift: bool, pivots: np.ndarray | None) -> np.ndarray:
+    """ψ(A_i), lifted to the channels' branch when `lift`, of the controls `rows` (zero at rest)."""
+    try:
+        params = np.asarray(aff3.params_from_matrices(motions.matrices[rows]), dtype=np.float64)
+    except ValueError:
+        # The core names the row within this batch of changed controls: name the control instead.
+        for i in rows:
+            try:
+                aff3.params_from_matrices(motions.matrices[i : i + 1])
+            except ValueError as exc:
+                raise ValueError(f"control {int(i) + 1}: {exc}") from None
+        raise
+    if lift:
+        framed = len(motions.channel_frames) == len(motions.matrices)
+        reference = reference_rotvecs([motions.rest_rotation_modes[i] for i in rows],
+                                      motions.rest_rotations[rows], [motions.rotation_modes[i] for i in rows],
+                                      motions.current_rotations[rows],
+                                      motions.channel_frames[rows] if framed else None)
+        params = unwrap.lift_params(params, reference, None if pivots is None else pivots[rows],
                                     damping=LIFT_DAMPING, axis_tol=LIFT_AXIS_TOL)
-    params[motions.at_rest] = 0.0
+    params[motions.at_rest[rows]] = 0.0
     return params
 
 
@@ -260,11 +326,12 @@ def _offsets_affine(deformer, motions: Motions, bound: _Bound) -> np.ndarray:
         if len(rows) <= INCREMENTAL_MAX_FRACTION * len(points):
             if len(rows):
                 deform.deform_points_params_rows(points, params, bound.indices, values, rows, offsets,
-                                                 offsets=True)
+                                                 offsets=True, key=(bound.serial, deformer.strength))
             bound.params = params
             return offsets
     bound.forget_result()
-    offsets = deform.deform_points_params(points, params, bound.indices, values)
+    offsets = deform.deform_points_params(points, params, bound.indices, values,
+                                          key=(bound.serial, deformer.strength))
     offsets -= points
     bound.state, bound.params, bound.offsets = state, params, offsets
     return offsets

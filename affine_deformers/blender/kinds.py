@@ -262,56 +262,120 @@ class ProbeKind:
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
         m = len(deformer.probes)
         rests = rest_matrices(deformer)
-        matrices = np.broadcast_to(np.eye(4), (m, 4, 4)).copy()
-        at_rest = np.zeros(m, dtype=bool)
         rest_modes = [item.rest_rotation_mode for item in deformer.probes]
-        modes = list(rest_modes)
-        rest_rotations = np.array([tuple(item.rest_rotation) for item in deformer.probes], dtype=np.float64)
-        current_rotations = rest_rotations.copy()
-        frames = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
-        pivots = rests[:, :3, 3].astype(np.float64)
-        try:
-            target_world = world_matrix(obj, depsgraph)
-            if not np.all(np.isfinite(target_world)):
-                return Motions.invalid(m, f"'{obj.name}' has a non-finite transform")
-            for i, item in enumerate(deformer.probes):
-                probe = item.object
-                if probe is None:
-                    return Motions.invalid(m, f"Probe '{item.name or '?'}' was deleted or unassigned: "
-                                           "remove it from the deformer or pick another object")
-                if not probe.users_scene:
-                    return Motions.invalid(m, f"Probe '{probe.name}' is not in any scene (deleted?): "
-                                           "remove it from the deformer or link it back")
-                evaluated = probe.evaluated_get(depsgraph)
-                current = local_matrix(target_world, np.array(evaluated.matrix_world, dtype=np.float64))
-                current_rotations[i] = rotation_channels(evaluated)
-                modes[i] = evaluated.rotation_mode
-                frames[i] = channel_frame(evaluated, target_world)
-                pivots[i] = current[:3, 3]
-                # At rest = the same matrix AND the same channels (a full turn changes only the channels).
-                if (np.array_equal(current, rests[i]) and modes[i] == rest_modes[i]
-                        and np.array_equal(np.float32(current_rotations[i]), np.float32(rest_rotations[i]))):
-                    at_rest[i] = True
-                    continue
-                try:
-                    with np.errstate(all="ignore"):
-                        matrices[i] = relative_motion(current.astype(np.float64), rests[i].astype(np.float64))
-                except np.linalg.LinAlgError:
-                    return Motions.invalid(m, f"Probe '{probe.name}' has a singular rest matrix: rebind")
-                try:
-                    aff3.validate_affine(matrices[i])
-                except ValueError:
-                    if not np.all(np.isfinite(matrices[i])):
-                        reason = "has a non-finite transform (NaN or infinity)"
-                    elif np.linalg.det(matrices[i][:3, :3]) < 0.0:
-                        reason = "is mirrored (negative scale)"
-                    else:
-                        reason = "is scaled to zero"
-                    return Motions.invalid(m, f"Probe '{probe.name}' {reason}: the mesh shows its rest shape")
-        except np.linalg.LinAlgError:
-            return Motions.invalid(m, f"'{obj.name}' is scaled to zero: the mesh shows its rest shape")
-        return Motions(matrices, at_rest, "", rest_modes, rest_rotations, modes, current_rotations,
-                       frames, pivots)
+        flat = np.empty(m * 4, dtype=np.float32)
+        if m:
+            deformer.probes.foreach_get("rest_rotation", flat)
+        rest_rotations = flat.reshape(-1, 4).astype(np.float64)
+        target_world = world_matrix(obj, depsgraph)
+        if not np.all(np.isfinite(target_world)):
+            return Motions.invalid(m, f"'{obj.name}' has a non-finite transform")
+        target_bits = target_world.tobytes()
+        rows: list[_ProbeRow] = []
+        for i, item in enumerate(deformer.probes):
+            probe = item.object
+            if probe is None:
+                return Motions.invalid(m, f"Probe '{item.name or '?'}' was deleted or unassigned: "
+                                       "remove it from the deformer or pick another object")
+            if not probe.users_scene:
+                return Motions.invalid(m, f"Probe '{probe.name}' is not in any scene (deleted?): "
+                                       "remove it from the deformer or link it back")
+            evaluated = probe.evaluated_get(depsgraph)
+            world = np.array(evaluated.matrix_world, dtype=np.float64)
+            channels = rotation_channels(evaluated)
+            mode = evaluated.rotation_mode
+            key = (target_bits, world.tobytes(), mode, _bits(channels), _bits(evaluated.scale),
+                   _bits(evaluated.delta_scale), rests[i].tobytes(), rest_modes[i],
+                   rest_rotations[i].tobytes())
+            row = _rows.get(key)
+            if row is None:
+                row = _probe_row(evaluated, target_world, world, channels, mode, rests[i], rest_modes[i],
+                                 rest_rotations[i])
+                if len(_rows) >= ROW_MEMO_SIZE:
+                    _rows.clear()
+                _rows[key] = row
+            if row.error:
+                return Motions.invalid(m, row.error.format(probe=probe.name, target=obj.name))
+            rows.append(row)
+        if m == 0:
+            return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool), "", rest_modes, rest_rotations, [],
+                           rest_rotations.copy(), np.zeros((0, 3, 3)), np.zeros((0, 3)))
+        return Motions(np.stack([r.matrix for r in rows]), np.array([r.at_rest for r in rows]), "",
+                       rest_modes, rest_rotations, [r.mode for r in rows],
+                       np.array([r.rotation for r in rows], dtype=np.float64),
+                       np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
+
+
+@dataclass(frozen=True)
+class _ProbeRow:
+    """What one probe contributes to `Motions`, a pure function of the values it is keyed on in `_rows`.
+
+    error: '' or a message with {probe} / {target} placeholders (the names are not part of the key).
+    The arrays are shared between updates: never modify them.
+    """
+
+    matrix: np.ndarray  # (4, 4) float64, A = C · C_rest⁻¹ (identity at rest)
+    at_rest: bool
+    mode: str
+    rotation: tuple[float, ...]  # the control's current rotation channels (4,)
+    frame: np.ndarray  # (3, 3) channel frame
+    pivot: np.ndarray  # (3,) current origin in the target's space
+    error: str = ""
+
+
+#: Per-probe memo: a probe whose inputs (its and the target's world matrix, its channels and scales,
+#: its rest data) are bitwise unchanged gets its previous `_ProbeRow` back instead of redoing the
+#: solves and polar splits. Keys hold every input, so the result never depends on update history.
+#: Bounded: cleared when full (a rig with more probes than this just recomputes).
+ROW_MEMO_SIZE = 4096
+_rows: dict[tuple, _ProbeRow] = {}
+
+
+def forget() -> None:
+    """Drop the per-probe memo (it only holds recomputable values)."""
+    _rows.clear()
+
+
+def _bits(values) -> bytes:
+    """The exact float64 bits of a short sequence of numbers (−0.0 and NaN payloads included)."""
+    return np.array(values, dtype=np.float64).tobytes()
+
+
+def _probe_row(evaluated: bpy.types.Object, target_world: np.ndarray, world: np.ndarray, channels,
+               mode: str, rest: np.ndarray, rest_mode: str, rest_rotation: np.ndarray) -> _ProbeRow:
+    """The `_ProbeRow` of one probe from its evaluated object and world matrix (float64) and its rest
+    matrix (float32) and channels."""
+    identity = np.eye(4)
+    rotation = tuple(float(c) for c in channels) + (0.0,) * (4 - len(channels))
+    try:
+        current = local_matrix(target_world, world)
+    except np.linalg.LinAlgError:
+        return _ProbeRow(identity, True, mode, rotation, np.eye(3), np.zeros(3),
+                         "'{target}' is scaled to zero: the mesh shows its rest shape")
+    frame = channel_frame(evaluated, target_world)
+    pivot = current[:3, 3].astype(np.float64)
+    # At rest = the same matrix AND the same channels (a full turn changes only the channels).
+    if (np.array_equal(current, rest) and mode == rest_mode
+            and np.array_equal(np.float32(np.array(rotation)), np.float32(rest_rotation))):
+        return _ProbeRow(identity, True, mode, rotation, frame, pivot)
+    try:
+        with np.errstate(all="ignore"):
+            matrix = relative_motion(current.astype(np.float64), rest.astype(np.float64))
+    except np.linalg.LinAlgError:
+        return _ProbeRow(identity, False, mode, rotation, frame, pivot,
+                         "Probe '{probe}' has a singular rest matrix: rebind")
+    try:
+        aff3.validate_affine(matrix)
+    except ValueError:
+        if not np.all(np.isfinite(matrix)):
+            reason = "has a non-finite transform (NaN or infinity)"
+        elif np.linalg.det(matrix[:3, :3]) < 0.0:
+            reason = "is mirrored (negative scale)"
+        else:
+            reason = "is scaled to zero"
+        return _ProbeRow(identity, False, mode, rotation, frame, pivot,
+                         "Probe '{probe}' " + reason + ": the mesh shows its rest shape")
+    return _ProbeRow(matrix, False, mode, rotation, frame, pivot)
 
 
 # cage_kind builds on the helpers above, so it is imported once they exist.

@@ -45,8 +45,9 @@ from __future__ import annotations
 import math
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -73,6 +74,10 @@ DENSE_BLEND_MAX_CONTROLS = 48
 DENSE_CACHE_MAX_ENTRIES = 1 << 23
 #: ... for at most this many weight sets (deformers evaluated in turn).
 WEIGHTS_CACHE_SIZE = 4
+#: Gathered row subsets kept for incremental updates (`DeformKernel._row_set`), and their size limit
+#: in array entries each (16 MiB).
+ROW_SETS_KEPT = 2
+ROW_SET_MAX_ENTRIES = 1 << 21
 
 # The quarter-angle polynomials are used for θ ≤ 1.8π, where cos(θ/4) = √(1 − sin²(θ/4)) ≥ 0.15 is
 # well conditioned; larger θ (lifted rotations past ±324°) take the np.sin/np.cos fallback.
@@ -129,6 +134,35 @@ class _Rows:
 _N_ROWS = 48  # 12 parameters + 3 points + 3 results + scratch
 
 
+@dataclass
+class _WeightsEntry:
+    """A set of sparse weights the kernel has seen (copies), its dense (m, N) form once built, and the
+    caller's key for it (None: found by comparing contents only)."""
+
+    idx: IntArray
+    val: FloatArray
+    m: int
+    dense: FloatArray | None
+    key: Hashable | None
+
+
+@dataclass
+class _RowSet:
+    """Inputs of a subset of rows, gathered once: `rows` (n,), their points as rows (3, n) and either
+    their dense weight columns (m, n) or their sparse (idx, val) rows (n, K)."""
+
+    key: Hashable | None
+    rows: NDArray[np.intp]
+    points_t: FloatArray
+    weights: FloatArray | None
+    idx: IntArray | None
+    val: FloatArray | None
+
+    @property
+    def size(self) -> int:
+        return sum(a.size for a in (self.points_t, self.weights, self.idx, self.val) if a is not None)
+
+
 class DeformKernel:
     """Reusable per-vertex kernel with its scratch buffers; not for concurrent use (one per thread).
 
@@ -146,7 +180,9 @@ class DeformKernel:
         self._dense: FloatArray = np.empty(0)
         self._arange = np.arange(self.chunk_size, dtype=np.intp)
         self._helpers: list[DeformKernel] = []
-        self._weights_cache: list[tuple[IntArray, FloatArray, int, FloatArray | None]] = []
+        self._weights_cache: list[_WeightsEntry] = []
+        self._row_sets: list[_RowSet] = []
+        self._checked_key: Hashable | None = None
 
     def _param_rows(self, n: int) -> FloatArray:
         """The (12, n) parameter rows of the current chunk."""
@@ -201,16 +237,17 @@ class DeformKernel:
         out: FloatArray | None = None,
         *,
         cache_weights: bool = True,
+        key: Hashable | None = None,
     ) -> FloatArray:
         """Sparse hot path; see `deform_points_params`."""
-        pts = _check_points(points)
         table = _check_table(params, 12, "params")
-        out = _check_out(out, pts)
         if cache_weights:
-            idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], table.shape[0])
+            pts, idx, val, dense = self._inputs(points, indices, values, table.shape[0], key)
         else:
+            pts = _check_points(points)
             idx, val = _check_indices(indices, values, pts.shape[0], table.shape[0])
             dense = None
+        out = _check_out(out, pts)
         if not table.any():
             return _unchanged(pts, out)
         table_t = np.ascontiguousarray(table.T)
@@ -233,10 +270,11 @@ class DeformKernel:
         out: FloatArray,
         *,
         offsets: bool = False,
+        key: Hashable | None = None,
     ) -> FloatArray:
         """Only the listed rows; see `deform_points_params_rows`."""
-        pts = _check_points(points)
         table = _check_table(params, 12, "params")
+        pts, idx, val, dense = self._inputs(points, indices, values, table.shape[0], key)
         if not isinstance(out, np.ndarray) or out.shape != pts.shape or out.dtype != np.float64:
             raise ValueError(f"out must be a float64 array of shape {pts.shape}")
         sel = np.asarray(rows)
@@ -244,30 +282,67 @@ class DeformKernel:
             raise ValueError(f"rows must be a 1-D integer array, got {sel.dtype} {sel.shape}")
         if sel.size and (int(sel.min()) < 0 or int(sel.max()) >= pts.shape[0]):
             raise ValueError(f"rows must lie in [0, {pts.shape[0]})")
-        idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], table.shape[0])
+        rs = self._row_set(key, sel, pts, idx, val, dense)
         table_t = np.ascontiguousarray(table.T)
-        m = table.shape[0]
 
         def work(kernel: DeformKernel, a: int, b: int) -> None:
-            r = sel[a:b]
             n = b - a
             P = kernel._param_rows(n)
-            if dense is not None:
+            if rs.weights is not None:
                 # The same product as the full call's, on gathered columns: same values per row.
-                W = kernel._dense_block(m, n)
-                np.take(dense, r, axis=1, out=W)
-                np.matmul(table_t, W, out=P)
+                np.matmul(table_t, rs.weights[:, a:b], out=P)
             else:
-                kernel._blend_sparse(table_t, idx[r], val[r], P)
-            p = pts[r]
-            res = np.empty_like(p)
-            kernel._apply_chunk(p, P, res)
+                kernel._blend_sparse(table_t, rs.idx[a:b], rs.val[a:b], P)
+            V = rs.points_t[:, a:b]
+            O = kernel._result_rows(n)
+            kernel._apply_soa(V, P, O)
             if offsets:
-                res -= p
-            out[r] = res
+                O -= V
+            out[rs.rows[a:b]] = O.T
 
         self._run(sel.shape[0], work)
         return out
+
+    def _inputs(
+        self, points: ArrayLike, indices: ArrayLike, values: ArrayLike, m: int, key: Hashable | None
+    ) -> tuple[FloatArray, IntArray, FloatArray, FloatArray | None]:
+        """Checked (points, indices, values) and the dense weights when cached (`_sparse_weights`).
+
+        With a `key` seen before, the points are not re-validated and the weights are found by the key
+        instead of by comparing their contents (the caller vouches that a key names fixed data)."""
+        if key is not None and key == self._checked_key:
+            pts = np.asarray(points, dtype=np.float64)
+        else:
+            pts = _check_points(points)
+        idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], m, key)
+        if key is not None:
+            self._checked_key = key
+        return pts, idx, val, dense
+
+    def _row_set(
+        self, key: Hashable | None, sel: NDArray[np.integer], pts: FloatArray, idx: IntArray, val: FloatArray,
+        dense: FloatArray | None,
+    ) -> _RowSet:
+        """The gathered inputs of the rows `sel`, kept between calls with the same key and rows: an
+        interactive drag recomputes the same rows every update, and gathering them (points transposed
+        to rows, the weight columns) costs about as much as the map itself."""
+        for i, rs in enumerate(self._row_sets):
+            if rs.key == key and rs.rows.shape == sel.shape and np.array_equal(rs.rows, sel):
+                self._row_sets.insert(0, self._row_sets.pop(i))
+                return rs
+        rows = sel.astype(np.intp)
+        rs = _RowSet(
+            key,
+            rows,
+            np.ascontiguousarray(pts[rows].T),
+            None if dense is None else np.take(dense, rows, axis=1),
+            None if dense is not None else idx[rows],
+            None if dense is not None else val[rows],
+        )
+        if key is not None and rs.size <= ROW_SET_MAX_ENTRIES:
+            self._row_sets.insert(0, rs)
+            del self._row_sets[ROW_SETS_KEPT:]
+        return rs
 
     def _dense_block(self, m: int, n: int) -> FloatArray:
         """An (m, n) view of the scratch used for per-chunk dense weights (padded row stride)."""
@@ -358,45 +433,45 @@ class DeformKernel:
     # blend
 
     def _sparse_weights(
-        self, indices: ArrayLike, values: ArrayLike, n_points: int, m: int
+        self, indices: ArrayLike, values: ArrayLike, n_points: int, m: int, key: Hashable | None = None
     ) -> tuple[IntArray, FloatArray, FloatArray | None]:
         """Checked (indices, values) and, when they were seen before, their dense (m, N) form.
 
         Bind data comes back unchanged frame after frame. The first call with a set of weights
         blends chunk by chunk (scatter + product) and keeps a copy of the sparse arrays; a later call
-        with equal contents (two linear scans) builds the dense weights once and from then on the
-        blend is one BLAS product per chunk. A few sets are kept (deformers evaluated in turn), least
-        recently used first out, with at most DENSE_CACHE_MAX_ENTRIES dense entries in total.
+        with equal contents (two linear scans), or with the same caller `key`, builds the dense weights
+        once and from then on the blend is one BLAS product per chunk. A few sets are kept (deformers
+        evaluated in turn), least recently used first out, with at most DENSE_CACHE_MAX_ENTRIES dense
+        entries in total.
         """
         idx = np.asarray(indices)
         val = np.asarray(values, dtype=np.float64)
         if idx.ndim != 2 or idx.shape[0] != n_points:
             raise ValueError(f"indices must have shape ({n_points}, K), got {idx.shape}")
         cache = self._weights_cache
-        for i, (c_idx, c_val, c_m, c_dense) in enumerate(cache):
-            if (
-                c_m == m
-                and c_idx.shape == idx.shape
-                and c_idx.dtype == idx.dtype
-                and np.array_equal(c_idx, idx)
-                and np.array_equal(c_val, val)
+        for i, entry in enumerate(cache):
+            if entry.m != m or entry.idx.shape != idx.shape or entry.idx.dtype != idx.dtype:
+                continue
+            if (key is not None and entry.key == key) or (
+                np.array_equal(entry.idx, idx) and np.array_equal(entry.val, val)
             ):
-                if c_dense is None:  # only eligible sets are kept
-                    c_dense = _dense_weights(c_idx, c_val, m)
-                cache.pop(i)
-                cache.insert(0, (c_idx, c_val, c_m, c_dense))
+                if entry.dense is None:  # only eligible sets are kept
+                    entry.dense = _dense_weights(entry.idx, entry.val, m)
+                if key is not None:
+                    entry.key = key
+                cache.insert(0, cache.pop(i))
                 self._trim_weights_cache()
-                return c_idx, c_val, c_dense
+                return entry.idx, entry.val, entry.dense
         idx, val = _check_indices(idx, val, n_points, m)
         if m <= DENSE_BLEND_MAX_CONTROLS and m * n_points <= DENSE_CACHE_MAX_ENTRIES:
-            cache.insert(0, (idx.copy(), val.copy(), m, None))
+            cache.insert(0, _WeightsEntry(idx.copy(), val.copy(), m, None, key))
             self._trim_weights_cache()
         return idx, val, None
 
     def _trim_weights_cache(self) -> None:
         budget = DENSE_CACHE_MAX_ENTRIES
         for i, entry in enumerate(self._weights_cache):
-            budget -= 0 if entry[3] is None else entry[3].size
+            budget -= 0 if entry.dense is None else entry.dense.size
             if i >= WEIGHTS_CACHE_SIZE or (budget < 0 and i > 0):
                 del self._weights_cache[i:]
                 return
@@ -443,6 +518,16 @@ class DeformKernel:
         n = P.shape[1]
         V = self._point_rows(n)
         np.copyto(V, pts.T)
+        O = self._result_rows(n)
+        self._apply_soa(V, P, O)
+        np.copyto(out, O.T)
+
+    def _apply_soa(self, V: FloatArray, P: FloatArray, O: FloatArray) -> None:
+        """O (3, n) = φ(P) V for points V (3, n) and blended parameters P (12, n), all as rows.
+
+        O must not overlap V or P; V may be any (3, n) rows (the kernel's point rows or cached ones).
+        """
+        n = P.shape[1]
         v0, v1, v2 = V[0], V[1], V[2]
         sc = self._scratch()
         mul, add, sub = np.multiply, np.add, np.subtract
@@ -604,7 +689,6 @@ class DeformKernel:
             mul(ewi, A, out=mi)
             mul(ui, B, out=t0)
             mi += t0
-        O = self._result_rows(n)
         for Oi, wa, mb, wb, ma, ewi, ui, wi in (
             (O[0], w1, m2, w2, m1, ew0, u0, w0),
             (O[1], w2, m0, w0, m2, ew1, u1, w1),
@@ -619,7 +703,6 @@ class DeformKernel:
             Oi += t0
             mul(wi, k, out=t0)
             Oi += t0
-        np.copyto(out, O.T)
 
 
 def _h2_direct(z: FloatArray, out: FloatArray, tmp: FloatArray) -> None:
@@ -800,6 +883,7 @@ def deform_points_params(
     out: FloatArray | None = None,
     *,
     cache_weights: bool = True,
+    key: Hashable | None = None,
 ) -> FloatArray:
     """Sparse hot path: v' = φ(p_v) v with p_v = Σ_k values[v, k] · params[indices[v, k]].
 
@@ -808,9 +892,11 @@ def deform_points_params(
     it may be `points` itself). All-zero params return the input bit for bit. Each row's result
     depends only on that row (not on N, chunking or threads), so a subset of rows gives bit-identical
     values. cache_weights=False skips the weights cache (for one-off subsets that would evict the
-    weights that come back every frame).
+    weights that come back every frame). `key`: a hashable token the caller guarantees names these
+    exact points, indices and values (never reused for other contents, e.g. a bind generation); a
+    call with a key seen before skips re-validating the points and comparing the weights.
     """
-    return _kernel().deform(points, params, indices, values, out, cache_weights=cache_weights)
+    return _kernel().deform(points, params, indices, values, out, cache_weights=cache_weights, key=key)
 
 
 def deform_points_params_rows(
@@ -822,15 +908,18 @@ def deform_points_params_rows(
     out: FloatArray,
     *,
     offsets: bool = False,
+    key: Hashable | None = None,
 ) -> FloatArray:
     """`deform_points_params` for the vertices `rows` only: out[v] = φ(p_v) points[v] (minus points[v]
     when `offsets`) for v in rows; other rows of `out` (float64, (N, 3)) are left as they are.
 
     Takes the full (N, ...) arrays so the weights cache applies. Each written row is bit-identical to
     the same row of a full call, so an incremental update (recompute the vertices a changed control
-    influences, keep the rest) equals a full recompute exactly.
+    influences, keep the rest) equals a full recompute exactly. With a `key` (see
+    `deform_points_params`) the gathered inputs of the last few row sets are kept, so dragging one
+    control (the same rows every update) does not gather them again.
     """
-    return _kernel().deform_rows(points, params, indices, values, rows, out, offsets=offsets)
+    return _kernel().deform_rows(points, params, indices, values, rows, out, offsets=offsets, key=key)
 
 
 def blend_params(params: ArrayLike, indices: ArrayLike, values: ArrayLike) -> FloatArray:

@@ -383,11 +383,30 @@ def _channel_rotvec_one_mode(mode: str, rest: np.ndarray, current: np.ndarray, m
         raise ValueError("rotation channels contain non-finite values")
     if mode == "QUATERNION":
         return _quaternion_path_rotvec(rest, current)
-    if mode == "AXIS_ANGLE":
-        s = _path_samples_axis_angle(rest, current, max_step)
-    else:
-        s = _path_samples_euler(rest, current, max_step)
-    return _unwrap_sampled(mode, rest, current, s)
+    # Each row is sampled at its own count (rows with equal counts share one batch), so a row's result
+    # never depends on which other rows it is computed with (callers memoise rows).
+    counts = _sample_counts(mode, rest, current, max_step)
+    out = np.zeros((rest.shape[0], 3))
+    for count in np.unique(counts, axis=0):
+        rows = np.flatnonzero((counts == count).all(axis=1))
+        sample = _path_samples_axis_angle if mode == "AXIS_ANGLE" else _path_samples_euler
+        s = sample(rest[rows], current[rows], max_step)
+        out[rows] = _unwrap_sampled(mode, rest[rows], current[rows], s)
+    return out
+
+
+def _sample_counts(mode: str, rest: np.ndarray, current: np.ndarray, max_step: float) -> np.ndarray:
+    """Per row, the sample counts `_path_samples_euler` / `_path_samples_axis_angle` would use for that
+    row alone, (m, 2) (the same floor expressions, evaluated per row)."""
+    if mode != "AXIS_ANGLE":
+        steps = np.floor(np.abs(current - rest).sum(axis=-1) / max_step)
+        return np.stack([steps, np.zeros_like(steps)], axis=-1)
+    x0, x1 = rest[:, 1:], current[:, 1:]
+    n_angle = np.floor(np.abs(current[:, 0] - rest[:, 0]) / (0.5 * max_step))
+    both = (_norm(x0) > 0.0) & (_norm(x1) > 0.0)
+    arc = np.where(both, np.arctan2(_norm(np.cross(x0, x1)), np.einsum("ij,ij->i", x0, x1)), 0.0)
+    n_axis = np.floor(2.0 * arc / (0.5 * max_step))
+    return np.stack([n_angle, n_axis], axis=-1)
 
 
 def channel_rotvec(

@@ -409,3 +409,34 @@ def test_rows_entry_point_writes_exactly_the_full_rows(m: int) -> None:
     assert np.array_equal(out[rows], full[rows] - pts[rows])
     with pytest.raises(ValueError, match="rows must lie"):
         deform.deform_points_params_rows(pts, params, idx, val, np.array([n]), out)
+
+
+@pytest.mark.parametrize("m", [8, 60])
+def test_keyed_calls_reuse_gathered_rows_and_stay_bit_identical(m: int) -> None:
+    """With a caller key the kernel keeps the gathered inputs of recent row sets (an interactive drag
+    recomputes the same rows every update) and skips re-checking the weights: the values must not
+    change, new row sets and new keys must not see stale data, and the cache stays bounded."""
+    rng = np.random.default_rng(31)
+    n = 2 * deform.DEFAULT_CHUNK + 11
+    pts = rng.normal(scale=2.0, size=(n, 3))
+    idx, val = top_k_dense(rng.random((n, m)) ** 3, 4)
+    kernel = deform.DeformKernel(threads=2)
+    for frame in range(4):
+        params = aff3.params_from_matrices(random_affine(rng, m))
+        full = deform.DeformKernel(threads=1).deform(pts, params, idx, val, cache_weights=False)
+        assert np.array_equal(kernel.deform(pts, params, idx, val, key="bind-1"), full)
+        for fraction in (0.2, 0.2, 0.5):  # the second 0.2 set differs from the first
+            rows = np.flatnonzero(np.random.default_rng(frame * 10 + int(10 * fraction)).random(n) < fraction)
+            for _ in range(2):  # the second call finds the row set in the cache
+                out = np.full((n, 3), 7.0)
+                kernel.deform_rows(pts, params, idx, val, rows, out, offsets=True, key="bind-1")
+                assert np.array_equal(out[rows], full[rows] - pts[rows])
+                assert np.all(np.delete(out, rows, axis=0) == 7.0)
+        assert len(kernel._row_sets) <= deform.ROW_SETS_KEPT
+    # another key (a rebind: new weights) must not be served the first key's dense weights or rows
+    idx2, val2 = top_k_dense(rng.random((n, m)) ** 2, 3)
+    expected = deform.DeformKernel(threads=1).deform(pts, params, idx2, val2, cache_weights=False)
+    assert np.array_equal(kernel.deform(pts, params, idx2, val2, key="bind-2"), expected)
+    out = np.zeros((n, 3))
+    kernel.deform_rows(pts, params, idx2, val2, rows, out, key="bind-2")
+    assert np.array_equal(out[rows], expected[rows])
