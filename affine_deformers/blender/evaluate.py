@@ -56,10 +56,12 @@ class _Bound:
     key = (mesh session uid, bind generation, vertex count, control count); `rest32` is checked against
     the mesh on every evaluation (a cheap array compare), so edits of the rest shape (Edit Mode, Sculpt
     Mode, scripts) are seen without rebinding. `serial` changes whenever the entry is rebuilt.
-    The last result (`state`, `params`, `offsets`) lets an update recompute only the vertices with a
-    non-zero weight on a control whose blend parameters changed: every vertex's result depends only on
-    its own rest position, weights and the parameters of its controls, so this is bit-identical to a
-    full recompute.
+    `written` is what this process last wrote to the offset attribute, so an update writes it
+    without reading the attribute back (a write by anyone else to that attribute is not supported;
+    undo and file load drop the cache). The last result (`state`, `params`, `offsets`) lets an
+    update recompute only the vertices with a non-zero weight on a control whose blend parameters
+    changed: every vertex's result depends only on its own rest position, weights and the parameters
+    of its controls, so this is bit-identical to a full recompute.
     """
 
     key: tuple
@@ -73,6 +75,7 @@ class _Bound:
     state: tuple | None = None  # settings `params` and `offsets` were computed with
     params: np.ndarray | None = None  # (m, 12) blend parameters of the last result
     offsets: np.ndarray | None = None  # (N, 3) float64 last offsets
+    written: np.ndarray | None = None  # (N, 3) float32 the offset attribute holds (None = unknown)
 
     def scaled_values(self, strength: float) -> np.ndarray:
         if self.scaled is None or self.scaled[0] != strength:
@@ -91,6 +94,8 @@ class _Bound:
             np.cumsum(np.bincount(cols, minlength=m), out=ptr[1:])
             self.csr = (ptr, rows[order].astype(np.intp))
         ptr, rows = self.csr
+        if len(controls) == 1:  # one control's rows are already sorted and distinct
+            return rows[ptr[controls[0]] : ptr[controls[0] + 1]]
         mask = np.zeros(len(self.points), dtype=bool)
         for i in controls:
             mask[rows[ptr[i] : ptr[i + 1]]] = True
@@ -275,16 +280,17 @@ def _outer(motions: Motions, deformer) -> np.ndarray | None:
     return aff3.matrices_from_params(strength * params)
 
 
-def _offsets(deformer, motions: Motions, bound: _Bound) -> np.ndarray:
-    """v' − v for every rest vertex (N, 3) float64; exactly zero when every control is at rest.
+def _offsets(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarray, np.ndarray | None]:
+    """(v' − v for every rest vertex (N, 3) float64, rows): exactly zero when every control is at rest.
 
-    The returned array may be the cache's own (`bound.offsets`): callers must not modify it.
+    `rows` are the only vertices whose offsets may differ from the previous result of `bound` (None:
+    any may). The returned array may be the cache's own (`bound.offsets`): callers must not modify it.
     """
     outer = _outer(motions, deformer)
     points = bound.points
     if deformer.strength == 0.0 or len(motions.matrices) == 0 or (np.all(motions.at_rest) and outer is None):
         bound.forget_result()
-        return np.zeros(points.shape, dtype=np.float64)
+        return np.zeros(points.shape, dtype=np.float64), None
     if np.all(motions.at_rest):
         bound.forget_result()
         deformed = points.copy()
@@ -305,10 +311,10 @@ def _offsets(deformer, motions: Motions, bound: _Bound) -> np.ndarray:
                                                    values)
     if outer is not None:
         deformed = deformed @ outer[:3, :3].T + outer[:3, 3]
-    return deformed - points
+    return deformed - points, None
 
 
-def _offsets_affine(deformer, motions: Motions, bound: _Bound) -> np.ndarray:
+def _offsets_affine(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarray, np.ndarray | None]:
     """`_offsets` for the plain affine blend, recomputing only the vertices whose result can differ
     from the cached one: those with a non-zero weight on a control whose parameters changed bitwise.
     The others keep their cached offsets, which equal a recomputation bit for bit (a vertex's result
@@ -328,13 +334,13 @@ def _offsets_affine(deformer, motions: Motions, bound: _Bound) -> np.ndarray:
                 deform.deform_points_params_rows(points, params, bound.indices, values, rows, offsets,
                                                  offsets=True, key=(bound.serial, deformer.strength))
             bound.params = params
-            return offsets
+            return offsets, rows
     bound.forget_result()
     offsets = deform.deform_points_params(points, params, bound.indices, values,
                                           key=(bound.serial, deformer.strength))
     offsets -= points
     bound.state, bound.params, bound.offsets = state, params, offsets
-    return offsets
+    return offsets, None
 
 
 def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> str:
@@ -368,27 +374,62 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     key = (obj.session_uid, deformer.uid)
     if _signatures.get(key) == signature:
         return deformer.status
-    offsets = None
+    offsets, rows = None, None
     if not error:
         try:
-            offsets = _offsets(deformer, motions, bound)
+            offsets, rows = _offsets(deformer, motions, bound)
         except storage.StorageError as exc:
             error = str(exc)
         except ValueError as exc:  # core refuses to blend (e.g. a motion too degenerate for its log)
             error = f"The controls' motions cannot be blended ({exc}): the mesh shows its rest shape"
-        if not error and not np.all(np.isfinite(offsets)):
+        # One sum instead of a (N, 3) boolean array: NaN and ±inf propagate, and finite offsets cannot
+        # overflow it (they are stored as float32, |x| < 3.5e38, and there are far fewer than 1e270).
+        if not error and not np.isfinite(np.add.reduce(offsets, axis=None)):
             error = "The deformation is not finite: the mesh shows its rest shape"
         if error:
             bound.forget_result()  # start the next update from a full recompute
     if error:
-        offsets = np.zeros((len(mesh.vertices), 3))
+        offsets, rows = np.zeros((len(mesh.vertices), 3)), None
+        cached = _bound.get((obj.session_uid, deformer.uid))
+        if cached is not None:
+            cached.written = None  # written below without it
     if mesh.library is None:
-        storage.write_offsets(mesh, deformer.uid, offsets)
+        _write_offsets(mesh, deformer.uid, offsets, rows, None if error else bound)
+    elif bound is not None:
+        bound.written = None
     status = error or "; ".join(m for m in (motions.warning if motions else "", deformer.bind_warning) if m)
     _set_status(deformer, status)
     _signatures[key] = signature
     _errors[key] = error
     return status
+
+
+def _write_offsets(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray, rows: np.ndarray | None,
+                   bound: _Bound | None) -> None:
+    """Write `offsets` to the offset attribute unless it already holds them (a write tags the mesh,
+    which triggers another depsgraph update).
+
+    With `bound`'s copy of the attribute nothing is read back from the mesh: an incremental result
+    (`rows` not None) is written when rows were recomputed (their parameters changed, so they almost
+    always moved; an identical write only costs one more, signature-cached, update) and skipped when
+    none were; a full result is compared with the copy. Without a copy the attribute is read back.
+    """
+    if bound is not None and bound.written is not None and bound.written.shape == offsets.shape:
+        if rows is not None and len(rows) == 0:
+            return
+        if rows is None:
+            fresh = offsets.astype(np.float32)
+            if np.array_equal(bound.written, fresh):
+                return
+            bound.written = fresh
+        else:
+            np.copyto(bound.written, offsets, casting="same_kind")  # into the buffer: no allocation
+        storage.write_offsets_unchecked(mesh, uid, bound.written)
+        return
+    fresh = np.array(offsets, dtype=np.float32, order="C")  # always a copy: `offsets` may be a cache's
+    storage.write_offsets(mesh, uid, fresh)  # compares with what the mesh holds
+    if bound is not None:
+        bound.written = fresh
 
 
 def blocking_error(obj: bpy.types.Object, deformer) -> str:
@@ -413,6 +454,7 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
             if deformer.status != message:  # print once, not at every depsgraph update
                 traceback.print_exc()
             try:
+                _bound.pop((obj.session_uid, deformer.uid), None)  # its copy of the attribute is stale
                 if obj.type == "MESH" and obj.data.library is None:
                     storage.write_offsets(obj.data, deformer.uid, np.zeros((len(obj.data.vertices), 3)))
                 _set_status(deformer, message)

@@ -145,6 +145,15 @@ def write_offsets(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray) -> bool:
     current = read_offsets(mesh, uid)
     if current is not None and current.shape == offsets.shape and np.array_equal(current, offsets):
         return False
+    write_offsets_unchecked(mesh, uid, offsets)
+    return True
+
+
+def write_offsets_unchecked(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray) -> None:
+    """Write offsets (N, 3) float32 C-contiguous (the caller knows they differ from the stored ones),
+    creating the attribute if needed, and tag the mesh."""
+    shape = (len(mesh.vertices), 3)
+    if offsets.dtype != np.float32 or not offsets.flags.c_contiguous or offsets.shape != shape:
+        raise StorageError(f"offsets must be C-contiguous float32 of shape ({len(mesh.vertices)}, 3)")
     _point_attribute(mesh, offset_name(uid), "FLOAT_VECTOR").data.foreach_set("vector", offsets.ravel())
     mesh.update_tag()
-    return True

@@ -604,8 +604,29 @@ def xy_from_params(P: ArrayLike) -> tuple[FloatArray, FloatArray]:
 
 
 def params_from_matrices(A: ArrayLike) -> FloatArray:
-    """ψ in the 12-number layout: A (..., 4, 4) -> P (..., 12). ValueError on invalid A."""
-    return params_from_xy(*psi(A))
+    """ψ in the 12-number layout: A (..., 4, 4) -> P (..., 12). ValueError on invalid A.
+
+    Bit for bit params_from_xy(*psi(A)) (vee(hat(ω)) = ω and the averaged off-diagonals of the
+    exactly symmetric Y are exact), without forming X: the Blender layer calls this once per update
+    for the one or two controls that moved, where numpy's per-call overhead is the whole cost.
+    """
+    A = validate_affine(A)
+    R, Vh, sigma, _ = _polar_svd(A[..., :3, :3])
+    Y = np.swapaxes(Vh, -1, -2) @ (np.log(sigma)[..., :, None] * Vh)
+    Y = 0.5 * (Y + np.swapaxes(Y, -1, -2))
+    w, u = se3_log(R, A[..., :3, 3])
+    P = np.empty((*A.shape[:-2], 12))
+    P[..., 0:3] = w
+    P[..., 3:6] = u
+    P[..., 6:9] = np.diagonal(Y, axis1=-2, axis2=-1)
+    P[..., 9] = Y[..., 0, 1]
+    P[..., 10] = Y[..., 0, 2]
+    P[..., 11] = Y[..., 1, 2]
+    if not np.all(np.isfinite(P)):
+        bad = ~np.isfinite(P).all(axis=-1)
+        i = int(np.argmax(bad.reshape(-1)))
+        raise ValueError(f"transform {_where(i, A.shape[:-2])} is too degenerate to take its logarithm")
+    return P
 
 
 def matrices_from_params(P: ArrayLike) -> FloatArray:

@@ -180,10 +180,16 @@ def lift_params(
     out = np.array(np.broadcast_to(params, (*lead, 12)))
     w_p = out[..., 0:3]
     u_p = out[..., 3:6]
-    t = np.einsum("...ij,...j->...i", left_jacobian(w_p), u_p)
-    w, u = _lift_se3(w_p, u_p, t, np.broadcast_to(w_ref, (*lead, 3)), pivot, damping, axis_tol)
-    out[..., 0:3] = w
-    out[..., 3:6] = u
+    w = lift_rotvec(w_p, np.broadcast_to(w_ref, (*lead, 3)), axis_tol=axis_tol)
+    moved = np.any(w != w_p, axis=-1)
+    if not np.any(moved):  # the usual case: no row changes branch, and t is not needed
+        return out
+    # t = V(ω_p) u_p only for the lifted rows (row by row the same numbers as over the whole batch).
+    t = np.einsum("...ij,...j->...i", left_jacobian(w_p[moved]), u_p[moved])
+    c = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=np.float64)
+    c = np.broadcast_to(c, w.shape)[moved]
+    u_p[moved] = _damped_translation_log(w[moved], t, c, damping)
+    w_p[moved] = w[moved]
     return out
 
 
@@ -359,7 +365,7 @@ def _path_samples_axis_angle(rest: np.ndarray, current: np.ndarray, max_step: fl
 def _unwrap_sampled(mode: str, rest: np.ndarray, current: np.ndarray, s: np.ndarray) -> np.ndarray:
     """Follow R(c(s))·R(rest)ᵀ along the samples s (m, N), lifting each step against the previous."""
     r_rest = channels_to_matrix(mode, rest)
-    lifted = np.zeros((rest.shape[0], 3))
+    lifted = None
     block = 512
     for start in range(1, s.shape[1], block):
         s_blk = s[:, start : start + block]
@@ -367,8 +373,14 @@ def _unwrap_sampled(mode: str, rest: np.ndarray, current: np.ndarray, s: np.ndar
         rel = channels_to_matrix(mode, chans) @ np.swapaxes(r_rest, -1, -2)[:, None]
         principal = so3_log(rel)
         for j in range(principal.shape[1]):
-            lifted = lift_rotvec(principal[:, j], lifted)
-    return lifted
+            step = principal[:, j]
+            # Lifting the first step against the zero start moves it only if |ω| rounds to ≥ π
+            # (k = rint(−|ω|/2π)); with steps below max_step = π/4 it never does, so skip the call.
+            if lifted is None and np.all(_norm(step) < 3.0):
+                lifted = step
+            else:
+                lifted = lift_rotvec(step, np.zeros_like(step) if lifted is None else lifted)
+    return np.zeros((rest.shape[0], 3)) if lifted is None else lifted
 
 
 def _channel_rotvec_one_mode(mode: str, rest: np.ndarray, current: np.ndarray, max_step: float) -> np.ndarray:
@@ -385,11 +397,15 @@ def _channel_rotvec_one_mode(mode: str, rest: np.ndarray, current: np.ndarray, m
         return _quaternion_path_rotvec(rest, current)
     # Each row is sampled at its own count (rows with equal counts share one batch), so a row's result
     # never depends on which other rows it is computed with (callers memoise rows).
-    counts = _sample_counts(mode, rest, current, max_step)
+    # Grouped with a dict, not np.unique(axis=0): batches are a few controls, where unique's
+    # structured-array set-up cost more than the unwrapping itself.
+    groups: dict[tuple[float, float], list[int]] = {}
+    for i, count in enumerate(_sample_counts(mode, rest, current, max_step).tolist()):
+        groups.setdefault(tuple(count), []).append(i)
     out = np.zeros((rest.shape[0], 3))
-    for count in np.unique(counts, axis=0):
-        rows = np.flatnonzero((counts == count).all(axis=1))
-        sample = _path_samples_axis_angle if mode == "AXIS_ANGLE" else _path_samples_euler
+    sample = _path_samples_axis_angle if mode == "AXIS_ANGLE" else _path_samples_euler
+    for members in groups.values():
+        rows = np.array(members)
         s = sample(rest[rows], current[rows], max_step)
         out[rows] = _unwrap_sampled(mode, rest[rows], current[rows], s)
     return out

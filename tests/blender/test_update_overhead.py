@@ -79,3 +79,64 @@ def test_memoised_updates_match_a_fresh_evaluation_bit_for_bit(bl, installed):
         assert np.array_equal(memoised, _fresh(installed, target, deformer)), step
         bpy.context.view_layer.update()
     assert np.abs(memoised).max() > 0.05
+
+
+def test_updates_write_without_reading_the_offsets_back(bl, installed, monkeypatch):
+    """After the first write the evaluate cache holds a copy of the offset attribute: an update writes
+    from it without reading the attribute back, an unchanged result is not written again, and what the
+    mesh holds still equals a fresh evaluation."""
+    storage = installed.storage
+    target, probes, deformer = _rig(bl)
+    probes[1].location.z += 0.3
+    bpy.context.view_layer.update()
+    reads, writes = [], []
+    real_read, real_write = storage.read_offsets, storage.write_offsets_unchecked
+    monkeypatch.setattr(storage, "read_offsets", lambda *a: reads.append(a) or real_read(*a))
+    monkeypatch.setattr(storage, "write_offsets_unchecked", lambda *a: writes.append(a) or real_write(*a))
+    for step in range(3):
+        probes[step].rotation_euler.x += 0.5
+        probes[step].location.y -= 0.2
+        bpy.context.view_layer.update()
+    assert reads == []
+    assert len(writes) == 3
+    installed.evaluate.evaluate_object(target, bpy.context.evaluated_depsgraph_get())  # nothing changed
+    assert len(writes) == 3
+    monkeypatch.undo()
+    memoised = _offsets(installed, target, deformer)
+    assert np.abs(memoised).max() > 0.05
+    assert np.array_equal(memoised, _fresh(installed, target, deformer))
+
+
+def test_an_error_in_between_does_not_leave_a_stale_copy(bl, installed):
+    """A probe scaled to zero makes the deformer write zeros without its cache; when it is fixed, the
+    written offsets are those of a fresh evaluation again (not the cache's pre-error copy)."""
+    target, probes, deformer = _rig(bl)
+    probes[0].location.x += 0.4
+    bpy.context.view_layer.update()
+    before = _offsets(installed, target, deformer)
+    probes[0].scale = (0.0, 0.0, 0.0)
+    bpy.context.view_layer.update()
+    assert deformer.status != ""
+    assert not np.any(_offsets(installed, target, deformer))
+    probes[0].scale = (1.0, 1.0, 1.0)
+    bpy.context.view_layer.update()
+    assert deformer.status == ""
+    after = _offsets(installed, target, deformer)
+    assert np.array_equal(after, before)
+    assert np.array_equal(after, _fresh(installed, target, deformer))
+
+
+def test_rest_shape_edit_by_script_is_seen_with_the_cached_copy(bl, installed):
+    """Moving rest vertices by script (no rebind) recomputes everything from the new rest shape."""
+    target, probes, deformer = _rig(bl)
+    probes[2].location.x += 0.3
+    bpy.context.view_layer.update()
+    co = installed.storage.read_positions(target.data).copy()
+    co[:, 2] += 0.25
+    installed.storage.write_positions(target.data, co)
+    bpy.context.view_layer.update()
+    edited = _offsets(installed, target, deformer)
+    assert np.array_equal(edited, _fresh(installed, target, deformer))
+    probes[2].location.x -= 0.1
+    bpy.context.view_layer.update()
+    assert np.array_equal(_offsets(installed, target, deformer), _fresh(installed, target, deformer))

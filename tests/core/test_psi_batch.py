@@ -94,3 +94,22 @@ def test_channel_reference_matches_sampling_every_row_at_the_largest_count():
     old = unwrap._unwrap_sampled("XYZ", rest, cur, s)
     new = unwrap.channel_rotvec("XYZ", rest, cur)
     np.testing.assert_allclose(new, old, rtol=0, atol=1e-13)
+
+
+def test_params_from_matrices_equals_psi_in_the_layout_bit_for_bit():
+    """The lean ψ path forms the 12 numbers directly; it must equal params_from_xy(*psi(A)) exactly."""
+    rng = np.random.default_rng(7)
+    A = np.tile(np.eye(4), (300, 1, 1))
+    A[:, :3, :] = rng.normal(size=(300, 3, 4))
+    A = np.concatenate([_adversarial(), A[np.linalg.det(A[:, :3, :3]) > 0]])
+    lean = aff3.params_from_matrices(A)
+    layered = aff3.params_from_xy(*aff3.psi(A))
+    assert np.array_equal(lean.view(np.int64), layered.view(np.int64))
+    assert aff3.params_from_matrices(A[0]).shape == (12,)
+    assert aff3.params_from_matrices(A[:6].reshape(2, 3, 4, 4)).shape == (2, 3, 12)
+
+
+def test_lift_params_without_a_lift_returns_the_rows_unchanged():
+    P = aff3.params_from_matrices(_adversarial())
+    lifted = unwrap.lift_params(P, P[:, 0:3], np.ones((len(P), 3)), damping=1e-3, axis_tol=3e-3)
+    assert lifted is not P and np.array_equal(lifted.view(np.int64), P.view(np.int64))
