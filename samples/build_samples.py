@@ -55,10 +55,12 @@ BACKGROUND = (0.32, 0.36, 0.42)
 # --------------------------------------------------------------------------------------------------
 
 
-def package_path() -> Path:
-    """The extension .zip that `make build` produces for the manifest's current version."""
+def package_path() -> Path | None:
+    """The extension .zip `make build` produced for the manifest's current version (this machine's
+    platform package, or the all-platform one without the compiled kernel), None when there is none."""
     manifest = tomllib.loads((ROOT / "blender_manifest.toml").read_text(encoding="utf-8"))
-    return DIST_DIR / f"{manifest['id']}-{manifest['version']}.zip"
+    built = sorted(DIST_DIR.glob(f"{manifest['id']}-{manifest['version']}*.zip"))
+    return built[-1] if built else None
 
 
 def _newest_source_mtime() -> float:
@@ -70,16 +72,17 @@ def _newest_source_mtime() -> float:
 def ensure_package() -> Path:
     """Return the extension .zip, building it first when it is missing or older than the sources."""
     zip_path = package_path()
-    stale = zip_path.exists() and zip_path.stat().st_mtime < _newest_source_mtime()
-    if not zip_path.exists() or stale:
-        print(f"building the extension package ({'stale' if stale else 'missing'}: {zip_path.name})")
+    stale = zip_path is not None and zip_path.stat().st_mtime < _newest_source_mtime()
+    if zip_path is None or stale:
+        print(f"building the extension package ({'stale' if stale else 'missing'})")
         subprocess.run(
             [sys.executable, str(ROOT / "tools" / "build_extension.py"), "--output-dir", str(DIST_DIR)],
             check=True,
             cwd=ROOT,
         )
-    if not zip_path.exists():
-        raise SystemExit(f"extension package not found after building: {zip_path}")
+        zip_path = package_path()
+    if zip_path is None:
+        raise SystemExit(f"extension package not found in {DIST_DIR} after building")
     return zip_path
 
 

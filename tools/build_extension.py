@@ -3,17 +3,44 @@
 The bpy wheel carries Blender's own `blender_ext.py` and the list of valid extension tags
 (`_bpy_internal/extensions/tags.py`); using both means the .zip is exactly what Blender's
 "Install from Disk" and the extensions platform accept.
+
+The compiled kernel (affine_deformers/accel, numba) is bundled as wheels, which are platform specific:
+`blender_manifest.toml` lists every platform's wheels, and each package holds one platform's
+(`dist/affine_deformers-<version>-<platform>.zip`, ~35–50 MB). Missing wheels are downloaded from PyPI
+into `wheels/` (not in git) by exactly the file names the manifest lists. `--platform none` builds the
+small all-platform package without wheels (the numpy kernel only).
+
+    python tools/build_extension.py                      # this machine's platform (make build)
+    python tools/build_extension.py --platform all       # every platform in the manifest (a release)
+    python tools/build_extension.py --platform none      # no wheels, every platform
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib.util
+import platform
+import re
+import shutil
 import subprocess
 import sys
+import tempfile
+import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+MANIFEST = ROOT / "blender_manifest.toml"
+#: What goes into a package (the manifest's exclude patterns keep everything else out of it too).
+PACKAGE_FILES = ("__init__.py", "blender_manifest.toml", "README.md")
+PACKAGE_DIRS = ("affine_deformers",)
+#: Wheel platform tag (as pip downloads it) of each Blender platform.
+PIP_PLATFORM = {
+    "linux-x64": "manylinux2014_x86_64",
+    "windows-x64": "win_amd64",
+    "macos-arm64": "macosx_11_0_arm64",
+    "macos-x64": "macosx_10_9_x86_64",
+}
+_WHEEL_NAME = re.compile(r"^(?P<name>[A-Za-z0-9_]+)-(?P<version>[^-]+)-cp(?P<py>\d+)-")
 
 
 def bpy_scripts_dir() -> Path:
@@ -28,24 +55,121 @@ def bpy_scripts_dir() -> Path:
     return candidates[-1].parents[3]
 
 
-def run_cli(*args: str) -> None:
+def run_cli(*args: str, cwd: Path = ROOT) -> None:
     scripts = bpy_scripts_dir()
     cli = scripts / "addons_core" / "bl_pkg" / "cli" / "blender_ext.py"
     tags = scripts / "modules" / "_bpy_internal" / "extensions" / "tags.py"
     cmd = [sys.executable, str(cli), *args, f"--valid-tags={tags}"]
-    subprocess.run(cmd, check=True, cwd=ROOT)
+    subprocess.run(cmd, check=True, cwd=cwd)
+
+
+def host_platform() -> str:
+    """Blender's name for this machine's platform ('linux-x64', 'macos-arm64', ...)."""
+    machine = platform.machine().lower()
+    arch = {"x86_64": "x64", "amd64": "x64", "arm64": "arm64", "aarch64": "arm64"}.get(machine, machine)
+    system = {"linux": "linux", "darwin": "macos", "win32": "windows"}.get(sys.platform, sys.platform)
+    return f"{system}-{arch}"
+
+
+def wheel_platform(path: str) -> str:
+    """The Blender platform a manifest wheel path is for (from the platform tag in its file name)."""
+    name = Path(path).name
+    if "win_amd64" in name:
+        return "windows-x64"
+    if "macosx" in name:
+        return "macos-arm64" if "arm64" in name else "macos-x64"
+    if "linux" in name and "x86_64" in name:
+        return "linux-x64"
+    raise SystemExit(f"cannot tell the platform of wheel {name}")
+
+
+def fetch_wheels(paths: list[str]) -> None:
+    """Download the manifest's wheels that are not in wheels/ yet (exact file names, no dependencies)."""
+    for rel in paths:
+        target = ROOT / rel
+        if target.exists():
+            continue
+        match = _WHEEL_NAME.match(target.name)
+        if match is None:
+            raise SystemExit(f"not a CPython wheel name: {target.name}")
+        spec = f"{match['name']}=={match['version']}"
+        py = match["py"]
+        with tempfile.TemporaryDirectory() as tmp:
+            subprocess.run(
+                [sys.executable, "-m", "pip", "download", "--disable-pip-version-check", "-q", "--no-deps",
+                 "--only-binary=:all:", "--platform", PIP_PLATFORM[wheel_platform(rel)],
+                 "--python-version", f"{py[0]}.{py[1:]}", "-d", tmp, spec],
+                check=True,
+            )
+            got = Path(tmp) / target.name
+            if not got.exists():
+                found = ", ".join(p.name for p in Path(tmp).iterdir())
+                raise SystemExit(f"PyPI gave {found} for {spec}, the manifest expects {target.name}")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.move(str(got), target)
+
+
+def manifest_for(text: str, target: str | None, wheels: list[str]) -> str:
+    """The manifest text for one package: its platform and its wheels only (None: neither)."""
+    text = re.sub(r"(?ms)^wheels\s*=\s*\[.*?\]\s*\n", "", text)
+    text = re.sub(r"(?m)^platforms\s*=\s*\[.*?\]\s*\n", "", text)
+    lines = []
+    if target is not None:
+        lines.append(f'platforms = ["{target}"]')
+        lines.append("wheels = [" + ", ".join(f'"{w}"' for w in wheels) + "]")
+    extra = "\n".join(lines) + "\n" if lines else ""
+    head, sep, tail = text.partition("\n[build]")
+    return head.rstrip("\n") + "\n" + extra + sep + tail
+
+
+def build_one(manifest: dict, text: str, target: str | None, out: Path) -> Path:
+    """Stage the package files (and `target`'s wheels) and build one .zip from them."""
+    wheels = [w for w in manifest.get("wheels", []) if target is not None and wheel_platform(w) == target]
+    suffix = "" if target is None else "-" + target.replace("-", "_")
+    zip_path = out / f"{manifest['id']}-{manifest['version']}{suffix}.zip"
+    with tempfile.TemporaryDirectory(prefix="affdef_stage_") as tmp:
+        stage = Path(tmp)
+        for name in PACKAGE_FILES:
+            shutil.copy2(ROOT / name, stage / name)
+        for name in PACKAGE_DIRS:
+            shutil.copytree(ROOT / name, stage / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        (stage / "blender_manifest.toml").write_text(manifest_for(text, target, wheels), encoding="utf-8")
+        for rel in wheels:
+            (stage / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / rel, stage / rel)
+        run_cli("validate", str(stage))
+        run_cli("build", "--source-dir", str(stage), "--output-filepath", str(zip_path))
+    return zip_path
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--output-dir", default="dist")
+    parser.add_argument("--platform", default="host",
+                        help="host (default), all, none, or a Blender platform such as linux-x64")
     ns = parser.parse_args()
+    text = MANIFEST.read_text(encoding="utf-8")
+    manifest = tomllib.loads(text)
+    declared = manifest.get("platforms", [])
+    if ns.platform == "all":
+        targets: list[str | None] = list(declared)
+    elif ns.platform == "none":
+        targets = [None]
+    else:
+        wanted = host_platform() if ns.platform == "host" else ns.platform
+        if wanted not in declared:
+            print(f"no bundled wheels for {wanted}: building the package without the compiled kernel")
+            wanted = None
+        targets = [wanted]
     out = (ROOT / ns.output_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    run_cli("validate", str(ROOT))
-    run_cli("build", "--source-dir", str(ROOT), "--output-dir", str(out))
-    zips = sorted(out.glob("affine_deformers-*.zip"))
-    print(f"extension package: {zips[-1] if zips else '(missing)'}")
+    for old in out.glob(f"{manifest['id']}-*.zip"):
+        old.unlink()  # one build's packages only: tests and tools pick "the" package in dist/
+    fetch_wheels([w for w in manifest.get("wheels", []) if wheel_platform(w) in targets])
+    for target in targets:
+        print(f"extension package: {build_one(manifest, text, target, out)}")
 
 
 if __name__ == "__main__":

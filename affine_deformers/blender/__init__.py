@@ -9,9 +9,9 @@ import traceback
 
 import bpy
 
-from . import bake, evaluate, operators, panels, props, relations
+from . import bake, evaluate, operators, panels, prefs, props, relations
 
-CLASSES = (*props.CLASSES, *operators.CLASSES, *bake.CLASSES, *panels.CLASSES)
+CLASSES = (*prefs.CLASSES, *props.CLASSES, *operators.CLASSES, *bake.CLASSES, *panels.CLASSES)
 
 
 def register() -> None:
@@ -20,6 +20,8 @@ def register() -> None:
     props.register_properties()
     bpy.types.VIEW3D_MT_object.append(panels.draw_object_menu)
     evaluate.register_handlers()
+    prefs.apply(prefs.preferences())
+    prefs.start_warm_up()
     _upgrade_open_file()
 
 

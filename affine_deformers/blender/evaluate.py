@@ -23,6 +23,7 @@ import bpy
 import numpy as np
 from bpy.app.handlers import persistent
 
+from .. import accel
 from ..core import aff3, deform, unwrap
 from . import cage_kind, kinds, nodes, relations, storage
 from .kinds import KINDS, Motions, reference_rotvecs
@@ -307,7 +308,7 @@ def _offsets(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarray, np.
         if deformer.blend_mode == "LINEAR":
             deformed = deform.blend_linear_sparse(points, motions.matrices, indices, values)
         else:
-            deformed = deform.deform_points_params(points, motions_to_params(motions, deformer), indices,
+            deformed = accel.deform_points_params(points, motions_to_params(motions, deformer), indices,
                                                    values)
     if outer is not None:
         deformed = deformed @ outer[:3, :3].T + outer[:3, 3]
@@ -324,19 +325,21 @@ def _offsets_affine(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarr
     params = motions_to_params(motions, deformer)
     values = bound.scaled_values(deformer.strength)
     points = bound.points
-    state = (deformer.strength, deformer.branch_rule)
+    # The backend is part of the state: the two kernels agree to ~1e-15, not bit for bit, and an
+    # incremental update must equal a full recompute exactly.
+    state = (deformer.strength, deformer.branch_rule, accel.active())
     offsets = bound.offsets
     if offsets is not None and bound.state == state and bound.params.shape == params.shape:
         changed = np.flatnonzero((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1))
         rows = bound.affected_rows(changed)
         if len(rows) <= INCREMENTAL_MAX_FRACTION * len(points):
             if len(rows):
-                deform.deform_points_params_rows(points, params, bound.indices, values, rows, offsets,
+                accel.deform_points_params_rows(points, params, bound.indices, values, rows, offsets,
                                                  offsets=True, key=(bound.serial, deformer.strength))
             bound.params = params
             return offsets, rows
     bound.forget_result()
-    offsets = deform.deform_points_params(points, params, bound.indices, values,
+    offsets = accel.deform_points_params(points, params, bound.indices, values,
                                           key=(bound.serial, deformer.strength))
     offsets -= points
     bound.state, bound.params, bound.offsets = state, params, offsets

@@ -90,7 +90,16 @@ assert np.abs(half - rest - 0.5 * np.array([0.25, -0.5, 1.0], np.float32)).max()
 probe.hide_viewport = True
 probe.location = (0.5, 0.0, 0.0)
 assert np.abs(positions() - rest - np.array([0.25, 0.0, 0.0], np.float32)).max() < 1e-5
-print("LTS OK", bpy.app.version_string)
+# the compiled kernel runs from the wheels bundled in the package (this venv has no numba of its own)
+import importlib, zipfile
+accel = importlib.import_module("bl_ext.user_default.affine_deformers.affine_deformers.accel")
+bundled = any(n.startswith("wheels/numba-") for n in zipfile.ZipFile(sys.argv[1]).namelist())
+if bundled:
+    assert accel.active(), accel.backend()
+    assert accel.backend().startswith("numba "), accel.backend()
+    import numba
+    assert "extensions" in numba.__file__, numba.__file__
+print("LTS OK", bpy.app.version_string, "kernel:", accel.backend())
 """
 
 

@@ -72,7 +72,7 @@ def test_incremental_update_touches_only_influenced_vertices(ns):
     bound = ns.evaluate._bound[(target.session_uid, deformer.uid)]
     first = bound.offsets
     calls = []
-    deform = ns.evaluate.deform
+    deform = ns.evaluate.accel  # the kernel dispatch the layer calls (compiled or numpy)
     originals = deform.deform_points_params, deform.deform_points_params_rows
 
     def full(points, *args, **kwargs):

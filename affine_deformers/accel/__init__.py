@@ -1,0 +1,303 @@
+"""Optional compiled backend of the per-vertex kernel, with the numpy kernel as the fallback.
+
+`deform_points_params` and `deform_points_params_rows` have the signatures and the argument checks
+(same messages) of `affine_deformers.core.deform`; they run the numba kernel of `compiled.py` when it
+is available and the numpy kernel otherwise. The results agree to ~1e-15 relative (the compiled
+kernel uses polynomial transcendentals, see compiled.py), and within one backend every row is
+bit-identical whichever entry point, thread count or row subset computes it.
+
+The compiled path is skipped when
+
+* the environment variable AFFINE_DEFORMERS_ACCEL is "0" (checked on every call), or
+* importing numba or compiling the kernel failed once (ImportError, RuntimeError, numba's errors, …):
+  the process then stays on numpy and `backend()` says why. Such a failure never reaches the caller.
+
+numba is imported on first use, not when this package is imported (it takes ~0.1–0.5 s and the first
+call compiles the kernel, ~5 s, or loads it from numba's cache next to compiled.py in well under 1 s).
+Calls into the compiled kernel are serialised by a lock: numba's workqueue threading layer aborts the
+process on concurrent parallel launches, and Blender may evaluate from more than one thread.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import warnings
+from collections.abc import Hashable
+from types import ModuleType
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..core import deform as _np_kernel
+from ..core.deform import (
+    _check_indices,
+    _check_out,
+    _check_points,
+    _check_table,
+    _unchanged,
+    default_threads,
+)
+
+__all__ = [
+    "ACCEL_ENV",
+    "active",
+    "backend",
+    "deform_points_params",
+    "deform_points_params_rows",
+    "set_enabled",
+    "warm_up",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Environment variable: "0" disables the compiled kernel.
+ACCEL_ENV = "AFFINE_DEFORMERS_ACCEL"
+
+
+class _State:
+    """The compiled module once loaded, or why the process stays on numpy."""
+
+    def __init__(self) -> None:
+        self.module: ModuleType | None = None
+        self.failure: str | None = None
+        self.compiled: set[str] = set()  # entry points that have run once (compiled or cache-loaded)
+        self.lock = threading.RLock()
+        self.checked_key: Hashable | None = None
+        self.enabled = True
+
+
+_state = _State()
+
+
+def _disabled_by_env() -> bool:
+    return not _state.enabled or os.environ.get(ACCEL_ENV, "").strip() == "0"
+
+
+def set_enabled(enabled: bool) -> None:
+    """Use the compiled kernel when available (True, the default) or always numpy (False): the add-on
+    preference. The environment variable still wins when it says "0"."""
+    _state.enabled = bool(enabled)
+
+
+def active() -> bool:
+    """True when calls go to the compiled kernel (imports numba on first use; compiles nothing)."""
+    return not _disabled_by_env() and _load() is not None
+
+
+def warm_up() -> str:
+    """Compile (or load from numba's cache) both entry points on a tiny input, so the first real
+    update does not pay for it; returns `backend()`. Safe to call from a helper thread: calls into
+    the compiled module are serialised by a lock, and a failure only switches the process to numpy."""
+    pts = np.zeros((2, 3))
+    params = np.zeros((1, 12))
+    params[0, 6] = 1e-3  # not all zero: the all-at-rest shortcut would skip the kernel
+    idx = np.zeros((2, 1), dtype=np.int32)
+    val = np.ones((2, 1))
+    deform_points_params(pts, params, idx, val)
+    deform_points_params_rows(pts, params, idx, val, np.array([1], dtype=np.intp), np.zeros((2, 3)))
+    return backend()
+
+
+def _load() -> ModuleType | None:
+    """The compiled module, importing numba on first use; None when unavailable (reason recorded)."""
+    if _disabled_by_env() or _state.failure is not None:
+        return None
+    if _state.module is None:
+        with _state.lock:
+            if _state.module is None and _state.failure is None:
+                try:
+                    from . import compiled  # lazy: numba is optional and slow to import
+
+                    _state.module = compiled
+                except Exception as exc:  # ImportError, numba's RuntimeError/OSError on odd platforms …
+                    _fail(f"numba unavailable: {type(exc).__name__}: {exc}")
+    return _state.module
+
+
+def _fail(reason: str) -> None:
+    """Stay on numpy for the rest of the process."""
+    _state.failure = reason
+    _state.module = None
+    warnings.warn(f"affine_deformers: compiled kernel disabled ({reason}); using numpy", stacklevel=3)
+
+
+def _threads(numba: ModuleType) -> int:
+    """default_threads(), bounded by the size of numba's thread pool."""
+    return max(1, min(default_threads(), int(numba.config.NUMBA_NUM_THREADS)))
+
+
+def backend() -> str:
+    """'numba <version>, <n> threads' or 'numpy (<reason>)'. Imports numba if not done yet (but does
+    not compile anything)."""
+    if not _state.enabled:
+        return "numpy (compiled kernel turned off in the preferences)"
+    if _disabled_by_env():
+        return f"numpy ({ACCEL_ENV}=0)"
+    if _load() is None:
+        return f"numpy ({_state.failure})"
+    import numba  # already in sys.modules (_load)
+
+    n = _threads(numba)
+    return f"numba {numba.__version__}, {n} thread{'s' if n != 1 else ''}"
+
+
+def _run(name: str, *args: object) -> bool:
+    """Call compiled.<name>(*args) on numba's pool; False if the backend is (or just became)
+    unavailable, in which case the caller recomputes with numpy."""
+    module = _load()
+    if module is None:
+        return False
+    import numba  # already in sys.modules (_load)
+
+    with _state.lock:
+        try:
+            numba.set_num_threads(_threads(numba))
+            getattr(module, name)(*args)
+        except Exception as exc:
+            if name in _state.compiled:
+                # It ran before with these argument types: not a compile/platform problem.
+                raise
+            _fail(f"compiling {name} failed: {type(exc).__name__}: {exc}")
+            return False
+        _state.compiled.add(name)
+    return True
+
+
+# ----------------------------------------------------------------------------------------------
+# argument preparation (the checks and messages of core.deform)
+
+
+def _c(a: np.ndarray, dtype: type) -> np.ndarray:
+    """`a` as a C-contiguous array of `dtype`, copied if read-only: numba compiles read-only arrays as
+    a separate specialisation (seconds of compiling in the middle of an interactive session)."""
+    arr = np.ascontiguousarray(a, dtype=dtype)
+    return arr if arr.flags.writeable else arr.copy()
+
+
+def _inputs(
+    points: ArrayLike, params: ArrayLike, indices: ArrayLike, values: ArrayLike, key: Hashable | None
+) -> tuple[FloatArray, FloatArray, NDArray[np.int32], FloatArray]:
+    """Checked points, table, indices and values. With a key seen before, only the shapes are
+    checked (the caller vouches for the contents; the kernel clamps indices, so memory stays safe)."""
+    table = _check_table(params, 12, "params")
+    if key is not None and key == _state.checked_key:
+        pts = np.asarray(points, dtype=np.float64)
+        idx = np.asarray(indices)
+        val = np.asarray(values, dtype=np.float64)
+        if (
+            pts.ndim != 2
+            or pts.shape[1] != 3
+            or idx.shape != val.shape
+            or idx.ndim != 2
+            or idx.shape[0] != pts.shape[0]
+            or not np.issubdtype(idx.dtype, np.integer)
+        ):
+            _state.checked_key = None
+            return _inputs(points, params, indices, values, None)
+    else:
+        pts = _check_points(points)
+        idx = np.asarray(indices)
+        if idx.ndim != 2 or idx.shape[0] != pts.shape[0]:
+            # the message of core.deform's weights cache, which checks this first
+            raise ValueError(f"indices must have shape ({pts.shape[0]}, K), got {idx.shape}")
+        idx, val = _check_indices(idx, values, pts.shape[0], table.shape[0])
+        if key is not None:
+            _state.checked_key = key
+    return pts, table, idx, val
+
+
+def _check_rows(rows: ArrayLike, n_points: int) -> NDArray[np.intp]:
+    sel = np.asarray(rows)
+    if sel.ndim != 1 or not np.issubdtype(sel.dtype, np.integer):
+        raise ValueError(f"rows must be a 1-D integer array, got {sel.dtype} {sel.shape}")
+    if sel.size and (int(sel.min()) < 0 or int(sel.max()) >= n_points):
+        raise ValueError(f"rows must lie in [0, {n_points})")
+    return _c(sel, np.intp)
+
+
+# ----------------------------------------------------------------------------------------------
+# entry points
+
+
+def deform_points_params(
+    points: ArrayLike,
+    params: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    out: FloatArray | None = None,
+    *,
+    key: Hashable | None = None,
+) -> FloatArray:
+    """v' = φ(p_v) v with p_v = Σ_k values[v, k] · params[indices[v, k]] for every row v of points.
+
+    As `core.deform.deform_points_params` (same arguments, checks and messages): points (N, 3),
+    params (m, 12), indices (N, K) integer in [0, m), values (N, K); returns (N, 3) float64 (`out` if
+    given; it may be `points` itself). All-zero params return the input bit for bit. `key`: a
+    hashable token the caller guarantees names these exact points, indices and values; a call with
+    the key of the previous checked call skips re-validating them.
+    """
+    if _load() is None:
+        return _np_kernel.deform_points_params(points, params, indices, values, out, key=key)
+    pts, table, idx, val = _inputs(points, params, indices, values, key)
+    out = _check_out(out, pts)
+    if not out.flags.writeable:
+        raise ValueError("out must be writable")
+    if not table.any():  # every control at rest (also m = 0)
+        return _unchanged(pts, out)
+    p = _c(pts, np.float64)
+    dst = out if out.flags.c_contiguous else np.empty_like(p)
+    # A chunk reads its points before writing its results, so out may be points itself — but not a
+    # different view of the same memory.
+    if np.may_share_memory(dst, p) and not (
+        dst.__array_interface__["data"][0] == p.__array_interface__["data"][0] and dst.strides == p.strides
+    ):
+        p = p.copy()
+    if not _run("deform_params", p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), dst):
+        return _np_kernel.deform_points_params(points, params, indices, values, out, key=key)
+    if dst is not out:
+        np.copyto(out, dst)
+    return out
+
+
+def deform_points_params_rows(
+    points: ArrayLike,
+    params: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    rows: ArrayLike,
+    out: FloatArray,
+    *,
+    offsets: bool = False,
+    key: Hashable | None = None,
+) -> FloatArray:
+    """`deform_points_params` for the vertices `rows` only: out[v] = φ(p_v) points[v] (minus points[v]
+    when `offsets`) for v in rows; the other rows of `out` (float64, (N, 3)) are left as they are.
+
+    As `core.deform.deform_points_params_rows`; each written row is bit-identical to the same row of
+    `deform_points_params` with the same backend.
+    """
+    if _load() is None:
+        return _np_kernel.deform_points_params_rows(
+            points, params, indices, values, rows, out, offsets=offsets, key=key
+        )
+    pts, table, idx, val = _inputs(points, params, indices, values, key)
+    if not isinstance(out, np.ndarray) or out.shape != pts.shape or out.dtype != np.float64:
+        raise ValueError(f"out must be a float64 array of shape {pts.shape}")
+    if not out.flags.writeable:
+        raise ValueError("out must be writable")
+    sel = _check_rows(rows, pts.shape[0])
+    if table.shape[0] == 0:  # then K = 0 or N = 0 (checked): φ(0) v = v
+        table = np.zeros((1, 12))
+    p = _c(pts, np.float64)
+    dst = out if out.flags.c_contiguous else np.ascontiguousarray(out)
+    if np.may_share_memory(dst, p):  # repeated rows in different chunks would read written results
+        p = p.copy()
+    args = (p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), sel, dst, bool(offsets))
+    if not _run("deform_rows", *args):
+        return _np_kernel.deform_points_params_rows(
+            points, params, indices, values, rows, out, offsets=offsets, key=key
+        )
+    if dst is not out:
+        out[sel] = dst[sel]
+    return out

@@ -1,0 +1,475 @@
+"""The per-vertex kernel v ↦ φ(Σ_k w_k P_idx(k)) v compiled with numba (optional backend).
+
+Same mathematics as `core/deform.py` (parameter layout of docs/DEVELOPING.md, P = (ω, u, Y₆)):
+
+    v' = R(ω) exp(Y) v + V(ω) u,
+    exp(Y) v = e^{e₁} (v + α Z v + g Z² v),  Z = Y − e₁ I,  e₀ ≤ e₁ ≤ e₂ the eigenvalues of Y,
+    x = e₀ − e₁ ≤ 0 ≤ y = e₂ − e₁,  g = (y h2(y) − x h2(x))/(y − x),  α = 1 + x (h2(x) − g),
+    h2(z) = (eᶻ − 1 − z)/z²,
+    R w + V u = cos θ w + A u + ω × (A w + B u) + (B ω·w + C ω·u) ω,
+    A = sin θ/θ, B = (1 − cos θ)/θ², C = (θ − sin θ)/θ³, θ = |ω|.
+
+The eigenvalues come from the trigonometric cubic on the traceless part (a = arccos(r)/3 ≤ π/3).
+
+Layout: vertices go in chunks of CHUNK rows (threads take whole chunks). Per chunk, `_chunk` blends
+the parameters into a structure-of-arrays scratch (12 parameter rows, 3 point rows, 3 result rows)
+and then runs the map over it as one straight-line loop without calls or branches (selects only), so
+LLVM vectorises it across vertices. libm is not vectorisable, so the transcendentals are polynomials:
+
+* acos(r): π/2 − asin(r) for |r| ≤ ½, else 2 asin(√((1 − |r|)/2)) (reflected for r < 0); 1 − |r| is
+  exact (Sterbenz, |r| ∈ [½, 1]). asin(s) = s F(s²), F the Taylor series Σ C(2k,k)/(4ᵏ(2k+1)) zᵏ to
+  degree 24 on z ≤ ¼: truncation < 3e-18 relative.
+* exp(z) = 2ⁿ e^ρ: n = round(z/ln 2) by adding 1.5·2⁵² (round to nearest in the low mantissa bits),
+  ρ = (z − n ln2_hi) − n ln2_lo (Cody–Waite: ln2_hi has its low 11 bits cleared, so n ln2_hi is exact
+  for |n| < 2¹¹), e^ρ Taylor degree 13 on |ρ| ≤ ln2/2 (truncation < 1e-17 relative); 2ⁿ is built
+  from the integer bits of the rounded sum. z is clamped to ±709 (e^709 is finite).
+* h2(z): Taylor Σ zᵏ/(k+2)! to degree 17 for |z| ≤ 1 (truncation < 1e-18), the direct formula beyond
+  (≤ 5ε relative there: the numerator is ≥ e⁻¹ against terms of size ≤ eᶻ), so no clamp near z = 0.
+* sin x/x: Taylor in x² to degree 9 for the quarter angle x = θ/4 ≤ 0.45π (truncation < 2e-17),
+  degree 8 for the eigen-angle a ≤ π/3 (< 2e-17); cosines as √(1 − sin²) (cos(θ/4) ≥ 0.15 and
+  cos a ≥ ½ keep that well conditioned) and double-angle formulas. For θ > 1.8π (lifted rotations)
+  that is no longer accurate: the map counts those vertices and a scalar pass redoes them with libm
+  sin/cos (`_fixup`).
+* C = (1 − A)/(θ² + 1e-14): moves C (ω·u) ω by ≤ 1e-14 |u|/6 and makes θ = 0 safe without a branch.
+
+Accuracy: ≤ 3e-15 relative to ‖M‖‖v‖ + ‖t‖ against aff3 on the adversarial set of the core tests.
+
+Bit-identity: a row's result depends on that row only, not on the entry point, the chunk, the
+position in it or the thread count — the Blender layer recomputes only the rows a changed control
+influences and keeps the others. Both entry points run the same compiled `_chunk` (one blend, one
+map, one fix-up); every function carries the same fastmath flags (only 'contract': FMA formation; no
+reassociation, so no sum is reordered); and the map always runs a full chunk, so no row is computed
+by a scalar remainder loop whose FMA contraction could differ from the vector body's (see `_map`).
+
+Memory safety: indices are clamped to the table in the blend (one min per slot), so inputs the caller
+vouched for (a `key`) but that are wrong can give wrong values but never read out of bounds.
+
+This module imports numba; `affine_deformers.accel` imports it only on first use. Nothing is compiled
+at import: the entry points compile on their first call (or load from numba's cache next to this
+file; without a usable cache location they are compiled in every session).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from decimal import Decimal, localcontext
+from fractions import Fraction
+
+import numba
+import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
+
+__all__ = ["CHUNK", "deform_params", "deform_rows"]
+
+#: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
+FASTMATH = {"contract"}
+#: Vertices per chunk (a thread's unit of work): 18 scratch rows of this length stay in L2.
+CHUNK = 2048
+# Scratch row stride: rows a multiple of 4 KiB apart alias in the L1 cache (4K aliasing) and the
+# vectorised map reads and writes ~20 rows at once.
+_STRIDE = CHUNK + 8
+_N_SCRATCH = 18  # 12 parameters, 3 point coordinates, 3 results
+
+# ---------------------------------------------------------------------------------------------
+# constants
+
+
+def _split_ln2() -> tuple[float, float, float]:
+    """(ln2_hi, ln2_lo, 1/ln 2): ln2_hi with its 11 low mantissa bits cleared, ln2_lo the rest."""
+    with localcontext() as ctx:
+        ctx.prec = 50
+        ln2 = Decimal(2).ln()
+        bits = np.array([float(ln2)]).view(np.int64)[0] & ~np.int64((1 << 11) - 1)
+        hi = float(np.array([bits]).view(np.float64)[0])
+        return hi, float(ln2 - Decimal(hi)), float(1 / ln2)
+
+
+_LN2_HI, _LN2_LO, _LOG2E = _split_ln2()
+_ROUND_MAGIC = 6755399441055744.0  # 1.5·2⁵²: (x + M) − M rounds x to the nearest integer, |x| < 2⁵¹
+_EXP_MAX = 709.0
+_SQRT3 = math.sqrt(3.0)
+_TINY = float(np.finfo(np.float64).tiny)
+POLY_MAX_S = (1.8 * math.pi) ** 2  # θ² beyond which the libm fix-up takes over
+_C_CLAMP_S = 1e-14
+
+_SINC = [(-1.0) ** k / math.factorial(2 * k + 1) for k in range(10)]
+_ASIN_F = [float(Fraction(math.comb(2 * k, k), 4**k * (2 * k + 1))) for k in range(25)]
+_EXP_T = [1.0 / math.factorial(k) for k in range(14)]
+_H2_T = [1.0 / math.factorial(k + 2) for k in range(18)]
+
+
+# ---------------------------------------------------------------------------------------------
+# bit casts (2ⁿ from the exponent field without a libm call or a branch)
+
+
+@intrinsic
+def _i2f(typingctx, x):
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+
+    return types.float64(types.int64), codegen
+
+
+@intrinsic
+def _f2i(typingctx, x):
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return types.int64(types.float64), codegen
+
+
+# ---------------------------------------------------------------------------------------------
+# polynomials: written out as straight-line Horner code. A loop over a coefficient array inside
+# the map would be an inner loop, and LLVM only vectorises innermost loops.
+
+
+def _horner_src(name: str, coeffs: list[float]) -> str:
+    expr = repr(coeffs[-1])
+    for c in coeffs[-2::-1]:
+        expr = f"({expr}) * z + {c!r}"
+    return f"@_inline\ndef {name}(z):\n    return {expr}\n"
+
+
+def _inline(fn: Callable) -> Callable:
+    return numba.njit(inline="always", fastmath=FASTMATH, error_model="numpy")(fn)
+
+
+_POLY_NAMESPACE: dict = {"_inline": _inline}
+exec(
+    compile(
+        "".join(
+            _horner_src(name, coeffs)
+            for name, coeffs in (
+                ("_sinc_quarter", _SINC),
+                ("_sinc_eig", _SINC[:9]),
+                ("_asin_f", _ASIN_F),
+                ("_exp_taylor", _EXP_T),
+                ("_h2_taylor", _H2_T),
+            )
+        ),
+        "<affine_deformers.accel.compiled polynomials>",
+        "exec",
+    ),
+    _POLY_NAMESPACE,
+)
+_sinc_quarter = _POLY_NAMESPACE["_sinc_quarter"]
+_sinc_eig = _POLY_NAMESPACE["_sinc_eig"]
+_asin_f = _POLY_NAMESPACE["_asin_f"]
+_exp_taylor = _POLY_NAMESPACE["_exp_taylor"]
+_h2_taylor = _POLY_NAMESPACE["_h2_taylor"]
+
+
+# ---------------------------------------------------------------------------------------------
+# branch-free scalar pieces of the map (inlined into the vectorised loop)
+
+
+@_inline
+def _exp(z: float) -> float:
+    """e^z = 2ⁿ e^ρ (Cody–Waite reduction, Taylor e^ρ), z clamped to [−709, 709]."""
+    z = _EXP_MAX if z > _EXP_MAX else z
+    z = -_EXP_MAX if z < -_EXP_MAX else z
+    kn = z * _LOG2E + _ROUND_MAGIC
+    n = kn - _ROUND_MAGIC
+    rho = (z - n * _LN2_HI) - n * _LN2_LO
+    # The low 12 bits of kn's bit pattern hold n mod 2¹²; n + 1023 ∈ [0, 2046] is the biased exponent.
+    return _exp_taylor(rho) * _i2f((_f2i(kn) + 1023) << 52)
+
+
+@_inline
+def _h2(z: float) -> float:
+    """(eᶻ − 1 − z)/z²: Taylor for |z| ≤ 1, direct beyond (both computed, one selected)."""
+    zz = z * z
+    big = zz > 1.0
+    direct = (_exp(z) - 1.0 - z) / (zz if big else 1.0)
+    return direct if big else _h2_taylor(z)
+
+
+@_inline
+def _acos_third(r: float) -> float:
+    """arccos(r)/3 for r ∈ [−1, 1] via asin on |argument| ≤ ½."""
+    ar = r if r >= 0.0 else -r
+    big = ar > 0.5
+    zb = 0.5 * (1.0 - ar)
+    s = math.sqrt(zb) if big else r
+    t = s * _asin_f(zb if big else r * r)
+    acos_big = 2.0 * t if r > 0.0 else math.pi - 2.0 * t
+    return (acos_big if big else 0.5 * math.pi - t) * (1.0 / 3.0)
+
+
+@_inline
+def _stretch(
+    yxx: float, yyy: float, yzz: float, yxy: float, yxz: float, yyz: float, v0: float, v1: float, v2: float
+) -> tuple[float, float, float]:
+    """exp(Y) v for Y = [[yxx, yxy, yxz], [yxy, yyy, yyz], [yxz, yyz, yzz]] (see the module doc)."""
+    q = (yxx + yyy + yzz) * (1.0 / 3.0)
+    b0 = yxx - q
+    b1 = yyy - q
+    b2 = yzz - q
+    det = b0 * b1 * b2 + 2.0 * yxy * yxz * yyz - b0 * yyz * yyz - b1 * yxz * yxz - b2 * yxy * yxy
+    p2 = (b0 * b0 + b1 * b1 + b2 * b2 + 2.0 * (yxy * yxy + yxz * yxz + yyz * yyz)) * (1.0 / 6.0)
+    p = math.sqrt(p2)
+    # r = det(B/p)/2 ∈ [−1, 1] up to rounding; TINY only avoids 0/0 for a multiple of the identity.
+    r = det / (2.0 * p2 * p + _TINY)
+    r = 1.0 if r > 1.0 else r
+    r = -1.0 if r < -1.0 else r
+    a = _acos_third(r)
+    sa = _sinc_eig(a * a) * a
+    ca = math.sqrt(1.0 - sa * sa)
+    sb = 0.5 * _SQRT3 * ca - 0.5 * sa  # sin(π/3 − a)
+    x = -2.0 * _SQRT3 * p * sa
+    y = 2.0 * _SQRT3 * p * sb
+    e1 = q - (x + y) * (1.0 / 3.0)
+    h2x = _h2(x)
+    h2y = _h2(y)
+    # y − x ≥ 0 vanishes only for x = y = 0, where g multiplies Z = 0.
+    g = (y * h2y - x * h2x) / (y - x + _TINY)
+    alpha = 1.0 + x * (h2x - g)
+    E = _exp(e1)
+    alpha *= E
+    g *= E
+    z0 = yxx - e1
+    z1 = yyy - e1
+    z2 = yzz - e1
+    zv0 = z0 * v0 + yxy * v1 + yxz * v2
+    zv1 = yxy * v0 + z1 * v1 + yyz * v2
+    zv2 = yxz * v0 + yyz * v1 + z2 * v2
+    zz0 = z0 * zv0 + yxy * zv1 + yxz * zv2
+    zz1 = yxy * zv0 + z1 * zv1 + yyz * zv2
+    zz2 = yxz * zv0 + yyz * zv1 + z2 * zv2
+    return (alpha * zv0 + g * zz0 + E * v0, alpha * zv1 + g * zz1 + E * v1, alpha * zv2 + g * zz2 + E * v2)
+
+
+@_inline
+def _rotation_coeffs_poly(s: float) -> tuple[float, float, float, float]:
+    """(A, B, C, cos θ) from s = θ² by the quarter-angle polynomial; accurate for θ ≤ 1.8π."""
+    zq = s * (1.0 / 16.0)
+    sq = _sinc_quarter(zq)  # sin(θ/4)/(θ/4)
+    tq = sq * sq * zq  # sin²(θ/4)
+    cq2 = 1.0 - tq
+    cq2 = 0.0 if cq2 < 0.0 else cq2  # only reachable for θ > 1.8π, which the fix-up redoes
+    sh = sq * math.sqrt(cq2)  # sin(θ/2)/(θ/2)
+    A = sh * (1.0 - 2.0 * tq)
+    B = 0.5 * sh * sh
+    return A, B, (1.0 - A) / (s + _C_CLAMP_S), 1.0 - B * s
+
+
+@_inline
+def _rotation_coeffs_libm(s: float) -> tuple[float, float, float, float]:
+    """(A, B, C, cos θ) with libm sin/cos, for θ > 1.8π only (no small-θ care needed)."""
+    th = math.sqrt(s)
+    st = math.sin(th)
+    half = math.sin(0.5 * th) / (0.5 * th)
+    return st / th, 0.5 * half * half, (th - st) / (th * s), math.cos(th)
+
+
+@_inline
+def _rigid(
+    w0: float, w1: float, w2: float, u0: float, u1: float, u2: float, e0: float, e1: float, e2: float,
+    A: float, B: float, C: float, cth: float,
+) -> tuple[float, float, float]:
+    """R(ω) e + V(ω) u from the θ-coefficients."""
+    k = B * (w0 * e0 + w1 * e1 + w2 * e2) + C * (w0 * u0 + w1 * u1 + w2 * u2)
+    m0 = A * e0 + B * u0
+    m1 = A * e1 + B * u1
+    m2 = A * e2 + B * u2
+    return (
+        w1 * m2 - w2 * m1 + cth * e0 + A * u0 + w0 * k,
+        w2 * m0 - w0 * m2 + cth * e1 + A * u1 + w1 * k,
+        w0 * m1 - w1 * m0 + cth * e2 + A * u2 + w2 * k,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# one chunk: blend, map, fix-up, store (shared by both entry points)
+
+
+@_inline
+def _blend(T: np.ndarray, I: np.ndarray, V: np.ndarray, P: np.ndarray, K: int, last: np.uint64,
+           W: np.ndarray, j: int, r: int) -> None:
+    """Column j of the scratch from row r: parameters Σ_k V[r, k] T[I[r, k]] (slot order) in
+    scratch rows 0–11, the point P[r] in rows 12–14. T, I, V, P are the flat (row-major) table,
+    indices, values and points; `last` = m − 1. Indices are clamped to the table (no effect on valid
+    input, see the module doc)."""
+    # Unsigned offsets: numba adds a negative-index wraparound select to every signed subscript,
+    # which here would cost as much as the arithmetic.
+    one = np.uint64(1)
+    a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = a11 = 0.0
+    base = r * K
+    for k in range(K):
+        wv = V[base + k]
+        # A negative index becomes huge as unsigned and is clamped like a too-large one.
+        c = min(np.uint64(I[base + k]), last) * np.uint64(12)
+        a0 += wv * T[c]
+        c += one
+        a1 += wv * T[c]
+        c += one
+        a2 += wv * T[c]
+        c += one
+        a3 += wv * T[c]
+        c += one
+        a4 += wv * T[c]
+        c += one
+        a5 += wv * T[c]
+        c += one
+        a6 += wv * T[c]
+        c += one
+        a7 += wv * T[c]
+        c += one
+        a8 += wv * T[c]
+        c += one
+        a9 += wv * T[c]
+        c += one
+        a10 += wv * T[c]
+        c += one
+        a11 += wv * T[c]
+    S = _STRIDE
+    W[j] = a0
+    W[S + j] = a1
+    W[2 * S + j] = a2
+    W[3 * S + j] = a3
+    W[4 * S + j] = a4
+    W[5 * S + j] = a5
+    W[6 * S + j] = a6
+    W[7 * S + j] = a7
+    W[8 * S + j] = a8
+    W[9 * S + j] = a9
+    W[10 * S + j] = a10
+    W[11 * S + j] = a11
+    W[12 * S + j] = P[3 * r]
+    W[13 * S + j] = P[3 * r + 1]
+    W[14 * S + j] = P[3 * r + 2]
+
+
+@_inline
+def _stretch_at(W: np.ndarray, j: int) -> tuple[float, float, float]:
+    """exp(Y) v for scratch column j."""
+    S = _STRIDE
+    return _stretch(
+        W[6 * S + j], W[7 * S + j], W[8 * S + j], W[9 * S + j], W[10 * S + j], W[11 * S + j],
+        W[12 * S + j], W[13 * S + j], W[14 * S + j],
+    )
+
+
+@_inline
+def _rigid_store(
+    W: np.ndarray, j: int, e0: float, e1: float, e2: float, A: float, B: float, C: float, cth: float
+) -> None:
+    """Scratch rows 15–17 of column j = R(ω) e + V(ω) u."""
+    S = _STRIDE
+    o0, o1, o2 = _rigid(W[j], W[S + j], W[2 * S + j], W[3 * S + j], W[4 * S + j], W[5 * S + j],
+                        e0, e1, e2, A, B, C, cth)
+    W[15 * S + j] = o0
+    W[16 * S + j] = o1
+    W[17 * S + j] = o2
+
+
+@_inline
+def _theta_sq(W: np.ndarray, j: int) -> float:
+    S = _STRIDE
+    return W[j] * W[j] + W[S + j] * W[S + j] + W[2 * S + j] * W[2 * S + j]
+
+
+@numba.njit(fastmath=FASTMATH, error_model="numpy")
+def _map(W: np.ndarray) -> int:
+    """Result rows 15–17 = φ(rows 0–11) · rows 12–14 for every column of the flat scratch (row
+    stride _STRIDE), θ-coefficients by polynomial; returns how many columns have θ > 1.8π (to be
+    redone by `_fixup`).
+
+    Always all CHUNK columns (unused ones zeroed by the caller): with this constant trip count, a
+    multiple of any vector width × unroll, LLVM emits no scalar remainder loop, so every column goes
+    through the same vector code. A remainder would compute some rows with scalar code, where FMA
+    contraction and SLP operand order may differ from the vector body in the last bit."""
+    n_big = 0
+    for j in range(CHUNK):
+        e0, e1, e2 = _stretch_at(W, j)
+        s = _theta_sq(W, j)
+        A, B, C, cth = _rotation_coeffs_poly(s)
+        _rigid_store(W, j, e0, e1, e2, A, B, C, cth)
+        n_big += 1 if s > POLY_MAX_S else 0
+    return n_big
+
+
+@numba.njit(fastmath=FASTMATH, error_model="numpy")
+def _fixup(W: np.ndarray, n: int) -> None:
+    """Redo the columns j < n with θ > 1.8π with libm θ-coefficients (rare: lifted rotations).
+
+    A scalar loop (libm calls and a branch are not vectorised), so its values do not depend on the
+    position either; both entry points send the same rows through it."""
+    for j in range(n):
+        s = _theta_sq(W, j)
+        if s > POLY_MAX_S:
+            e0, e1, e2 = _stretch_at(W, j)
+            A, B, C, cth = _rotation_coeffs_libm(s)
+            _rigid_store(W, j, e0, e1, e2, A, B, C, cth)
+
+
+@numba.njit(fastmath=FASTMATH, error_model="numpy")
+def _chunk(
+    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, a: int, n: int,
+    use_rows: bool, offsets: bool, out: np.ndarray,
+) -> None:
+    """Rows a … a+n−1 of the work list (0 … N−1, or `rows` when use_rows): blend, map, store."""
+    W = np.empty(_N_SCRATCH * _STRIDE)
+    # Flat views once per chunk (a reshape per row would cost more than the blend).
+    T, I, V, P = table.reshape(-1), idx.reshape(-1), val.reshape(-1), points.reshape(-1)
+    K = idx.shape[1]
+    last = np.uint64(table.shape[0] - 1)
+    for j in range(n):
+        _blend(T, I, V, P, K, last, W, j, rows[a + j] if use_rows else a + j)
+    for c in range(15):  # φ(0) 0 = 0 in the unused columns (see `_map`)
+        W[c * _STRIDE + n : c * _STRIDE + CHUNK] = 0.0
+    if _map(W) > 0:
+        _fixup(W, n)
+    for j in range(n):
+        r = rows[a + j] if use_rows else a + j
+        for t in range(3):
+            res = W[(15 + t) * _STRIDE + j]
+            out[r, t] = res - W[(12 + t) * _STRIDE + j] if offsets else res
+
+
+# ---------------------------------------------------------------------------------------------
+# entry points (arguments validated by the caller: C-contiguous, float64 / int32 / intp)
+
+
+def _entry(fn: Callable) -> Callable:
+    """njit(parallel) with numba's on-disk cache when it has somewhere to write it. Without a cache
+    locator (read-only install, no user cache dir) numba raises RuntimeError at decoration; then the
+    kernel is compiled in every session instead."""
+    try:
+        return numba.njit(parallel=True, cache=True, fastmath=FASTMATH, error_model="numpy")(fn)
+    except RuntimeError:
+        return numba.njit(parallel=True, cache=False, fastmath=FASTMATH, error_model="numpy")(fn)
+
+
+@_entry
+def deform_params(
+    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, out: np.ndarray
+) -> np.ndarray:
+    """out[v] = φ(Σ_k val[v, k] table[idx[v, k]]) points[v] for every row v; returns out.
+
+    points (N, 3) f64, table (m ≥ 1, 12) f64, idx (N, K) int32, val (N, K) f64, out (N, 3) f64; out
+    may be points itself (a chunk reads its rows before it writes them)."""
+    N = points.shape[0]
+    no_rows = np.empty(0, dtype=np.intp)
+    for c in numba.prange((N + CHUNK - 1) // CHUNK):
+        a = c * CHUNK
+        _chunk(points, table, idx, val, no_rows, a, min(CHUNK, N - a), False, False, out)
+    return out
+
+
+@_entry
+def deform_rows(
+    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray,
+    out: np.ndarray, offsets: bool,
+) -> np.ndarray:
+    """out[rows[i]] = φ(p) points[rows[i]] (minus points[rows[i]] when offsets), bit-identical to
+    the same row of `deform_params`; other rows of out are untouched. rows (n,) intp in [0, N),
+    without repeats when out shares memory with points."""
+    n = rows.shape[0]
+    for c in numba.prange((n + CHUNK - 1) // CHUNK):
+        a = c * CHUNK
+        _chunk(points, table, idx, val, rows, a, min(CHUNK, n - a), True, offsets, out)
+    return out

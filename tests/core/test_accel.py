@@ -1,0 +1,431 @@
+"""The optional compiled kernel (affine_deformers/accel) against the numpy kernel and the aff3 reference,
+its bit-identity guarantees (rows, threads, chunk positions) and its fallback to numpy."""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+from affine_deformers import accel
+from affine_deformers.core import aff3, deform
+from affine_deformers.core.weights import top_k_dense
+from tests.core.conftest import random_affine
+from tests.core.test_deform import KERNEL_ANGLES, adversarial_params, reference, sym6, vertex_scale
+
+
+@pytest.fixture
+def compiled(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
+    """numba, with the compiled backend enabled and loaded (skips without numba)."""
+    numba = pytest.importorskip("numba")
+    monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
+    assert accel._load() is not None, accel.backend()
+    return numba
+
+
+@pytest.fixture
+def fresh_state(monkeypatch: pytest.MonkeyPatch) -> accel._State:
+    """A backend that has not tried to load numba yet (restored afterwards)."""
+    state = accel._State()
+    monkeypatch.setattr(accel, "_state", state)
+    return state
+
+
+def blend_case(rng: np.random.Generator, n: int, m: int = 8, k: int = 4) -> tuple[np.ndarray, ...]:
+    pts = rng.normal(scale=3.0, size=(n, 3))
+    params = aff3.params_from_matrices(random_affine(rng, m, log_scale=1.0, t_scale=5.0))
+    idx, val = top_k_dense(rng.random((n, m)) ** 3, k)
+    return pts, params, idx, val
+
+
+def lifted_params(rng: np.random.Generator) -> np.ndarray:
+    """Rows with θ around and beyond 1.8π (the libm fix-up), with stretch and translation."""
+    rows = []
+    for angle in (1.8 * np.pi - 1e-9, 1.8 * np.pi + 1e-9, 1.95 * np.pi, 2 * np.pi, 3 * np.pi, 5.5 * np.pi):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        y6 = sym6((-0.5, 0.1, 0.9), aff3.so3_exp(rng.normal(size=3)))
+        rows.append(np.concatenate([angle * axis, rng.normal(size=3), y6]))
+    return np.array(rows)
+
+
+# --------------------------------------------------------------------------------------------------
+# accuracy
+
+
+def test_random_blends_match_the_numpy_kernel(compiled: ModuleType) -> None:
+    rng = np.random.default_rng(101)
+    pts, params, idx, val = blend_case(rng, 20_000)
+    got = accel.deform_points_params(pts, params, idx, val)
+    ref = deform.deform_points_params(pts, params, idx, val, cache_weights=False)
+    err = np.linalg.norm(got - ref, axis=1) / vertex_scale(pts, deform.blend_params(params, idx, val))
+    assert err.max() <= 1e-15, f"worst {err.max():.2e}"
+    assert not np.array_equal(got, pts)  # it moved something
+
+
+@pytest.mark.parametrize("extra", [False, True])
+def test_adversarial_parameters_match_the_reference(compiled: ModuleType, extra: bool) -> None:
+    """The adversarial set of test_deform (every KERNEL_ANGLES × KERNEL_SPECTRA pairing, translations
+    0 … 1e3) and the lifted angles, one control per vertex with weight 1."""
+    rng = np.random.default_rng(102)
+    P = lifted_params(rng) if extra else adversarial_params()
+    points = rng.uniform(-10.0, 10.0, size=(P.shape[0], 3))
+    idx = np.arange(P.shape[0], dtype=np.int32)[:, None]
+    got = accel.deform_points_params(points, P, idx, np.ones((P.shape[0], 1)))
+    scale = vertex_scale(points, P)
+    err = np.linalg.norm(got - reference(points, P), axis=1) / scale
+    assert err.max() <= 3e-15, f"row {int(err.argmax())}: {err.max():.2e}"
+    np_err = np.linalg.norm(
+        got - deform.deform_points_params(points, P, idx, np.ones_like(idx, float)), axis=1
+    )
+    assert (np_err / scale).max() <= 3e-15
+
+
+def test_lifted_rotations_take_the_fixup(compiled: ModuleType) -> None:
+    """θ > 1.8π: without the libm fix-up the quarter-angle polynomial is off by far more than 1e-12."""
+    from affine_deformers.accel import compiled as kernel  # needs numba
+
+    P = lifted_params(np.random.default_rng(103))
+    assert (np.einsum("ij,ij->i", P[:, :3], P[:, :3]) > kernel.POLY_MAX_S).sum() >= 5
+    assert max(KERNEL_ANGLES) ** 2 > kernel.POLY_MAX_S  # the adversarial set covers it too
+    pts = np.random.default_rng(104).normal(size=(P.shape[0], 3)) * 4.0
+    W = np.zeros(kernel._N_SCRATCH * kernel._STRIDE)
+    S = kernel._STRIDE
+    n = P.shape[0]
+    for c in range(12):
+        W[c * S : c * S + n] = P[:, c]
+    for t in range(3):
+        W[(12 + t) * S : (12 + t) * S + n] = pts[:, t]
+    assert kernel._map(W) == 5
+    poly = np.stack([W[(15 + t) * S : (15 + t) * S + n] for t in range(3)], axis=1)
+    kernel._fixup(W, n)
+    fixed = np.stack([W[(15 + t) * S : (15 + t) * S + n] for t in range(3)], axis=1)
+    ref = reference(pts, P)
+    scale = vertex_scale(pts, P)
+    assert (np.linalg.norm(fixed - ref, axis=1) / scale).max() <= 3e-15
+    assert (np.linalg.norm(poly - ref, axis=1) / scale)[1:].max() > 1e-12  # the fix-up was needed
+
+
+def test_common_and_rigid_motions(compiled: ModuleType) -> None:
+    rng = np.random.default_rng(105)
+    pts = rng.uniform(-3, 3, size=(3000, 3))
+    A = random_affine(rng, 1, log_scale=1.5, t_scale=20.0)[0]
+    params = np.broadcast_to(aff3.params_from_matrices(A), (4, 12))
+    idx, val = top_k_dense(rng.random((pts.shape[0], 4)), 4, normalize="SUM")
+    got = accel.deform_points_params(pts, params, idx, val)
+    want = pts @ A[:3, :3].T + A[:3, 3]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * (np.abs(want).max() + 1))
+
+
+def test_zero_params_return_the_input_bit_for_bit(compiled: ModuleType) -> None:
+    pts = np.array([[-0.0, 0.0, -0.0], [1e-320, -1e-320, 5e-324], [1e300, -1e300, 7.0]])
+    got = accel.deform_points_params(pts, np.zeros((3, 12)), np.zeros((3, 2), np.int32), np.ones((3, 2)))
+    assert got.tobytes() == pts.tobytes()
+
+
+# --------------------------------------------------------------------------------------------------
+# bit-identity: rows, chunks, threads
+
+
+def test_rows_are_bit_identical_to_the_full_call(compiled: ModuleType) -> None:
+    from affine_deformers.accel.compiled import CHUNK  # needs numba
+
+    rng = np.random.default_rng(106)
+    n = 3 * CHUNK + 17
+    pts, params, idx, val = blend_case(rng, n)
+    params[:2] = lifted_params(rng)[[1, 4]]  # some fix-up rows as well
+    full = accel.deform_points_params(pts, params, idx, val)
+    subsets = {
+        "empty": np.zeros(0, dtype=np.int64),
+        "one": np.array([CHUNK + 5]),
+        "boundaries": np.array([0, CHUNK - 1, CHUNK, CHUNK + 1, 2 * CHUNK - 1, 2 * CHUNK, n - 1]),
+        "reversed": np.arange(n)[::-1].copy(),
+        "sparse": np.flatnonzero(rng.random(n) < 0.3),
+        "chunk+1": np.arange(CHUNK + 1, dtype=np.int32) * 3,
+        "repeats": np.array([7, 7, 9, 7]),
+    }
+    for name, rows in subsets.items():
+        for offsets in (False, True):
+            out = np.full((n, 3), 7.0)
+            assert accel.deform_points_params_rows(pts, params, idx, val, rows, out, offsets=offsets) is out
+            want = full[rows] - pts[rows] if offsets else full[rows]
+            assert np.array_equal(out[rows], want), name
+            assert np.all(np.delete(out, rows, axis=0) == 7.0), name
+    # each row alone (vector loop vs scalar remainder) is the same as in the full call
+    out = np.zeros((n, 3))
+    for r in rng.choice(n, 40, replace=False):
+        accel.deform_points_params_rows(pts, params, idx, val, [r], out)
+        assert np.array_equal(out[r], full[r])
+
+
+@pytest.mark.parametrize("n_rel", [0, 1, -1, None])
+def test_sizes_around_the_chunk(compiled: ModuleType, n_rel: int | None) -> None:
+    from affine_deformers.accel.compiled import CHUNK  # needs numba
+
+    sizes = {0: [0], 1: [1, CHUNK + 1], -1: [CHUNK - 1], None: [CHUNK]}[n_rel]
+    rng = np.random.default_rng(107)
+    pts, params, idx, val = blend_case(rng, CHUNK + 1)
+    full = accel.deform_points_params(pts, params, idx, val)
+    for n in sizes:
+        got = accel.deform_points_params(pts[:n], params, idx[:n], val[:n])
+        assert got.shape == (n, 3)
+        assert np.array_equal(got, full[:n])  # a row's value does not depend on N
+        if n:
+            ref = deform.deform_points_params(pts[:n], params, idx[:n], val[:n], cache_weights=False)
+            assert np.abs(got - ref).max() <= 1e-14 * np.abs(ref).max()
+
+
+def test_thread_counts_give_bitwise_equal_results(
+    compiled: ModuleType, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from affine_deformers.accel import compiled as kernel  # needs numba
+
+    numba = compiled
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has a single thread")
+    rng = np.random.default_rng(108)
+    n = 4 * kernel.CHUNK + 3
+    pts, params, idx, val = blend_case(rng, n)
+    rows = np.flatnonzero(rng.random(n) < 0.5).astype(np.intp)
+    results = []
+    for threads in (1, 2):
+        numba.set_num_threads(threads)
+        out = np.empty((n, 3))
+        kernel.deform_params(pts, params, idx, val, out)
+        sub = np.zeros((n, 3))
+        kernel.deform_rows(pts, params, idx, val, rows, sub, True)
+        results.append((out, sub))
+    assert np.array_equal(results[0][0], results[1][0])
+    assert np.array_equal(results[0][1], results[1][1])
+    # and through the dispatch, which takes the thread count from AFFINE_DEFORMERS_THREADS
+    for threads in ("1", "2"):
+        monkeypatch.setenv(deform.THREADS_ENV, threads)
+        assert accel.backend().endswith(f"{threads} thread" + ("s" if threads == "2" else ""))
+        assert np.array_equal(accel.deform_points_params(pts, params, idx, val), results[0][0])
+
+
+def test_out_argument_in_place_and_layouts(compiled: ModuleType) -> None:
+    rng = np.random.default_rng(109)
+    pts, params, idx, val = blend_case(rng, 5000)
+    want = accel.deform_points_params(pts, params, idx, val)
+    same = pts.copy()
+    assert accel.deform_points_params(same, params, idx, val, out=same) is same
+    assert np.array_equal(same, want)
+    # Fortran-ordered / strided / int64 / read-only inputs and a strided out
+    out = np.zeros((5000, 6))[:, ::2]
+    got = accel.deform_points_params(
+        np.asfortranarray(pts), params[:, :], idx.astype(np.int64), np.asfortranarray(val), out=out
+    )
+    assert got is out and np.array_equal(out, want)
+    ro = pts.copy()
+    ro.flags.writeable = False
+    assert np.array_equal(accel.deform_points_params(ro, params, idx, val), want)
+    rows = np.arange(0, 5000, 7)
+    sub = np.zeros((5000, 6))[:, ::2]
+    accel.deform_points_params_rows(pts, params, idx, val, rows, sub)
+    assert np.array_equal(sub[rows], want[rows])
+    assert np.all(np.delete(sub, rows, axis=0) == 0.0)
+    # in place with offsets (out is points): every row must read the original point
+    inplace = pts.copy()
+    accel.deform_points_params_rows(inplace, params, idx, val, np.r_[rows, rows[:3]], inplace, offsets=True)
+    assert np.array_equal(inplace[rows], want[rows] - pts[rows])
+
+
+def test_keyed_calls_skip_checks_but_stay_memory_safe(compiled: ModuleType) -> None:
+    rng = np.random.default_rng(110)
+    pts, params, idx, val = blend_case(rng, 3000)
+    want = accel.deform_points_params(pts, params, idx, val, key="bind-1")
+    assert np.array_equal(accel.deform_points_params(pts, params, idx, val, key="bind-1"), want)
+    # a caller breaking its promise gets wrong values, not a crash (indices are clamped)
+    bad = idx.copy()
+    bad[0, 0] = 10**6
+    bad[1, 0] = -5
+    got = accel.deform_points_params(pts, params, bad, val, key="bind-1")
+    assert np.all(np.isfinite(got))
+    with pytest.raises(ValueError, match="indices must lie"):
+        accel.deform_points_params(pts, params, bad, val, key="bind-2")
+    # shapes are always checked
+    with pytest.raises(ValueError):
+        accel.deform_points_params(pts, params, idx[:10], val[:10], key="bind-2")
+
+
+# --------------------------------------------------------------------------------------------------
+# validation: the messages of core.deform, on both backends
+
+BAD_ARGUMENTS = [
+    ({"points": np.zeros((4, 2))}, r"points must have shape \(N, 3\)"),
+    ({"points": np.full((4, 3), np.nan)}, "non-finite coordinates"),
+    ({"params": np.zeros((3, 11))}, r"params must have shape \(m, 12\)"),
+    ({"params": np.where(np.arange(36).reshape(3, 12) == 13, np.inf, 0.0)}, "params row 1 has non-finite"),
+    ({"indices": np.full((4, 2), 3, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
+    ({"indices": np.full((4, 2), -1, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
+    ({"indices": np.zeros((4, 2))}, "indices must be integers"),
+    (
+        {"indices": np.zeros((5, 2), dtype=np.int32), "values": np.zeros((5, 2))},
+        r"indices must have shape \(4, K\)",
+    ),
+    ({"indices": np.zeros(4, dtype=np.int32)}, r"indices must have shape \(4, K\)"),
+    ({"values": np.zeros((4, 3))}, "indices and values must both have shape"),
+    ({"values": np.full((4, 2), np.nan)}, "weight values contain non-finite"),
+    ({"out": np.zeros((3, 3))}, "out must be a float64 array"),
+    ({"rows": np.array([4])}, r"rows must lie in \[0, 4\)"),
+    ({"rows": np.array([-1])}, r"rows must lie in \[0, 4\)"),
+    ({"rows": np.zeros((1, 1), dtype=np.int64)}, "rows must be a 1-D integer array"),
+]
+
+
+@pytest.mark.parametrize("use_numba", [True, False])
+@pytest.mark.parametrize(("kwargs", "message"), BAD_ARGUMENTS)
+def test_bad_arguments_raise_the_core_messages(
+    kwargs: dict, message: str, use_numba: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if use_numba:
+        pytest.importorskip("numba")
+        monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
+    else:
+        monkeypatch.setenv(accel.ACCEL_ENV, "0")
+    args = {
+        "points": np.zeros((4, 3)),
+        "params": np.ones((3, 12)) * 0.1,
+        "indices": np.zeros((4, 2), dtype=np.int32),
+        "values": np.ones((4, 2)),
+        "rows": np.array([0, 3]),
+        "out": np.zeros((4, 3)),
+    }
+    args.update(kwargs)
+    a = (args["points"], args["params"], args["indices"], args["values"])
+    rows_only = "rows" in kwargs
+    if not rows_only:
+        with pytest.raises(ValueError, match=message):
+            accel.deform_points_params(*a, out=args["out"])
+        with pytest.raises(ValueError, match=message):  # core raises the same
+            deform.deform_points_params(*a, out=args["out"])
+    if "out" not in kwargs or "rows" in kwargs:
+        with pytest.raises(ValueError, match=message):
+            accel.deform_points_params_rows(*a, args["rows"], args["out"])
+    if rows_only:
+        with pytest.raises(ValueError, match=message):
+            deform.deform_points_params_rows(*a, args["rows"], args["out"])
+
+
+# --------------------------------------------------------------------------------------------------
+# fallback to numpy (unconditional: no numba needed)
+
+
+def test_env_var_disables_the_compiled_path(
+    monkeypatch: pytest.MonkeyPatch, fresh_state: accel._State
+) -> None:
+    monkeypatch.setenv(accel.ACCEL_ENV, "0")
+    assert accel.backend() == "numpy (AFFINE_DEFORMERS_ACCEL=0)"
+    calls = []
+    monkeypatch.setattr(
+        deform, "deform_points_params", lambda *a, **k: calls.append("full") or np.full((2, 3), 5.0)
+    )
+    rng = np.random.default_rng(111)
+    pts, params, idx, val = blend_case(rng, 2)
+    assert np.all(accel.deform_points_params(pts, params, idx, val) == 5.0)
+    assert calls == ["full"]
+    assert fresh_state.module is None and fresh_state.failure is None  # never tried to load numba
+
+
+def test_fallback_gives_the_numpy_results(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(accel.ACCEL_ENV, "0")
+    rng = np.random.default_rng(112)
+    pts, params, idx, val = blend_case(rng, 500)
+    want = deform.deform_points_params(pts, params, idx, val, cache_weights=False)
+    assert np.array_equal(accel.deform_points_params(pts, params, idx, val), want)
+    rows = np.array([3, 1, 400])
+    out = np.full((500, 3), 9.0)
+    accel.deform_points_params_rows(pts, params, idx, val, rows, out, offsets=True)
+    assert np.array_equal(out[rows], want[rows] - pts[rows])
+    assert np.all(np.delete(out, rows, axis=0) == 9.0)
+
+
+def test_missing_numba_falls_back_for_the_process(
+    monkeypatch: pytest.MonkeyPatch, fresh_state: accel._State
+) -> None:
+    monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
+    # a missing numba: `import numba` raises ImportError
+    monkeypatch.setitem(sys.modules, "numba", None)
+    monkeypatch.delitem(sys.modules, "affine_deformers.accel.compiled", raising=False)
+    monkeypatch.delattr(accel, "compiled", raising=False)
+    rng = np.random.default_rng(113)
+    pts, params, idx, val = blend_case(rng, 300)
+    want = deform.deform_points_params(pts, params, idx, val, cache_weights=False)
+    with pytest.warns(UserWarning, match="compiled kernel disabled"):
+        got = accel.deform_points_params(pts, params, idx, val)
+    assert np.array_equal(got, want)
+    assert re.match(r"numpy \(numba unavailable: (ModuleNotFound|Import)Error: ", accel.backend())
+    # sticky: no second attempt, no second warning
+    monkeypatch.delitem(sys.modules, "numba")
+    out = np.zeros((300, 3))
+    accel.deform_points_params_rows(pts, params, idx, val, np.arange(300), out)
+    assert np.array_equal(out, want)
+    assert fresh_state.module is None and "numba" in fresh_state.failure
+
+
+def test_compile_failure_falls_back(monkeypatch: pytest.MonkeyPatch, fresh_state: accel._State) -> None:
+    """An error from the first call of an entry point (numba compiles there) is a platform problem:
+    numpy takes over for the process, the caller gets correct results."""
+    import types
+
+    def broken(*args: object) -> None:
+        raise RuntimeError("LLVM is unhappy")
+
+    fake = types.SimpleNamespace(deform_params=broken, deform_rows=broken)
+    monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
+    monkeypatch.setattr(fresh_state, "module", fake)
+    monkeypatch.setitem(
+        sys.modules,
+        "numba",
+        types.SimpleNamespace(
+            config=types.SimpleNamespace(NUMBA_NUM_THREADS=1), set_num_threads=lambda n: None, __version__="x"
+        ),
+    )
+    rng = np.random.default_rng(114)
+    pts, params, idx, val = blend_case(rng, 200)
+    with pytest.warns(UserWarning, match="LLVM is unhappy"):
+        got = accel.deform_points_params(pts, params, idx, val)
+    assert np.array_equal(got, deform.deform_points_params(pts, params, idx, val, cache_weights=False))
+    assert accel.backend() == "numpy (compiling deform_params failed: RuntimeError: LLVM is unhappy)"
+
+
+def test_importing_accel_does_not_import_numba() -> None:
+    import subprocess
+
+    code = "import sys, affine_deformers.accel as a; assert 'numba' not in sys.modules; print('ok')"
+    res = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        cwd=Path(__file__).resolve().parents[2],
+        check=False,
+    )
+    assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr
+
+
+def test_no_cache_locator_decorates_without_cache() -> None:
+    """numba raises RuntimeError at decoration when it has nowhere to write its cache (read-only
+    install, no user cache dir): the module must still import, uncached (decoration only, no compile)."""
+    pytest.importorskip("numba")
+    import subprocess
+
+    code = (
+        "from numba.core import caching\n"
+        "caching.CacheImpl._locator_classes = []\n"
+        "from affine_deformers.accel import compiled as c\n"
+        "print(type(c.deform_params._cache).__name__, type(c.deform_rows._cache).__name__)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        cwd=Path(__file__).resolve().parents[2],
+        check=False,
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == ["NullCache", "NullCache"]
