@@ -74,7 +74,29 @@ def install(zip_path: Path) -> str | None:
     if "FINISHED" not in result or PKG not in sys.modules:
         print(f"[ours] installing {zip_path.name} failed ({result}); our side is skipped")
         return None
+    accel = sys.modules.get(f"{PKG}.{EXT_ID}.accel")
+    if accel is not None and hasattr(accel, "warm_up"):
+        # What an interactive session does in a helper thread at start-up: compile the kernel (or load
+        # it from numba's cache) before the first update, so no timed update pays for it.
+        t0 = time.perf_counter()
+        print(f"[ours] kernel warm-up: {accel.warm_up()}, {time.perf_counter() - t0:.1f} s")
     return PKG
+
+
+def kernel_backend() -> str:
+    """Which per-vertex kernel our installed package uses ('numba …, N threads' or 'numpy (…)')."""
+    accel = sys.modules.get(f"{PKG}.{EXT_ID}.accel")
+    return accel.backend() if accel is not None else "n/a"
+
+
+def use_compiled_kernel(flag: bool) -> None:
+    """Switch our kernel like the add-on preference does (compiled ↔ numpy); caches are dropped."""
+    accel = sys.modules.get(f"{PKG}.{EXT_ID}.accel")
+    evaluate = sys.modules.get(f"{PKG}.{EXT_ID}.blender.evaluate")
+    if accel is not None and hasattr(accel, "set_enabled"):
+        accel.set_enabled(flag)
+    if evaluate is not None:
+        evaluate.forget()
 
 
 def operator_exists(idname: str) -> bool:

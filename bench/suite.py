@@ -206,6 +206,15 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
         )
         if mine_all is not None:
             report.split_rows.append((f"(a) {m} probes all moving, {n:,} verts", mine_all))
+    mine_np = None
+    if have_ours and ours.operator_exists(ours.PROBE_OP) and ours.kernel_backend().startswith("numba"):
+        ours.use_compiled_kernel(False)
+        try:
+            mine_np, _, _ = run_ours_probes(plan, plan.a_verts, m, f"ours: {m} probes, numpy kernel", report)
+        finally:
+            ours.use_compiled_kernel(True)
+        if mine_np is not None:
+            report.split_rows.append((f"(a) {m} probes, numpy kernel, {n:,} verts", mine_np))
     hooks = run_native(plan, plan.a_verts, m, "hook", f"Hook ×{m}, Smooth falloff", report)
     arm = run_native(
         plan, plan.a_verts, m, "armature", f"Armature {m} bones, Preserve Volume", report, weights
@@ -220,6 +229,9 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
     if mine_all is not None:
         t.add(f"Affine probes (ours), all {m} moving", fmt_ms(mine_all.median), _iqr(mine_all),
               fmt_ratio(mine_all.median, _median(mine)), validity(mine_all))
+    if mine_np is not None:
+        t.add("Affine probes (ours), numpy kernel", fmt_ms(mine_np.median), _iqr(mine_np),
+              fmt_ratio(mine_np.median, _median(mine)), validity(mine_np))
     for name, s in ((f"Hook ×{m}, Smooth, same radius", hooks), (f"Armature ×{m}, Preserve Volume", arm)):
         t.add(name, fmt_ms(s.median), _iqr(s), fmt_ratio(_median(mine), s.median), validity(s))
     if mine is not None:
@@ -237,6 +249,11 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
         "Ours recomputes only vertices influenced by a control that moved, so the one-probe row is its "
         "best case; Blender's modifiers recompute every vertex either way, so their rows hold for both."
     )
+    if mine_np is not None:
+        t.notes.append(
+            "ours, numpy kernel: the same rig with the compiled kernel turned off (the add-on preference), "
+            "as on a platform without the bundled wheels (ratio column: ÷ ours with the compiled kernel)"
+        )
     if rig is not None:
         settings = ", ".join(f"{k} {v}" for k, v in rig.settings.items())
         t.notes.append(f"ours: {settings}; add + bind took {fmt_ms(rig.bind_seconds)}")
@@ -390,6 +407,9 @@ def run(ns: argparse.Namespace) -> int:
         have_ours = False
     else:
         have_ours = ours.install(ns.zip) is not None
+    if have_ours:
+        info_before["kernel"] = ours.kernel_backend()
+        print(f"[ours] kernel: {info_before['kernel']}")
 
     report = Report()
     t0 = time.perf_counter()
@@ -451,8 +471,9 @@ def write_markdown(
         "are faster.",
         "",
         "Keep in mind: Blender's modifiers are compiled C++ (Armature and Mesh Deform multi-threaded);",
-        "ours is numpy called from a Python handler. On a 2-core machine shared with other work both",
-        "sides are sensitive to load, so compare numbers from the same run only (the run itself keeps",
+        "ours is a Python handler whose per-vertex map runs in the compiled kernel (numba, bundled with",
+        "the extension; multi-threaded) or, without it, in numpy. On a 2-core machine shared with other",
+        "work both sides are sensitive to load, so compare numbers from the same run only (the run keeps",
         "about one core busy, which shows in the load average afterwards). Mesh Deform's bind is a",
         "one-off cost (Dynamic off); our bind is the add operator, which binds.",
         "",
@@ -465,6 +486,7 @@ def write_markdown(
         f"- CPU: {after['cpu']}, {after['cores']} cores (shared with other work)",
         f"- bpy {after['bpy']}, numpy {after['numpy']}, Python {after['python']}, "
         f"OPENBLAS_CORETYPE={after['OPENBLAS_CORETYPE']}",
+        f"- our kernel: {before.get('kernel', 'n/a')}",
         f"- date: {after['date']}; the run took {elapsed:.0f} s",
         f"- load average (1, 5, 15 min) before: {before['load']}; after: {after['load']}",
         "",

@@ -65,6 +65,7 @@ class _State:
         self.lock = threading.RLock()
         self.checked_key: Hashable | None = None
         self.enabled = True
+        self.warming: threading.Thread | None = None  # the thread compiling in `warm_up`
 
 
 _state = _State()
@@ -81,8 +82,19 @@ def set_enabled(enabled: bool) -> None:
 
 
 def active() -> bool:
-    """True when calls go to the compiled kernel (imports numba on first use; compiles nothing)."""
-    return not _disabled_by_env() and _load() is not None
+    """True when calls from this thread go to the compiled kernel now (imports numba on first use;
+    compiles nothing)."""
+    return _usable() is not None
+
+
+def _usable() -> ModuleType | None:
+    """The compiled module if this thread may call it now. While another thread compiles it
+    (`warm_up`), None: an interactive update then runs on numpy instead of waiting seconds for the
+    compiler (the two kernels agree to ~1e-15; callers that cache results key them on `active()`)."""
+    warming = _state.warming
+    if warming is not None and warming is not threading.current_thread():
+        return None
+    return _load()
 
 
 def warm_up() -> str:
@@ -94,8 +106,12 @@ def warm_up() -> str:
     params[0, 6] = 1e-3  # not all zero: the all-at-rest shortcut would skip the kernel
     idx = np.zeros((2, 1), dtype=np.int32)
     val = np.ones((2, 1))
-    deform_points_params(pts, params, idx, val)
-    deform_points_params_rows(pts, params, idx, val, np.array([1], dtype=np.intp), np.zeros((2, 3)))
+    _state.warming = threading.current_thread()
+    try:
+        deform_points_params(pts, params, idx, val)
+        deform_points_params_rows(pts, params, idx, val, np.array([1], dtype=np.intp), np.zeros((2, 3)))
+    finally:
+        _state.warming = None
     return backend()
 
 
@@ -237,7 +253,7 @@ def deform_points_params(
     hashable token the caller guarantees names these exact points, indices and values; a call with
     the key of the previous checked call skips re-validating them.
     """
-    if _load() is None:
+    if _usable() is None:
         return _np_kernel.deform_points_params(points, params, indices, values, out, key=key)
     pts, table, idx, val = _inputs(points, params, indices, values, key)
     out = _check_out(out, pts)
@@ -277,7 +293,7 @@ def deform_points_params_rows(
     As `core.deform.deform_points_params_rows`; each written row is bit-identical to the same row of
     `deform_points_params` with the same backend.
     """
-    if _load() is None:
+    if _usable() is None:
         return _np_kernel.deform_points_params_rows(
             points, params, indices, values, rows, out, offsets=offsets, key=key
         )

@@ -63,9 +63,10 @@ class AFFINE_AddonPreferences(bpy.types.AddonPreferences):
 
 
 def start_warm_up() -> None:
-    """Compile the kernel in a helper thread (interactive sessions only: a background job compiles
-    on its first update anyway, and must not race its own exit)."""
-    if bpy.app.background or not accel.active():
+    """Import numba and compile the kernel in a helper thread (interactive sessions only: a background
+    job compiles on its first update anyway, and must not race its own exit). Updates meanwhile run
+    on the numpy kernel (accel._usable), so the interface never waits for the compiler."""
+    if bpy.app.background:
         return
 
     def work() -> None:

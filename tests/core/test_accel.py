@@ -429,3 +429,26 @@ def test_no_cache_locator_decorates_without_cache() -> None:
     )
     assert res.returncode == 0, res.stderr
     assert res.stdout.split() == ["NullCache", "NullCache"]
+
+
+def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
+    """An interactive update must not wait seconds for the compiler: while `warm_up` runs in a helper
+    thread, other threads get the numpy kernel's result (and `active()` says so); afterwards the
+    compiled one."""
+    pytest.importorskip("numba")
+    import threading
+
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(50, 3))
+    params = aff3.params_from_matrices(random_affine(rng, 3))
+    idx, val = top_k_dense(rng.random((50, 3)), 2)
+    expected_numpy = deform.DeformKernel(threads=1).deform(pts, params, idx, val, cache_weights=False)
+    helper = threading.Thread(target=lambda: None)
+    monkeypatch.setattr(accel._state, "warming", helper)  # as if `helper` were compiling right now
+    assert not accel.active()
+    assert np.array_equal(accel.deform_points_params(pts, params, idx, val), expected_numpy)
+    monkeypatch.setattr(accel._state, "warming", None)
+    assert accel.warm_up().startswith("numba ")
+    assert accel.active() and accel._state.warming is None
+    compiled = accel.deform_points_params(pts, params, idx, val)
+    assert np.abs(compiled - expected_numpy).max() < 1e-12
