@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 PY_LTS := $(VENV_LTS)/bin/python
 DIST := dist
 
-.PHONY: all demo test test-core test-blender bench build lint venv venv-lts samples clean
+.PHONY: all demo test test-core test-blender bench build release lint venv venv-lts samples clean
 
 all: test
 
@@ -24,9 +24,14 @@ venv: $(VENV)/.installed
 
 venv-lts: $(VENV_LTS)/.installed
 
-# Validate the manifest and build the extension .zip with the CLI that ships inside the bpy wheel.
+# Validate the manifest and build the extension .zip with the CLI that ships inside the bpy wheel:
+# this machine's platform, with its compiled-kernel wheels (downloaded once into wheels/).
 build: venv
 	$(PY) tools/build_extension.py --output-dir $(DIST)
+
+# One package per platform in the manifest (Linux, Windows, macOS arm64/x64), for a release.
+release: venv
+	$(PY) tools/build_extension.py --output-dir $(DIST) --platform all
 
 # The main job: render every sample scene at a few frames into out/ (PNG + one contact sheet each).
 demo: build

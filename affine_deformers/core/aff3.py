@@ -207,6 +207,8 @@ def so3_log(R: ArrayLike) -> FloatArray:
 
     ratio = np.where(sin_t > 0.0, theta / np.where(sin_t > 0.0, sin_t, 1.0), 1.0)
     w_skew = ratio[..., None] * s
+    if not np.any(cos_t < 0.0):  # no rotation past π/2: the axis branch would not be selected
+        return w_skew
 
     sym = 0.5 * (R + np.swapaxes(R, -1, -2)) - cos_t[..., None, None] * np.eye(3)
     k = np.argmax(np.diagonal(sym, axis1=-2, axis2=-1), axis=-1)

@@ -42,6 +42,7 @@ traffic between the scratch rows (L2), not arithmetic, is the limit for numpy co
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import threading
@@ -855,7 +856,13 @@ def default_threads() -> int:
     env = os.environ.get(THREADS_ENV, "").strip()
     if env.isdigit() and int(env) > 0:
         return int(env)
-    return max(1, min(os.cpu_count() or 1, MAX_DEFAULT_THREADS))
+    return max(1, min(_cpu_count(), MAX_DEFAULT_THREADS))
+
+
+@functools.lru_cache(maxsize=1)
+def _cpu_count() -> int:
+    # os.cpu_count() reads /proc or sysfs on every call (µs), and the kernel asks on every update.
+    return os.cpu_count() or 1
 
 
 def _pool() -> ThreadPoolExecutor:

@@ -357,12 +357,14 @@ def test_default_threads(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_default_threads_use_every_core(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(deform.THREADS_ENV, raising=False)
-    monkeypatch.setattr(deform.os, "cpu_count", lambda: 2)
-    assert deform.default_threads() == 2
-    monkeypatch.setattr(deform.os, "cpu_count", lambda: 64)
-    assert deform.default_threads() == deform.MAX_DEFAULT_THREADS
-    monkeypatch.setattr(deform.os, "cpu_count", lambda: None)
-    assert deform.default_threads() == 1
+    try:
+        for cores, expected in ((2, 2), (64, deform.MAX_DEFAULT_THREADS), (None, 1)):
+            monkeypatch.setattr(deform.os, "cpu_count", lambda cores=cores: cores)
+            deform._cpu_count.cache_clear()  # the core count is read once per process
+            assert deform.default_threads() == expected, cores
+    finally:
+        monkeypatch.undo()
+        deform._cpu_count.cache_clear()
 
 
 @pytest.mark.parametrize("m", [8, 60])  # dense-blend and gather paths
