@@ -14,6 +14,7 @@ import pytest
 from affine_deformers import accel
 from affine_deformers.core import aff3, deform
 from affine_deformers.core.weights import top_k_dense
+from tests.core import test_deform
 from tests.core.conftest import random_affine
 from tests.core.test_deform import KERNEL_ANGLES, adversarial_params, reference, sym6, vertex_scale
 
@@ -257,20 +258,7 @@ def test_keyed_calls_skip_checks_but_stay_memory_safe(compiled: ModuleType) -> N
 # validation: the messages of core.deform, on both backends
 
 BAD_ARGUMENTS = [
-    ({"points": np.zeros((4, 2))}, r"points must have shape \(N, 3\)"),
-    ({"points": np.full((4, 3), np.nan)}, "non-finite coordinates"),
-    ({"params": np.zeros((3, 11))}, r"params must have shape \(m, 12\)"),
-    ({"params": np.where(np.arange(36).reshape(3, 12) == 13, np.inf, 0.0)}, "params row 1 has non-finite"),
-    ({"indices": np.full((4, 2), 3, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
-    ({"indices": np.full((4, 2), -1, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
-    ({"indices": np.zeros((4, 2))}, "indices must be integers"),
-    (
-        {"indices": np.zeros((5, 2), dtype=np.int32), "values": np.zeros((5, 2))},
-        r"indices must have shape \(4, K\)",
-    ),
-    ({"indices": np.zeros(4, dtype=np.int32)}, r"indices must have shape \(4, K\)"),
-    ({"values": np.zeros((4, 3))}, "indices and values must both have shape"),
-    ({"values": np.full((4, 2), np.nan)}, "weight values contain non-finite"),
+    *test_deform.BAD_ARGUMENTS,
     ({"out": np.zeros((3, 3))}, "out must be a float64 array"),
     ({"rows": np.array([4])}, r"rows must lie in \[0, 4\)"),
     ({"rows": np.array([-1])}, r"rows must lie in \[0, 4\)"),

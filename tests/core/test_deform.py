@@ -240,28 +240,29 @@ def test_linear_blend_mode(cloud: np.ndarray) -> None:
     )
 
 
-@pytest.mark.parametrize(
-    ("kwargs", "message"),
-    [
-        ({"points": np.zeros((4, 2))}, r"points must have shape \(N, 3\)"),
-        ({"points": np.full((4, 3), np.nan)}, "non-finite coordinates"),
-        ({"params": np.zeros((3, 11))}, r"params must have shape \(m, 12\)"),
-        (
-            {"params": np.where(np.arange(36).reshape(3, 12) == 13, np.inf, 0.0)},
-            "params row 1 has non-finite",
-        ),
-        ({"indices": np.full((4, 2), 3, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
-        ({"indices": np.full((4, 2), -1, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
-        ({"indices": np.zeros((4, 2))}, "indices must be integers"),
-        (
-            {"indices": np.zeros((5, 2), dtype=np.int32), "values": np.zeros((5, 2))},
-            r"indices must have shape \(4, K\)",
-        ),
-        ({"indices": np.zeros(4, dtype=np.int32)}, r"indices must have shape \(4, K\)"),
-        ({"values": np.zeros((4, 3))}, "indices and values must both have shape"),
-        ({"values": np.full((4, 2), np.nan)}, "weight values contain non-finite"),
-    ],
-)
+#: Arguments that must be refused, with the message (core.deform; accel reuses it for its dispatch).
+BAD_ARGUMENTS = [
+    ({"points": np.zeros((4, 2))}, r"points must have shape \(N, 3\)"),
+    ({"points": np.full((4, 3), np.nan)}, "non-finite coordinates"),
+    ({"params": np.zeros((3, 11))}, r"params must have shape \(m, 12\)"),
+    (
+        {"params": np.where(np.arange(36).reshape(3, 12) == 13, np.inf, 0.0)},
+        "params row 1 has non-finite",
+    ),
+    ({"indices": np.full((4, 2), 3, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
+    ({"indices": np.full((4, 2), -1, dtype=np.int32)}, r"indices must lie in \[0, 3\)"),
+    ({"indices": np.zeros((4, 2))}, "indices must be integers"),
+    (
+        {"indices": np.zeros((5, 2), dtype=np.int32), "values": np.zeros((5, 2))},
+        r"indices must have shape \(4, K\)",
+    ),
+    ({"indices": np.zeros(4, dtype=np.int32)}, r"indices must have shape \(4, K\)"),
+    ({"values": np.zeros((4, 3))}, "indices and values must both have shape"),
+    ({"values": np.full((4, 2), np.nan)}, "weight values contain non-finite"),
+]
+
+
+@pytest.mark.parametrize(("kwargs", "message"), BAD_ARGUMENTS)
 def test_bad_arguments_raise_value_error(kwargs: dict, message: str) -> None:
     args = {
         "points": np.zeros((4, 3)),
