@@ -113,12 +113,14 @@ def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
         _errors.clear()
         _bound.clear()
         _param_rows.clear()
+        _modifiers.clear()
         kinds.forget()
         cage_kind.forget()
     else:
         _signatures.pop((obj.session_uid, uid), None)
         _errors.pop((obj.session_uid, uid), None)
         _bound.pop((obj.session_uid, uid), None)
+        _modifiers.pop((obj.session_uid, uid), None)
         cage_kind.forget((obj.session_uid, uid))
 
 
@@ -244,13 +246,34 @@ def _precheck(obj: bpy.types.Object, deformer) -> str:
         return f"Deformer kind '{deformer.kind}' is not available in this version"
     if not deformer.is_bound:
         return "Not bound: press Bind" + (f" ({deformer.bind_warning})" if deformer.bind_warning else "")
-    if nodes.find_modifier(obj, storage.offset_name(deformer.uid)) is None:
+    if not _has_modifier(obj, deformer.uid):
         return "The deformer's modifier was removed or applied: Rebind to recreate it"
     n = len(obj.data.vertices)
     if n != deformer.bound_vertex_count:
         return (f"The mesh has {n} vertices but was bound with {deformer.bound_vertex_count}: "
                 "the topology changed, rebind the deformer")
     return ""
+
+
+#: (object session uid, deformer uid) → name of the modifier `nodes.find_modifier` found last time.
+_modifiers: dict[tuple[int, str], str] = {}
+
+
+def _has_modifier(obj: bpy.types.Object, uid: str) -> bool:
+    """`nodes.find_modifier(obj, offset attribute of uid) is not None`, trying the modifier found last
+    time first: it still counts when it is still ours and still reads this deformer's attribute
+    (the same test find_modifier applies), otherwise the stack is searched again."""
+    key = (obj.session_uid, uid)
+    offset_attr = storage.offset_name(uid)
+    name = _modifiers.get(key)
+    if name is not None and nodes.is_modifier_for(obj.modifiers.get(name), offset_attr):
+        return True
+    mod = nodes.find_modifier(obj, offset_attr)
+    if mod is None:
+        _modifiers.pop(key, None)
+        return False
+    _modifiers[key] = mod.name
+    return True
 
 
 def redistribute(indices: np.ndarray, values: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -385,9 +408,7 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
             error = str(exc)
         except ValueError as exc:  # core refuses to blend (e.g. a motion too degenerate for its log)
             error = f"The controls' motions cannot be blended ({exc}): the mesh shows its rest shape"
-        # One sum instead of a (N, 3) boolean array: NaN and ±inf propagate, and finite offsets cannot
-        # overflow it (they are stored as float32, |x| < 3.5e38, and there are far fewer than 1e270).
-        if not error and not np.isfinite(np.add.reduce(offsets, axis=None)):
+        if not error and not _finite(offsets, rows):
             error = "The deformation is not finite: the mesh shows its rest shape"
         if error:
             bound.forget_result()  # start the next update from a full recompute
@@ -405,6 +426,24 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     _signatures[key] = signature
     _errors[key] = error
     return status
+
+
+def _finite(offsets: np.ndarray, rows: np.ndarray | None) -> bool:
+    """Whether `offsets` (N, 3) float64 are all finite, given that only `rows` (None: any) changed since
+    they were last found finite (an incremental result starts from a checked one: a failed check
+    drops it, see evaluate_deformer).
+
+    One dot product x·x instead of a (N, 3) boolean array: NaN and ±inf propagate into it, and it only
+    overflows for some |x| > 1.3e154, which float32 storage would turn into ±inf anyway.
+    """
+    if rows is not None:
+        if len(rows) == 0:
+            return True
+        if 4 * len(rows) < len(offsets):  # a gather of few rows costs less than a pass over all
+            changed = np.take(offsets, rows, axis=0).reshape(-1)
+            return bool(np.isfinite(np.dot(changed, changed)))
+    flat = offsets.reshape(-1)
+    return bool(np.isfinite(np.dot(flat, flat)))
 
 
 def _write_offsets(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray, rows: np.ndarray | None,

@@ -15,6 +15,8 @@ to its rest matrix is recognised as "at rest" and contributes exactly the identi
 
 from __future__ import annotations
 
+import math
+import struct
 from dataclasses import dataclass, field
 
 import bpy
@@ -85,12 +87,19 @@ def local_matrix(target_world: np.ndarray, control_world: np.ndarray) -> np.ndar
 
     Raises numpy.linalg.LinAlgError when the target's matrix is singular.
     """
+    return _local_solve(target_world, control_world)[0]
+
+
+def _local_solve(target_world: np.ndarray, control_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(`local_matrix`, the float64 3×4 solve it was rounded from): the channel frame reuses the
+    solve's linear part (target_world⁻¹ · control_world's 3×3), so one LAPACK call serves both."""
     out = np.zeros((4, 4), dtype=np.float64)
     rhs = control_world[:3, :].copy()
     rhs[:, 3] -= target_world[:3, 3]
-    out[:3, :] = np.linalg.solve(target_world[:3, :3], rhs)
+    solved = np.linalg.solve(target_world[:3, :3], rhs)
+    out[:3, :] = solved
     out[3, 3] = 1.0
-    return out.astype(np.float32)
+    return out.astype(np.float32), solved
 
 
 def relative_motion(current: np.ndarray, rest: np.ndarray) -> np.ndarray:
@@ -115,9 +124,11 @@ def probe_label(item) -> str:
     return obj.name if obj is not None else (item.name or "?")
 
 
-def rotation_channels(obj: bpy.types.Object) -> tuple[float, float, float, float]:
-    """The object's own rotation channels in the layout of props.AffineDeformerProbe.rest_rotation."""
-    mode = obj.rotation_mode
+def rotation_channels(obj: bpy.types.Object, mode: str | None = None) -> tuple[float, ...]:
+    """The object's own rotation channels in the layout of props.AffineDeformerProbe.rest_rotation
+    (`mode`: obj.rotation_mode, when the caller has read it already)."""
+    if mode is None:
+        mode = obj.rotation_mode
     if mode == "QUATERNION":
         return tuple(obj.rotation_quaternion)
     if mode == "AXIS_ANGLE":
@@ -140,18 +151,30 @@ def channel_frame(evaluated: bpy.types.Object, target_world: np.ndarray) -> np.n
     negated first, since rotation vectors are pseudovectors). Identity when that matrix is singular
     or not finite: the motion is then rejected anyway, or the branch falls back to the shortest.
     """
-    R = _channel_matrix(evaluated.rotation_mode, rotation_channels(evaluated))
-    scale = np.array(evaluated.scale, dtype=np.float64) * np.array(evaluated.delta_scale, dtype=np.float64)
-    world = np.array(evaluated.matrix_world, dtype=np.float64)[:3, :3]
-    with np.errstate(all="ignore"):
-        try:
-            frame = np.linalg.solve(target_world[:3, :3], world) / scale[None, :] @ R.T
-        except np.linalg.LinAlgError:
-            return np.eye(3)
-    det = np.linalg.det(frame) if np.all(np.isfinite(frame)) else 0.0
-    if not (np.isfinite(det) and abs(det) > 1e-30):
+    world = np.array(evaluated.matrix_world, dtype=np.float64)
+    try:
+        with np.errstate(all="ignore"):
+            linear = np.linalg.solve(target_world[:3, :3], world[:3, :3])
+    except np.linalg.LinAlgError:
         return np.eye(3)
-    rotation, _ = aff3.polar(np.sign(det) * frame)
+    scale = (*evaluated.scale, *evaluated.delta_scale)
+    return _frame_rotation(linear, evaluated.rotation_mode, rotation_channels(evaluated), scale)
+
+
+def _frame_rotation(linear: np.ndarray, mode: str, channels, scale) -> np.ndarray:
+    """`channel_frame` from linear = target_world⁻¹ · matrix_world's 3×3 (float64), the rotation
+    channels and scale = (*scale, *delta_scale) as read from the evaluated object."""
+    R = _channel_matrix(mode, channels)
+    factors = np.array(scale, dtype=np.float64)
+    with np.errstate(all="ignore"):
+        frame = linear / (factors[:3] * factors[3:])[None, :] @ R.T
+    if not np.isfinite(frame).all():
+        return np.eye(3)
+    (a, b, c), (d, e, f), (g, h, i) = frame.tolist()
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    if not (math.isfinite(det) and abs(det) > 1e-30):
+        return np.eye(3)
+    rotation, _ = aff3.polar(frame if det > 0.0 else -frame)
     return rotation
 
 
@@ -260,36 +283,39 @@ class ProbeKind:
         return indices, values, warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
-        m = len(deformer.probes)
+        probes = deformer.probes
+        m = len(probes)
         rests = rest_matrices(deformer)
-        rest_modes = [item.rest_rotation_mode for item in deformer.probes]
+        rest_modes = [item.rest_rotation_mode for item in probes]
         flat = np.empty(m * 4, dtype=np.float32)
         if m:
-            deformer.probes.foreach_get("rest_rotation", flat)
+            probes.foreach_get("rest_rotation", flat)
         rest_rotations = flat.reshape(-1, 4).astype(np.float64)
         target_world = world_matrix(obj, depsgraph)
         if not np.all(np.isfinite(target_world)):
             return Motions.invalid(m, f"'{obj.name}' has a non-finite transform")
-        target_bits = target_world.tobytes()
+        # Everything the probes share in one bytes object, which caches its hash: each probe's key
+        # holds it plus its index, instead of hashing its own copies of the rest data per update.
+        shared = b"".join((target_world.tobytes(), rests.tobytes(), flat.tobytes(),
+                           "\0".join(rest_modes).encode()))
         rows: list[_ProbeRow] = []
-        for i, item in enumerate(deformer.probes):
+        for i, item in enumerate(probes):
             probe = item.object
             if probe is None:
                 return Motions.invalid(m, f"Probe '{item.name or '?'}' was deleted or unassigned: "
                                        "remove it from the deformer or pick another object")
-            if not probe.users_scene:
+            if not in_a_scene(probe):
                 return Motions.invalid(m, f"Probe '{probe.name}' is not in any scene (deleted?): "
                                        "remove it from the deformer or link it back")
             evaluated = probe.evaluated_get(depsgraph)
             world = np.array(evaluated.matrix_world, dtype=np.float64)
-            channels = rotation_channels(evaluated)
             mode = evaluated.rotation_mode
-            key = (target_bits, world.tobytes(), mode, _bits(channels), _bits(evaluated.scale),
-                   _bits(evaluated.delta_scale), rests[i].tobytes(), rest_modes[i],
-                   rest_rotations[i].tobytes())
+            channels = rotation_channels(evaluated, mode)
+            scale = (*evaluated.scale, *evaluated.delta_scale)
+            key = (shared, i, world.tobytes(), mode, _bits(channels + scale))
             row = _rows.get(key)
             if row is None:
-                row = _probe_row(evaluated, target_world, world, channels, mode, rests[i], rest_modes[i],
+                row = _probe_row(target_world, world, channels, mode, scale, rests[i], rest_modes[i],
                                  rest_rotations[i])
                 if len(_rows) >= ROW_MEMO_SIZE:
                     _rows.clear()
@@ -304,6 +330,17 @@ class ProbeKind:
                        rest_modes, rest_rotations, [r.mode for r in rows],
                        np.array([r.rotation for r in rows], dtype=np.float64),
                        np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
+
+
+def in_a_scene(obj: bpy.types.Object) -> bool:
+    """`bool(obj.users_scene)` without its cost in the common case: users_scene lists every object of
+    every scene (O(objects) per call); a lookup by name finds the object directly, and only a miss
+    (e.g. a linked object sharing a local one's name) takes the full scan."""
+    name = obj.name
+    for scene in bpy.data.scenes:
+        if scene.objects.get(name) == obj:
+            return True
+    return bool(obj.users_scene)
 
 
 @dataclass(frozen=True)
@@ -336,23 +373,24 @@ def forget() -> None:
     _rows.clear()
 
 
-def _bits(values) -> bytes:
-    """The exact float64 bits of a short sequence of numbers (−0.0 and NaN payloads included)."""
-    return np.array(values, dtype=np.float64).tobytes()
+def _bits(values: tuple[float, ...]) -> bytes:
+    """The exact float64 bits of a short tuple of numbers (−0.0 and NaN payloads included)."""
+    return struct.pack(f"{len(values)}d", *values)
 
 
-def _probe_row(evaluated: bpy.types.Object, target_world: np.ndarray, world: np.ndarray, channels,
-               mode: str, rest: np.ndarray, rest_mode: str, rest_rotation: np.ndarray) -> _ProbeRow:
-    """The `_ProbeRow` of one probe from its evaluated object and world matrix (float64) and its rest
-    matrix (float32) and channels."""
+def _probe_row(target_world: np.ndarray, world: np.ndarray, channels: tuple[float, ...], mode: str,
+               scale: tuple[float, ...], rest: np.ndarray, rest_mode: str,
+               rest_rotation: np.ndarray) -> _ProbeRow:
+    """The `_ProbeRow` of one probe from its world matrix (float64), rotation channels and mode,
+    (*scale, *delta_scale), and its rest matrix (float32) and channels."""
     identity = np.eye(4)
     rotation = tuple(float(c) for c in channels) + (0.0,) * (4 - len(channels))
     try:
-        current = local_matrix(target_world, world)
+        current, solved = _local_solve(target_world, world)
     except np.linalg.LinAlgError:
         return _ProbeRow(identity, True, mode, rotation, np.eye(3), np.zeros(3),
                          "'{target}' is scaled to zero: the mesh shows its rest shape")
-    frame = channel_frame(evaluated, target_world)
+    frame = _frame_rotation(solved[:, :3], mode, channels, scale)
     pivot = current[:3, 3].astype(np.float64)
     # At rest = the same matrix AND the same channels (a full turn changes only the channels).
     if (np.array_equal(current, rest) and mode == rest_mode

@@ -111,11 +111,17 @@ def ensure_group() -> bpy.types.NodeTree:
 def find_modifier(obj: bpy.types.Object, offset_attr: str) -> bpy.types.NodesModifier | None:
     """Our modifier on `obj` that reads `offset_attr`, found by content so user renames don't matter."""
     for mod in obj.modifiers:
-        if mod.type != "NODES" or not _is_our_group(mod.node_group):
-            continue
-        if mod.get(offset_socket_identifier(mod.node_group)) == offset_attr:
+        if is_modifier_for(mod, offset_attr):
             return mod
     return None
+
+
+def is_modifier_for(mod: bpy.types.Modifier | None, offset_attr: str) -> bool:
+    """`mod` is a Geometry Nodes modifier with our group that reads `offset_attr`."""
+    if mod is None or mod.type != "NODES":
+        return False
+    ng = mod.node_group
+    return _is_our_group(ng) and mod.get(offset_socket_identifier(ng)) == offset_attr
 
 
 def ensure_modifier(obj: bpy.types.Object, offset_attr: str, label: str,

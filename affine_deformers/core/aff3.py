@@ -44,6 +44,7 @@ Accuracy (tests/core/test_aff3.py):
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -79,6 +80,11 @@ __all__ = [
 #: Products with a numerically inverted 4×4 can leave ~1e-17 there; anything visible is a real error.
 BOTTOM_ROW_TOL = 1e-9
 
+# Up to this many rows, branch and validity checks run on Python floats (a few hundred ns per row)
+# instead of numpy reductions (a fixed µs or two of per-call cost each). Checks only: values are
+# always computed by the same numpy operations, so results do not depend on the batch size.
+_FEW_ROWS = 8
+
 _SQRT3 = float(np.sqrt(3.0))
 _EPS = float(np.finfo(np.float64).eps)
 
@@ -95,16 +101,15 @@ def _float_array(a: ArrayLike, tail: tuple[int, ...], name: str) -> FloatArray:
     return arr
 
 
+# Index triples for gathering the last axis with `ndarray.take`: on the few-row batches of the update
+# path numpy's per-call cost dominates, and one take replaces three views plus a stack.
+_NEXT = np.array([1, 2, 0])
+_PREV = np.array([2, 0, 1])
+
+
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
-    """a × b over the last axis (np.cross without its shape checks, for speed on small batches)."""
-    return np.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )
+    """a × b over the last axis: (a₁b₂ − a₂b₁, a₂b₀ − a₀b₂, a₀b₁ − a₁b₀), each entry rounded as written."""
+    return a.take(_NEXT, axis=-1) * b.take(_PREV, axis=-1) - a.take(_PREV, axis=-1) * b.take(_NEXT, axis=-1)
 
 
 def _horner(coeffs: tuple[float, ...], z: FloatArray) -> FloatArray:
@@ -132,16 +137,25 @@ def hat(w: ArrayLike) -> FloatArray:
     return K
 
 
+# Flat (row-major 3×3) positions of K₂₁, K₀₂, K₁₀ and of K₁₂, K₂₀, K₀₁.
+_VEE_PLUS = np.array([7, 2, 3])
+_VEE_MINUS = np.array([5, 6, 1])
+
+
 def vee(K: ArrayLike) -> FloatArray:
-    """Inverse of `hat`, applied to the skew part ½(K − Kᵀ); (..., 3, 3) -> (..., 3). vee(hat(ω)) == ω."""
+    """Inverse of `hat`, applied to the skew part ½(K − Kᵀ); (..., 3, 3) -> (..., 3). vee(hat(ω)) == ω.
+
+    vee(K) = ½ (K₂₁ − K₁₂, K₀₂ − K₂₀, K₁₀ − K₀₁).
+    """
     K = _float_array(K, (3, 3), "K")
-    return 0.5 * np.stack(
-        [K[..., 2, 1] - K[..., 1, 2], K[..., 0, 2] - K[..., 2, 0], K[..., 1, 0] - K[..., 0, 1]], axis=-1
-    )
+    flat = K.reshape(*K.shape[:-2], 9)
+    return 0.5 * (flat.take(_VEE_PLUS, axis=-1) - flat.take(_VEE_MINUS, axis=-1))
 
 
 # Below this angle the θ-coefficients switch to their Taylor series (truncation error < 1e-18).
 _SERIES_THETA = 0.2
+# A bound below 2π (where sin(θ/2) first vanishes again) for skipping the divide-by-zero guard.
+_TWO_PI_BELOW = 6.0
 
 
 def _so3_coeffs(theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -164,12 +178,28 @@ def _so3_coeffs(theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     return a, b, c
 
 
+def _all_within(x: FloatArray, low: float, high: float) -> bool:
+    """low ≤ min(x) and max(x) < high, for choosing a branch; NaN entries may go either way (callers
+    only use it where a NaN row gives the same NaN on both branches). Empty x gives False."""
+    if x.size == 0:
+        return False
+    if x.size <= _FEW_ROWS:  # Python's min/max on a short list cost less than two numpy reductions
+        values = x.ravel().tolist()
+        return low <= min(values) and max(values) < high
+    return bool(low <= x.min() and x.max() < high)
+
+
 def _jacobian_inv_coeff(theta: FloatArray) -> FloatArray:
     """(1/θ²)(1 − θ sin θ / (2(1 − cos θ))) = (1 − (θ/2) cot(θ/2))/θ², the ω̂² coefficient of V⁻¹.
 
     Series 1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600 + θ⁸/47900160 below θ = 0.2. Infinite at θ = 2π,
     where V is singular (only reachable with a lifted rotation vector).
     """
+    if _all_within(theta, _SERIES_THETA, _TWO_PI_BELOW):
+        # Every row takes the closed form (the usual case on the update path): skipping the series and
+        # the select gives the same bits, and below 2π sin(θ/2) > 0 needs no error-state guard.
+        half = 0.5 * theta
+        return (1.0 - half * np.cos(half) / np.sin(half)) / (theta * theta)
     small = theta < _SERIES_THETA
     safe = np.where(small, 1.0, theta)
     half = 0.5 * safe
@@ -200,14 +230,23 @@ def so3_log(R: ArrayLike) -> FloatArray:
     its sign from s (ERRATA 6). At θ = π exactly both signs are valid; the one returned is arbitrary.
     """
     R = _float_array(R, (3, 3), "R")
-    s = vee(R)
+    flat = R.reshape(*R.shape[:-2], 9)
+    s = 0.5 * (flat.take(_VEE_PLUS, axis=-1) - flat.take(_VEE_MINUS, axis=-1))  # vee(R)
     sin_t = _norm3(s)
-    cos_t = np.clip(0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0), -1.0, 1.0)
+    # minimum/maximum instead of np.clip: the same numbers (NaN included) at a third of the call cost
+    cos_t = np.minimum(np.maximum(0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0), -1.0), 1.0)
     theta = np.arctan2(sin_t, cos_t)
 
-    ratio = np.where(sin_t > 0.0, theta / np.where(sin_t > 0.0, sin_t, 1.0), 1.0)
-    w_skew = ratio[..., None] * s
-    if not np.any(cos_t < 0.0):  # no rotation past π/2: the axis branch would not be selected
+    if sin_t.size == 0:
+        return np.zeros(s.shape)
+    # The branch tests use min(): it is NaN when any row is, and NaN selects the general path.
+    if sin_t.min() > 0.0:  # no select needed (the usual case): the same bits as the guarded ratio
+        w_skew = (theta / sin_t)[..., None] * s
+    else:
+        positive = sin_t > 0.0
+        ratio = np.where(positive, theta / np.where(positive, sin_t, 1.0), 1.0)
+        w_skew = ratio[..., None] * s
+    if cos_t.min() >= 0.0:  # no rotation past π/2: the axis branch would not be selected
         return w_skew
 
     sym = 0.5 * (R + np.swapaxes(R, -1, -2)) - cos_t[..., None, None] * np.eye(3)
@@ -268,8 +307,11 @@ def se3_log(R: ArrayLike, t: ArrayLike) -> tuple[FloatArray, FloatArray]:
     t = _float_array(t, (3,), "t")
     w = so3_log(R)
     d = _jacobian_inv_coeff(_norm3(w))
-    wt = _cross(w, t)
-    u = t - 0.5 * wt + d[..., None] * _cross(w, wt)
+    # the two cross products ω × t and ω × (ω × t) of `_cross`, sharing the permutations of ω
+    w_next, w_prev = w.take(_NEXT, axis=-1), w.take(_PREV, axis=-1)
+    wt = w_next * t.take(_PREV, axis=-1) - w_prev * t.take(_NEXT, axis=-1)
+    wwt = w_next * wt.take(_PREV, axis=-1) - w_prev * wt.take(_NEXT, axis=-1)
+    u = t - 0.5 * wt + d[..., None] * wwt
     return w, u
 
 
@@ -505,6 +547,59 @@ def _where(flat_index: int, lead: tuple[int, ...]) -> str:
     return f"{flat_index} (index {tuple(int(i) for i in np.unravel_index(flat_index, lead))})"
 
 
+# Flat (row-major 4×4) positions for the 2×2 cofactors of the 3×3 part, in `_det3`'s order:
+# (m₁₁m₂₂, m₁₀m₂₂, m₁₀m₂₁) − (m₁₂m₂₁, m₁₂m₂₀, m₁₁m₂₀).
+_COF_A = np.array([5, 4, 4])
+_COF_B = np.array([10, 10, 9])
+_COF_C = np.array([6, 6, 5])
+_COF_D = np.array([9, 8, 8])
+_BOTTOM = np.array([0.0, 0.0, 0.0, 1.0])
+# The fast check's bounds on |A − [[0, 0], [0, 1]]| entrywise: the 3×4 top below 1e100 (so every
+# product in `_det3` stays finite and needs no error state), the bottom row within BOTTOM_ROW_TOL.
+_IDENTITY_BOTTOM16 = np.concatenate([np.zeros(12), _BOTTOM])
+_ENTRY_BOUND16 = np.concatenate([np.full(12, 1e100), np.full(4, BOTTOM_ROW_TOL)])
+
+
+def _affine_rows_ok_scalar(rows: list[list[float]]) -> bool:
+    """`_affine_rows_ok` on Python floats: the same IEEE operations in the same order as `_det3`.
+
+    A non-finite sum means a non-finite entry or an overflow; either way the full check decides.
+    """
+    tol = BOTTOM_ROW_TOL
+    for r in rows:
+        if not math.isfinite(sum(r)):
+            return False
+        if not (abs(r[12]) <= tol and abs(r[13]) <= tol and abs(r[14]) <= tol and abs(r[15] - 1.0) <= tol):
+            return False
+        det = (
+            r[0] * (r[5] * r[10] - r[6] * r[9])
+            - r[1] * (r[4] * r[10] - r[6] * r[8])
+            + r[2] * (r[4] * r[9] - r[5] * r[8])
+        )
+        if not det > 0.0:
+            return False
+    return True
+
+
+def _affine_rows_ok(flat: FloatArray) -> bool:
+    """True if every 4×4 of flat (m, 16) is certainly accepted by `validate_affine` (a cheap pre-check).
+
+    Finite entries below 1e100 in size, bottom row within BOTTOM_ROW_TOL of (0, 0, 0, 1), and
+    det > 0 with det evaluated exactly as `_det3` rounds it. False means "run the full check", so
+    the answer of `validate_affine` never depends on which pre-check ran.
+    """
+    if flat.shape[0] <= _FEW_ROWS:
+        return _affine_rows_ok_scalar(flat.tolist())
+    if not (np.abs(flat - _IDENTITY_BOTTOM16) <= _ENTRY_BOUND16).all():  # also False for NaN
+        return False
+    cof = flat.take(_COF_A, axis=1) * flat.take(_COF_B, axis=1) - flat.take(_COF_C, axis=1) * flat.take(
+        _COF_D, axis=1
+    )
+    terms = flat[:, 0:3] * cof
+    det = terms[:, 0] - terms[:, 1] + terms[:, 2]
+    return bool(det.min() > 0.0)
+
+
 def validate_affine(A: ArrayLike, name: str = "transform") -> FloatArray:
     """A as float64 (..., 4, 4) if every matrix is in Aff+(3); else ValueError naming the first bad one.
 
@@ -513,6 +608,13 @@ def validate_affine(A: ArrayLike, name: str = "transform") -> FloatArray:
     axes (and the multi-index when there is more than one leading axis).
     """
     A = _float_array(A, (4, 4), name)
+    if _affine_rows_ok(A.reshape(-1, 16)):
+        return A
+    return _validate_affine_full(A, name)
+
+
+def _validate_affine_full(A: FloatArray, name: str) -> FloatArray:
+    """The checks of `validate_affine` on every row, with the message for the first bad one."""
     lead = A.shape[:-2]
     flat = A.reshape(-1, 4, 4)
     finite = np.isfinite(flat).all(axis=(1, 2))
@@ -605,6 +707,11 @@ def xy_from_params(P: ArrayLike) -> tuple[FloatArray, FloatArray]:
     return X, sym_from6(P[..., 6:12])
 
 
+# Flat (row-major 3×3) positions of (xx, yy, zz, xy, xz, yz) and of their transposes.
+_SYM6_UPPER = np.array([0, 4, 8, 1, 2, 5])
+_SYM6_LOWER = np.array([0, 4, 8, 3, 6, 7])
+
+
 def params_from_matrices(A: ArrayLike) -> FloatArray:
     """ψ in the 12-number layout: A (..., 4, 4) -> P (..., 12). ValueError on invalid A.
 
@@ -613,22 +720,21 @@ def params_from_matrices(A: ArrayLike) -> FloatArray:
     for the one or two controls that moved, where numpy's per-call overhead is the whole cost.
     """
     A = validate_affine(A)
-    R, Vh, sigma, _ = _polar_svd(A[..., :3, :3])
-    Y = np.swapaxes(Vh, -1, -2) @ (np.log(sigma)[..., :, None] * Vh)
-    Y = 0.5 * (Y + np.swapaxes(Y, -1, -2))
-    w, u = se3_log(R, A[..., :3, 3])
-    P = np.empty((*A.shape[:-2], 12))
-    P[..., 0:3] = w
-    P[..., 3:6] = u
-    P[..., 6:9] = np.diagonal(Y, axis1=-2, axis2=-1)
-    P[..., 9] = Y[..., 0, 1]
-    P[..., 10] = Y[..., 0, 2]
-    P[..., 11] = Y[..., 1, 2]
-    if not np.all(np.isfinite(P)):
+    lead = A.shape[:-2]
+    flat = A.reshape(-1, 4, 4)
+    R, Vh, sigma, _ = _polar_svd(flat[:, :3, :3])
+    Yh = (Vh.transpose(0, 2, 1) @ (np.log(sigma)[:, :, None] * Vh)).reshape(-1, 9)
+    w, u = se3_log(R, flat[:, :3, 3])
+    # Y = ½(Ŷ + Ŷᵀ) read straight into the layout: ½(Ŷᵢᵢ + Ŷᵢᵢ) = Ŷᵢᵢ exactly, off-diagonals averaged.
+    y6 = 0.5 * (Yh.take(_SYM6_UPPER, axis=1) + Yh.take(_SYM6_LOWER, axis=1))
+    P = np.concatenate([w, u, y6], axis=1)
+    # A finite sum of a short batch proves every entry finite; otherwise (or on overflow) numpy decides.
+    few_and_finite = P.shape[0] <= _FEW_ROWS and math.isfinite(sum(P.ravel().tolist()))
+    if not few_and_finite and not np.isfinite(P).all():
         bad = ~np.isfinite(P).all(axis=-1)
-        i = int(np.argmax(bad.reshape(-1)))
-        raise ValueError(f"transform {_where(i, A.shape[:-2])} is too degenerate to take its logarithm")
-    return P
+        i = int(np.argmax(bad))
+        raise ValueError(f"transform {_where(i, lead)} is too degenerate to take its logarithm")
+    return P.reshape(*lead, 12)
 
 
 def matrices_from_params(P: ArrayLike) -> FloatArray:

@@ -18,11 +18,12 @@ Contents:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
 
-from .aff3 import left_jacobian, se3_log, so3_log
+from .aff3 import _cross, left_jacobian, se3_log, so3_log
 
 TWO_PI = 2.0 * np.pi
 
@@ -41,6 +42,9 @@ ROTATION_MODES = (*EULER_ORDERS, "QUATERNION", "AXIS_ANGLE")
 
 # Bound on the number of path samples per call (about 7000 turns at the default step).
 MAX_PATH_SAMPLES = 65536
+
+# Up to this many channel values, checks run on Python floats instead of numpy reductions.
+_FEW_VALUES = 64
 
 
 def _norm(v: np.ndarray) -> np.ndarray:
@@ -78,6 +82,37 @@ def lift_rotvec(w: np.ndarray, w_ref: np.ndarray, *, axis_tol: float = AXIS_TOL)
     return np.where((turns != 0.0)[..., None], lifted, w)
 
 
+# `_no_row_lifts` bounds: |w_ref − w| < 3 keeps |k| = |rint((ŵ·w_ref − ŵ·w)/2π)| at 0 with a margin of
+# π − 3 ≈ 0.14 rad for rounding, which holds while |w| < 1e6 (rounding ~1e6·ε there).
+_NO_LIFT_DIST_SQ = 9.0
+_NO_LIFT_NORM_SQ = 1e12
+
+
+def _no_row_lifts(w: np.ndarray, w_ref: np.ndarray) -> bool:
+    """True if `lift_rotvec(w, w_ref)` certainly leaves every row unchanged (k = 0 for all rows).
+
+    With n the axis the lift uses (ŵ, or the reference's axis when |w| < axis_tol; |n| ≤ 1), the
+    turn count is k = rint(n·(w_ref − w)/2π), which is 0 whenever |w_ref − w| < π. A cheap sufficient
+    test for the usual update (no control past a half turn from its reference); False (NaN included)
+    means "run the lift".
+    """
+    if w.shape[-1:] != (3,) or w_ref.shape != w.shape:
+        return False
+    d = w_ref - w
+    if d.size <= _FEW_VALUES:
+        # Python floats for short batches (the result is a decision only; both ways are exact).
+        dl, wl = d.ravel().tolist(), w.ravel().tolist()
+        for i in range(0, len(dl), 3):
+            dist_sq = dl[i] * dl[i] + dl[i + 1] * dl[i + 1] + dl[i + 2] * dl[i + 2]
+            norm_sq = wl[i] * wl[i] + wl[i + 1] * wl[i + 1] + wl[i + 2] * wl[i + 2]
+            if not (dist_sq < _NO_LIFT_DIST_SQ and norm_sq < _NO_LIFT_NORM_SQ):  # NaN: False
+                return False
+        return True
+    if not (np.einsum("...i,...i->...", d, d) < _NO_LIFT_DIST_SQ).all():
+        return False
+    return bool((np.einsum("...i,...i->...", w, w) < _NO_LIFT_NORM_SQ).all())
+
+
 def _damped_translation_log(
     w: np.ndarray, t: np.ndarray, pivot: np.ndarray, damping: float
 ) -> np.ndarray:
@@ -100,13 +135,13 @@ def _damped_translation_log(
     n = w / theta_safe[..., None]
     a = np.sin(theta) / theta_safe
     b = (1.0 - np.cos(theta)) / theta_safe
-    u0 = np.cross(pivot, w)
-    v_u0 = a[..., None] * u0 + b[..., None] * np.cross(n, u0)
+    u0 = _cross(pivot, w)
+    v_u0 = a[..., None] * u0 + b[..., None] * _cross(n, u0)
     r = t - v_u0
     r_axial = np.einsum("...i,...i->...", n, r)[..., None] * n
     r_plane = r - r_axial
     gain = 1.0 / (a * a + b * b + damping * damping)
-    u_plane = gain[..., None] * (a[..., None] * r_plane - b[..., None] * np.cross(n, r_plane))
+    u_plane = gain[..., None] * (a[..., None] * r_plane - b[..., None] * _cross(n, r_plane))
     return u0 + r_axial + u_plane
 
 
@@ -176,6 +211,8 @@ def lift_params(
     if params.shape[-1:] != (12,):
         raise ValueError(f"params must have a last axis of 12, got shape {params.shape}")
     w_ref = np.asarray(w_ref, dtype=np.float64)
+    if w_ref.shape[:-1] == params.shape[:-1] and _no_row_lifts(params[..., 0:3], w_ref):
+        return np.array(params, order="C")
     lead = np.broadcast_shapes(params.shape[:-1], w_ref.shape[:-1])
     out = np.array(np.broadcast_to(params, (*lead, 12)))
     w_p = out[..., 0:3]
@@ -196,34 +233,49 @@ def lift_params(
 # --- Blender rotation channels -> matrices ------------------------------------------------------
 
 
-def _axis_rotation(axis: int, angle: np.ndarray) -> np.ndarray:
-    """Right-handed rotation by `angle` about coordinate axis 0/1/2, shape (..., 3, 3)."""
-    c, s = np.cos(angle), np.sin(angle)
-    i, j = (axis + 1) % 3, (axis + 2) % 3
-    out = np.zeros((*np.shape(angle), 3, 3))
-    out[..., axis, axis] = 1.0
-    out[..., i, i] = c
-    out[..., j, j] = c
-    out[..., j, i] = s
-    out[..., i, j] = -s
-    return out
+def _axis_rotation_slots() -> tuple[np.ndarray, np.ndarray]:
+    """Layout of the stack [Rx, Ry, Rz] (3, 3, 3), flattened, of right-handed axis rotations.
+
+    The rotation by α about axis a, with (i, j) = (a + 1, a + 2) mod 3, has 1 at (a, a), cos α at
+    (i, i) and (j, j), sin α at (j, i), −sin α at (i, j), zeros elsewhere. Returns (the constant part:
+    zeros and the three ones, the flat positions of (cos, cos, sin, −sin) for axes 0, 1, 2 in the
+    order of `np.concatenate([c, c, s, −s])`).
+    """
+    template = np.zeros(27)
+    slots: list[list[int]] = [[], [], [], []]
+    for axis in range(3):
+        i, j = (axis + 1) % 3, (axis + 2) % 3
+        template[9 * axis + 4 * axis] = 1.0
+        for kind, (row, col) in enumerate(((i, i), (j, j), (j, i), (i, j))):
+            slots[kind].append(9 * axis + 3 * row + col)
+    return template, np.array(slots).reshape(-1)
+
+
+_AXIS_TEMPLATE, _AXIS_SLOTS = _axis_rotation_slots()
 
 
 def euler_to_matrix(angles: np.ndarray, order: str = "XYZ") -> np.ndarray:
     """Blender Euler rotation: angles (..., 3) = (x, y, z) in radians, order e.g. 'XYZ'.
 
-    The first letter is applied first: 'XYZ' gives Rz(z)·Ry(y)·Rx(x).
+    The first letter is applied first: 'XYZ' gives Rz(z)·Ry(y)·Rx(x). The three axis rotations are
+    built in one pass over all angles (see `_axis_rotation_slots`): a few numpy calls instead of a few
+    dozen on the few-control update path; the products are the same matmuls as factor by factor.
     """
     if order not in EULER_ORDERS:
         raise ValueError(f"unknown Euler order {order!r}; expected one of {', '.join(EULER_ORDERS)}")
     angles = np.asarray(angles, dtype=np.float64)
     if angles.shape[-1:] != (3,):
         raise ValueError(f"Euler angles must have a last axis of 3, got shape {angles.shape}")
-    axes = ["XYZ".index(letter) for letter in order]
-    out = _axis_rotation(axes[0], angles[..., axes[0]])
-    for axis in axes[1:]:
-        out = _axis_rotation(axis, angles[..., axis]) @ out
-    return out
+    lead = angles.shape[:-1]
+    flat = angles.reshape(-1, 3)
+    c, s = np.cos(flat), np.sin(flat)
+    factors = np.empty((flat.shape[0], 27))
+    factors[:] = _AXIS_TEMPLATE
+    factors[:, _AXIS_SLOTS] = np.concatenate([c, c, s, -s], axis=1)
+    factors = factors.reshape(-1, 3, 3, 3)
+    first, second, third = ("XYZ".index(letter) for letter in order)
+    out = factors[:, third] @ (factors[:, second] @ factors[:, first])
+    return out.reshape(*lead, 3, 3)
 
 
 def _unit_quaternion(q: np.ndarray) -> np.ndarray:
@@ -306,7 +358,7 @@ def _quaternion_path_rotvec(rest: np.ndarray, current: np.ndarray) -> np.ndarray
     w0, v0 = q0[..., 0], q0[..., 1:]
     w1, v1 = q1[..., 0], q1[..., 1:]
     real = w1 * w0 + np.einsum("...i,...i->...", v1, v0)
-    vec = w0[..., None] * v1 - w1[..., None] * v0 - np.cross(v1, v0)
+    vec = w0[..., None] * v1 - w1[..., None] * v0 - _cross(v1, v0)
     sin_half = _norm(vec)
     half = np.arctan2(sin_half, real)
     ok = sin_half > 1e-12
@@ -345,7 +397,7 @@ def _path_samples_axis_angle(rest: np.ndarray, current: np.ndarray, max_step: fl
     x0, x1 = rest[:, 1:], current[:, 1:]
     n_angle = int(np.floor(np.abs(current[:, 0] - rest[:, 0]).max(initial=0.0) / (0.5 * max_step))) + 1
     len0, len1 = _norm(x0), _norm(x1)
-    cross = _norm(np.cross(x0, x1))
+    cross = _norm(_cross(x0, x1))
     dot = np.einsum("ij,ij->i", x0, x1)
     both = (len0 > 0.0) & (len1 > 0.0)
     arc = np.where(both, np.arctan2(cross, dot), 0.0)
@@ -391,36 +443,73 @@ def _channel_rotvec_one_mode(mode: str, rest: np.ndarray, current: np.ndarray, m
         raise ValueError(
             f"rotation mode {mode} needs {width} channels, got {rest.shape[-1]} and {current.shape[-1]}"
         )
-    if not (np.all(np.isfinite(rest)) and np.all(np.isfinite(current))):
+    if not _all_finite(rest, current):
         raise ValueError("rotation channels contain non-finite values")
     if mode == "QUATERNION":
         return _quaternion_path_rotvec(rest, current)
+    if mode == "AXIS_ANGLE":
+        counts = [tuple(count) for count in _sample_counts(mode, rest, current, max_step).tolist()]
+    else:
+        counts = [(steps, 0.0) for steps in _euler_steps(rest, current, max_step).tolist()]
+        if set(counts) == {(0.0, 0.0)}:  # every row within one step: no grouping needed
+            return _euler_one_step(mode, rest, current)
     # Each row is sampled at its own count (rows with equal counts share one batch), so a row's result
     # never depends on which other rows it is computed with (callers memoise rows).
     # Grouped with a dict, not np.unique(axis=0): batches are a few controls, where unique's
     # structured-array set-up cost more than the unwrapping itself.
     groups: dict[tuple[float, float], list[int]] = {}
-    for i, count in enumerate(_sample_counts(mode, rest, current, max_step).tolist()):
-        groups.setdefault(tuple(count), []).append(i)
+    for i, count in enumerate(counts):
+        groups.setdefault(count, []).append(i)
     out = np.zeros((rest.shape[0], 3))
     sample = _path_samples_axis_angle if mode == "AXIS_ANGLE" else _path_samples_euler
-    for members in groups.values():
+    for count, members in groups.items():
         rows = np.array(members)
+        if count == (0.0, 0.0) and mode != "AXIS_ANGLE":
+            out[rows] = _euler_one_step(mode, rest[rows], current[rows])
+            continue
         s = sample(rest[rows], current[rows], max_step)
         out[rows] = _unwrap_sampled(mode, rest[rows], current[rows], s)
     return out
+
+
+def _all_finite(*arrays: np.ndarray) -> bool:
+    """Every entry finite. Few entries: one Python sum (finite iff every entry is, unless it overflows,
+    and then numpy decides) instead of a numpy call per array."""
+    if sum(a.size for a in arrays) <= _FEW_VALUES and math.isfinite(
+        sum(sum(a.ravel().tolist()) for a in arrays)
+    ):
+        return True
+    return all(bool(np.isfinite(a).all()) for a in arrays)
+
+
+def _euler_steps(rest: np.ndarray, current: np.ndarray, max_step: float) -> np.ndarray:
+    """Per row, ⌊Σ|Δe_i| / max_step⌋: the path of that row alone has this many steps plus one."""
+    return np.floor(np.abs(current - rest).sum(axis=-1) / max_step)
+
+
+def _euler_one_step(mode: str, rest: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """`_unwrap_sampled` for Euler rows whose channels change by less than one step in total.
+
+    The path grid is then s ∈ {0, 1}: the one sample is e(1) = rest + 1·(current − rest) (formed as
+    written, so the same bits as the sampled path), and its principal log ω = log(R(e(1))·R(rest)ᵀ) is
+    the answer: lifting it against the zero start gives k = rint(−|ω|/2π) = 0 for |ω| ≤ π.
+    Both rotations come from one `euler_to_matrix` call over the stacked channels.
+    """
+    m = rest.shape[0]
+    both = euler_to_matrix(np.concatenate([rest, rest + (current - rest)]), mode)
+    return so3_log(both[m:] @ both[:m].transpose(0, 2, 1))
 
 
 def _sample_counts(mode: str, rest: np.ndarray, current: np.ndarray, max_step: float) -> np.ndarray:
     """Per row, the sample counts `_path_samples_euler` / `_path_samples_axis_angle` would use for that
     row alone, (m, 2) (the same floor expressions, evaluated per row)."""
     if mode != "AXIS_ANGLE":
-        steps = np.floor(np.abs(current - rest).sum(axis=-1) / max_step)
+        steps = _euler_steps(rest, current, max_step)
         return np.stack([steps, np.zeros_like(steps)], axis=-1)
     x0, x1 = rest[:, 1:], current[:, 1:]
     n_angle = np.floor(np.abs(current[:, 0] - rest[:, 0]) / (0.5 * max_step))
     both = (_norm(x0) > 0.0) & (_norm(x1) > 0.0)
-    arc = np.where(both, np.arctan2(_norm(np.cross(x0, x1)), np.einsum("ij,ij->i", x0, x1)), 0.0)
+    arc = np.where(both, np.arctan2(_norm(_cross(x0, x1)), np.einsum("ij,ij->i", x0, x1)), 0.0)
     n_axis = np.floor(2.0 * arc / (0.5 * max_step))
     return np.stack([n_angle, n_axis], axis=-1)
 
@@ -460,6 +549,12 @@ def channel_rotvec(
     modes = np.asarray(mode, dtype=object).reshape(-1)
     if modes.shape[0] != rest2.shape[0]:
         raise ValueError(f"got {modes.shape[0]} rotation modes for {rest2.shape[0]} channel rows")
+    distinct = set(modes.tolist())
+    if len(distinct) == 1:  # the usual case: every control in one mode, no row selection needed
+        (one,) = distinct
+        width = 3 if one in EULER_ORDERS else 4
+        out = _channel_rotvec_one_mode(one, rest2[:, :width], cur2[:, :width], max_step)
+        return out.reshape(*lead, 3)
     out = np.zeros((rest2.shape[0], 3))
     for one in sorted(set(modes.tolist())):
         rows = np.flatnonzero(modes == one)

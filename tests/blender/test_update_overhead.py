@@ -38,12 +38,13 @@ def test_only_changed_controls_are_recomputed(bl, installed, monkeypatch):
     bpy.context.view_layer.update()
     rows, params = [], []
     real_row, real_params = kinds._probe_row, evaluate._params_of_rows
-    monkeypatch.setattr(kinds, "_probe_row", lambda *a: rows.append(a[0].name) or real_row(*a))
+    monkeypatch.setattr(kinds, "_probe_row", lambda *a: rows.append(a[1].copy()) or real_row(*a))
     monkeypatch.setattr(evaluate, "_params_of_rows",
                         lambda m, r, *a: params.append(r.tolist()) or real_params(m, r, *a))
     probes[2].rotation_euler.z += 0.4
     bpy.context.view_layer.update()
-    assert rows == [probes[2].name]
+    assert len(rows) == 1  # the world matrix of the one probe that moved
+    assert np.array_equal(rows[0], np.array(probes[2].matrix_world, dtype=np.float64))
     assert params == [[2]]
     assert deformer.status == ""
 
@@ -140,3 +141,68 @@ def test_rest_shape_edit_by_script_is_seen_with_the_cached_copy(bl, installed):
     probes[2].location.x -= 0.1
     bpy.context.view_layer.update()
     assert np.array_equal(_offsets(installed, target, deformer), _fresh(installed, target, deformer))
+
+
+def test_finiteness_check_of_changed_rows(installed):
+    """Only the recomputed rows are checked on an incremental result (the rest were checked before);
+    a full result is checked whole; NaN, ±inf and float32-overflowing offsets are all caught."""
+    evaluate = installed.evaluate
+    offsets = np.zeros((100, 3))
+    assert evaluate._finite(offsets, None)
+    assert evaluate._finite(offsets, np.array([], dtype=np.intp))
+    for bad in (np.nan, np.inf, -np.inf, 1e200):
+        offsets[37, 1] = bad
+        assert not evaluate._finite(offsets, None)
+        assert not evaluate._finite(offsets, np.array([3, 37]))  # few rows: gathered
+        assert not evaluate._finite(offsets, np.arange(30, 90))  # many rows: whole pass
+        assert evaluate._finite(offsets, np.array([3, 38]))  # row 37 unchanged: checked earlier
+    offsets[37, 1] = 3e38
+    assert evaluate._finite(offsets, None)
+
+
+def test_scene_membership_and_cached_modifier_lookup(bl, installed):
+    kinds = importlib.import_module(f"{installed.package}.blender.kinds")
+    target, probes, deformer = _rig(bl, n_probes=2)
+    assert kinds.in_a_scene(probes[0])
+    loose = bpy.data.objects.new("Loose", None)
+    assert not kinds.in_a_scene(loose) and not loose.users_scene
+    mod = target.modifiers[0]
+    mod.name = "Renamed by the user"  # the cached name is stale: found again by content
+    probes[0].location.x += 0.3
+    bpy.context.view_layer.update()
+    assert deformer.status == ""
+    target.modifiers.remove(mod)
+    probes[0].location.x += 0.3
+    bpy.context.view_layer.update()
+    assert "modifier was removed" in deformer.status
+
+
+def test_channel_frame_shared_solve_matches_the_public_function(bl, installed):
+    """The per-probe frame (from the one solve shared with the local matrix) equals channel_frame's
+    own computation for a sheared parent and a non-uniformly scaled, rotated target."""
+    kinds = importlib.import_module(f"{installed.package}.blender.kinds")
+    target, probes, deformer = _rig(bl, n_probes=3)
+    target.scale = (1.3, 0.8, 1.1)
+    target.rotation_euler = (0.2, -0.4, 0.7)
+    parent = bl.empty("Parent", (0.3, 0.1, -0.2))
+    parent.scale = (1.0, 2.0, 0.5)
+    parent.rotation_euler = (0.5, 0.1, -0.3)
+    child = bl.empty("Child", (0.0, 0.0, 0.0))
+    child.parent = parent
+    child.rotation_euler = (0.3, 0.2, 0.1)
+    grand = probes[1]
+    grand.parent = child  # non-uniform scale of a rotated parent: the frame is sheared
+    grand.rotation_mode = "QUATERNION"
+    grand.rotation_quaternion = (0.9, 0.1, -0.3, 0.2)
+    grand.scale = (0.7, 1.4, 1.0)
+    grand.delta_scale = (1.2, 1.0, 0.9)
+    bpy.context.view_layer.update()
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    motions = kinds.KINDS["PROBE"].current_motions(target, deformer, depsgraph)
+    target_world = kinds.world_matrix(target, depsgraph)
+    for i, probe in enumerate(probes):
+        expected = kinds.channel_frame(probe.evaluated_get(depsgraph), target_world)
+        assert np.allclose(motions.channel_frames[i], expected, rtol=0.0, atol=1e-12), i
+        assert np.allclose(expected.T @ expected, np.eye(3), atol=1e-12)
+        assert np.linalg.det(expected) > 0.0
+    assert motions.error == "" and not np.allclose(motions.channel_frames[1], np.eye(3), atol=0.1)
