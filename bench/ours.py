@@ -89,6 +89,15 @@ def kernel_backend() -> str:
     return accel.backend() if accel is not None else "n/a"
 
 
+def forget_caches() -> None:
+    """Drop our per-control memos and caches, so a case does not find the poses an earlier case
+    computed (the move sequence is the same in every case): every timed update then meets new poses,
+    as in an interactive drag."""
+    evaluate = sys.modules.get(f"{PKG}.{EXT_ID}.blender.evaluate")
+    if evaluate is not None:
+        evaluate.forget()
+
+
 def use_compiled_kernel(flag: bool) -> None:
     """Switch our kernel like the add-on preference does (compiled ↔ numpy); caches are dropped."""
     accel = sys.modules.get(f"{PKG}.{EXT_ID}.accel")

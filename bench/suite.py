@@ -126,6 +126,7 @@ def run_ours_probes(
     move_all: every update moves every probe (each differently) instead of the first one only.
     """
     try:
+        ours.forget_caches()
         target = common.sphere_object("Target", n_target)
         empties = native.add_empties(common.probe_sites(n_probes))
         rig = ours.probe_rig(target, empties, plan.radius)
@@ -276,6 +277,7 @@ def part_b(plan: Plan, have_ours: bool, report: Report) -> None:
     mine = rig_ours = None
     if have_ours and ours.operator_exists(ours.CAGE_OP):
         try:
+            ours.forget_caches()
             rig_ours = ours.cage_rig(target, cage)
             with ours.Instrument() as inst:
                 mine = measure(rig_ours, plan, "ours: cage", report, inst)
