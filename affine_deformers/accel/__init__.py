@@ -109,7 +109,8 @@ def warm_up() -> str:
     _state.warming = threading.current_thread()
     try:
         deform_points_params(pts, params, idx, val)
-        deform_points_params_rows(pts, params, idx, val, np.array([1], dtype=np.intp), np.zeros((2, 3)))
+        deform_points_params_rows(pts, params, idx, val, np.array([1], dtype=np.intp), np.zeros((2, 3)),
+                                  out32=np.zeros((2, 3), dtype=np.float32))
     finally:
         _state.warming = None
     return backend()
@@ -223,6 +224,17 @@ def _inputs(
     return pts, table, idx, val
 
 
+def _check_out32(out32: object, shape: tuple[int, ...]) -> None:
+    if (
+        not isinstance(out32, np.ndarray)
+        or out32.dtype != np.float32
+        or out32.shape != shape
+        or not out32.flags.c_contiguous
+        or not out32.flags.writeable
+    ):
+        raise ValueError(f"out32 must be a writable C-contiguous float32 array of shape {shape}")
+
+
 def _check_rows(rows: ArrayLike, n_points: int) -> NDArray[np.intp]:
     sel = np.asarray(rows)
     if sel.ndim != 1 or not np.issubdtype(sel.dtype, np.integer):
@@ -286,17 +298,23 @@ def deform_points_params_rows(
     *,
     offsets: bool = False,
     key: Hashable | None = None,
+    out32: NDArray[np.float32] | None = None,
 ) -> FloatArray:
     """`deform_points_params` for the vertices `rows` only: out[v] = φ(p_v) points[v] (minus points[v]
     when `offsets`) for v in rows; the other rows of `out` (float64, (N, 3)) are left as they are.
 
     As `core.deform.deform_points_params_rows`; each written row is bit-identical to the same row of
-    `deform_points_params` with the same backend.
+    `deform_points_params` with the same backend. `out32`: an optional (N, 3) float32 C-contiguous
+    array that also gets out[v] rounded to float32 (bit for bit what out.astype(np.float32) holds
+    there) for v in rows, and nothing elsewhere: a float32 copy of `out` is kept up to date without
+    converting the whole array.
     """
+    if out32 is not None:
+        _check_out32(out32, np.shape(out))
+        if np.may_share_memory(out32, out):
+            raise ValueError("out32 must not share memory with out")
     if _usable() is None:
-        return _np_kernel.deform_points_params_rows(
-            points, params, indices, values, rows, out, offsets=offsets, key=key
-        )
+        return _numpy_rows(points, params, indices, values, rows, out, offsets, key, out32)
     pts, table, idx, val = _inputs(points, params, indices, values, key)
     if not isinstance(out, np.ndarray) or out.shape != pts.shape or out.dtype != np.float64:
         raise ValueError(f"out must be a float64 array of shape {pts.shape}")
@@ -307,13 +325,32 @@ def deform_points_params_rows(
         table = np.zeros((1, 12))
     p = _c(pts, np.float64)
     dst = out if out.flags.c_contiguous else np.ascontiguousarray(out)
-    if np.may_share_memory(dst, p):  # repeated rows in different chunks would read written results
+    # Repeated rows in different chunks would read written results.
+    if np.may_share_memory(dst, p) or (out32 is not None and np.may_share_memory(out32, p)):
         p = p.copy()
-    args = (p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), sel, dst, bool(offsets))
+    # Without out32 an empty float32 array still goes in: one compiled specialisation, not two.
+    dst32 = _NO_OUT32 if out32 is None else out32
+    args = (p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), sel, dst, bool(offsets),
+            dst32, out32 is not None)
     if not _run("deform_rows", *args):
-        return _np_kernel.deform_points_params_rows(
-            points, params, indices, values, rows, out, offsets=offsets, key=key
-        )
+        return _numpy_rows(points, params, indices, values, rows, out, offsets, key, out32)
     if dst is not out:
         out[sel] = dst[sel]
+    return out
+
+
+_NO_OUT32 = np.empty((0, 3), dtype=np.float32)
+
+
+def _numpy_rows(
+    points: ArrayLike, params: ArrayLike, indices: ArrayLike, values: ArrayLike, rows: ArrayLike,
+    out: FloatArray, offsets: bool, key: Hashable | None, out32: NDArray[np.float32] | None,
+) -> FloatArray:
+    """The numpy kernel's rows call, then the float32 copy of just those rows (an assignment casts
+    with astype's rounding)."""
+    _np_kernel.deform_points_params_rows(points, params, indices, values, rows, out, offsets=offsets, key=key)
+    if out32 is not None:
+        sel = np.asarray(rows)  # checked by the call above
+        with np.errstate(over="ignore"):  # beyond float32 range is ±inf, silently, as compiled
+            out32[sel] = out[sel]
     return out

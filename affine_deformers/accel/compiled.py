@@ -40,6 +40,8 @@ influences and keeps the others. Both entry points run the same compiled `_chunk
 map, one fix-up); every function carries the same fastmath flags (only 'contract': FMA formation; no
 reassociation, so no sum is reordered); and the map always runs a full chunk, so no row is computed
 by a scalar remainder loop whose FMA contraction could differ from the vector body's (see `_map`).
+The float32 copy `deform_rows` can store next to a row is one conversion of the stored float64
+(round to nearest even, overflow to ±inf), the same rounding as numpy's astype(np.float32).
 
 Memory safety: indices are clamped to the table in the blend (one min per slot), so inputs the caller
 vouched for (a `key`) but that are wrong can give wrong values but never read out of bounds.
@@ -409,9 +411,11 @@ def _fixup(W: np.ndarray, n: int) -> None:
 @numba.njit(fastmath=FASTMATH, error_model="numpy")
 def _chunk(
     points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, a: int, n: int,
-    use_rows: bool, offsets: bool, out: np.ndarray,
+    use_rows: bool, offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool,
 ) -> None:
-    """Rows a … a+n−1 of the work list (0 … N−1, or `rows` when use_rows): blend, map, store."""
+    """Rows a … a+n−1 of the work list (0 … N−1, or `rows` when use_rows): blend, map, store; with
+    use32 also out32[r] = float32(out[r]) (one rounding of the stored value: IEEE round to nearest,
+    as numpy's cast)."""
     W = np.empty(_N_SCRATCH * _STRIDE)
     # Flat views once per chunk (a reshape per row would cost more than the blend).
     T, I, V, P = table.reshape(-1), idx.reshape(-1), val.reshape(-1), points.reshape(-1)
@@ -427,7 +431,10 @@ def _chunk(
         r = rows[a + j] if use_rows else a + j
         for t in range(3):
             res = W[(15 + t) * _STRIDE + j]
-            out[r, t] = res - W[(12 + t) * _STRIDE + j] if offsets else res
+            res = res - W[(12 + t) * _STRIDE + j] if offsets else res
+            out[r, t] = res
+            if use32:
+                out32[r, t] = np.float32(res)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -454,22 +461,26 @@ def deform_params(
     may be points itself (a chunk reads its rows before it writes them)."""
     N = points.shape[0]
     no_rows = np.empty(0, dtype=np.intp)
+    # Same argument types as deform_rows': both run the one compiled specialisation of _chunk.
+    no_out32 = np.empty((0, 3), dtype=np.float32)
     for c in numba.prange((N + CHUNK - 1) // CHUNK):
         a = c * CHUNK
-        _chunk(points, table, idx, val, no_rows, a, min(CHUNK, N - a), False, False, out)
+        _chunk(points, table, idx, val, no_rows, a, min(CHUNK, N - a), False, False, out, no_out32, False)
     return out
 
 
 @_entry
 def deform_rows(
     points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray,
-    out: np.ndarray, offsets: bool,
+    out: np.ndarray, offsets: bool, out32: np.ndarray, use32: bool,
 ) -> np.ndarray:
     """out[rows[i]] = φ(p) points[rows[i]] (minus points[rows[i]] when offsets), bit-identical to
     the same row of `deform_params`; other rows of out are untouched. rows (n,) intp in [0, N),
-    without repeats when out shares memory with points."""
+    without repeats when out shares memory with points. With use32, out32 ((N, 3) float32) gets
+    float32(out[rows[i]]) in the same rows (the value np.astype(np.float32) gives) and no others;
+    without, out32 is not accessed (pass an empty (0, 3) float32 array: one specialisation)."""
     n = rows.shape[0]
     for c in numba.prange((n + CHUNK - 1) // CHUNK):
         a = c * CHUNK
-        _chunk(points, table, idx, val, rows, a, min(CHUNK, n - a), True, offsets, out)
+        _chunk(points, table, idx, val, rows, a, min(CHUNK, n - a), True, offsets, out, out32, use32)
     return out

@@ -357,8 +357,13 @@ def _offsets_affine(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarr
         rows = bound.affected_rows(changed)
         if len(rows) <= INCREMENTAL_MAX_FRACTION * len(points):
             if len(rows):
+                # The kernel also rounds the rows it computes into the copy of the attribute, so
+                # `_write_offsets` writes that copy as it is (same condition there: keep in step).
+                written = bound.written
+                out32 = written if written is not None and written.shape == offsets.shape else None
                 accel.deform_points_params_rows(points, params, bound.indices, values, rows, offsets,
-                                                 offsets=True, key=(bound.serial, deformer.strength))
+                                                 offsets=True, key=(bound.serial, deformer.strength),
+                                                 out32=out32)
             bound.params = params
             return offsets, rows
     bound.forget_result()
@@ -455,6 +460,8 @@ def _write_offsets(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray, rows: np
     (`rows` not None) is written when rows were recomputed (their parameters changed, so they almost
     always moved; an identical write only costs one more, signature-cached, update) and skipped when
     none were; a full result is compared with the copy. Without a copy the attribute is read back.
+    An incremental result's rows are already in the copy: `_offsets_affine` had the kernel round them
+    into it (float32(offset), what a cast of the whole array would give), so nothing is converted here.
     """
     if bound is not None and bound.written is not None and bound.written.shape == offsets.shape:
         if rows is not None and len(rows) == 0:
@@ -464,8 +471,6 @@ def _write_offsets(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray, rows: np
             if np.array_equal(bound.written, fresh):
                 return
             bound.written = fresh
-        else:
-            np.copyto(bound.written, offsets, casting="same_kind")  # into the buffer: no allocation
         storage.write_offsets_unchecked(mesh, uid, bound.written)
         return
     fresh = np.array(offsets, dtype=np.float32, order="C")  # always a copy: `offsets` may be a cache's

@@ -8,7 +8,9 @@ import importlib
 import math
 
 import bpy
+import mathutils
 import numpy as np
+import pytest
 
 
 def _rig(bl, n_probes: int = 5):
@@ -206,3 +208,50 @@ def test_channel_frame_shared_solve_matches_the_public_function(bl, installed):
         assert np.allclose(expected.T @ expected, np.eye(3), atol=1e-12)
         assert np.linalg.det(expected) > 0.0
     assert motions.error == "" and not np.allclose(motions.channel_frames[1], np.eye(3), atol=0.1)
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
+def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, installed, monkeypatch, compiled):
+    """An incremental update has the kernel round the rows it recomputes straight into the cached
+    copy of the attribute (no cast of the whole array): after a sequence of them, with rows shared
+    between updates and rows no update touched, the attribute is bit for bit float32 of a fresh full
+    evaluation, on both backends."""
+    evaluate = installed.evaluate
+    accel = evaluate.accel
+    monkeypatch.setattr(accel._state, "enabled", compiled)
+    if accel.active() != compiled:
+        pytest.skip(f"backend: {accel.backend()}")
+    target, probes, deformer = _rig(bl)
+    deformer.radius = 1.0
+    probes[0].location.x += 0.2  # the first result is a full one: it makes the copy
+    bpy.context.view_layer.update()
+    bound = evaluate._bound[(target.session_uid, deformer.uid)]
+    copy = bound.written
+    assert copy is not None
+    calls = []
+    real = accel.deform_points_params_rows
+
+    def spy(*args, **kwargs):
+        calls.append((len(args[4]), kwargs.get("out32") is bound.written))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(accel, "deform_points_params_rows", spy)
+    rng = np.random.default_rng(23)
+    for step in range(8):
+        probe = probes[(2 * step) % len(probes)]
+        probe.location += mathutils.Vector(rng.normal(scale=0.15, size=3))
+        probe.rotation_euler.z += float(rng.uniform(0.2, 1.0))
+        probe.scale.x *= float(rng.uniform(0.8, 1.2))
+        bpy.context.view_layer.update()
+        assert deformer.status == ""
+    assert len(calls) == 8, calls  # one incremental kernel call per update ...
+    assert all(n > 0 and fused for n, fused in calls), calls  # ... filling the copy
+    assert max(n for n, _ in calls) < len(bound.points)
+    assert bound.written is copy  # written in place, never reallocated
+    attribute = _offsets(installed, target, deformer)
+    assert np.array_equal(attribute.view(np.uint32), copy.view(np.uint32))
+    cached = bound.offsets.astype(np.float32)
+    fresh = _fresh(installed, target, deformer)
+    assert np.abs(fresh).max() > 0.05
+    assert np.array_equal(attribute.view(np.uint32), fresh.view(np.uint32))
+    assert np.array_equal(cached.view(np.uint32), fresh.view(np.uint32))

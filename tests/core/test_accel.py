@@ -198,10 +198,12 @@ def test_thread_counts_give_bitwise_equal_results(
         out = np.empty((n, 3))
         kernel.deform_params(pts, params, idx, val, out)
         sub = np.zeros((n, 3))
-        kernel.deform_rows(pts, params, idx, val, rows, sub, True)
-        results.append((out, sub))
+        sub32 = np.zeros((n, 3), dtype=np.float32)
+        kernel.deform_rows(pts, params, idx, val, rows, sub, True, sub32, True)
+        results.append((out, sub, sub32))
     assert np.array_equal(results[0][0], results[1][0])
     assert np.array_equal(results[0][1], results[1][1])
+    assert np.array_equal(results[0][2].view(np.uint32), results[1][2].view(np.uint32))
     # and through the dispatch, which takes the thread count from AFFINE_DEFORMERS_THREADS
     for threads in ("1", "2"):
         monkeypatch.setenv(deform.THREADS_ENV, threads)
@@ -252,6 +254,124 @@ def test_keyed_calls_skip_checks_but_stay_memory_safe(compiled: ModuleType) -> N
     # shapes are always checked
     with pytest.raises(ValueError):
         accel.deform_points_params(pts, params, idx[:10], val[:10], key="bind-2")
+
+
+# --------------------------------------------------------------------------------------------------
+# the float32 copy of the computed rows (out32), on both backends
+
+
+def _backend(use_numba: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    if use_numba:
+        pytest.importorskip("numba")
+        monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
+        assert accel.active(), accel.backend()
+    else:
+        monkeypatch.setenv(accel.ACCEL_ENV, "0")
+        assert not accel.active()
+
+
+def _bits(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float32).view(np.uint32)
+
+
+#: Offsets whose float32 rounding is delicate: ties to even, just off ties, the float32 overflow
+#: threshold (a tie there rounds to inf), beyond it, subnormals and their ties, below the smallest one.
+_F32_MAX = float(np.finfo(np.float32).max)
+ROUNDING_CASES = np.array([
+    1 + 2**-24, 1 + 3 * 2**-24, -(1 + 2**-24), 1 + 2**-24 + 2**-52, 0.1, 1 / 3,
+    _F32_MAX, _F32_MAX + 2.0**103, _F32_MAX + 2.0**103 - 2.0**80, -_F32_MAX - 2.0**103, 1e39, -1e300,
+    1e-41, -2.5e-39, 2.0**-150, 3 * 2.0**-150, 2.0**-150 * (1 + 2**-30), 1e-300,
+])
+
+
+@pytest.mark.parametrize("use_numba", [True, False])
+def test_out32_rows_are_the_float32_of_the_offsets(use_numba: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """out32[rows] is bit for bit out[rows].astype(float32); every other row of out32 (and of out) is
+    left alone; out itself is what a call without out32 gives."""
+    _backend(use_numba, monkeypatch)
+    chunk = 2048  # compiled.CHUNK (not imported: the numpy run must not need numba)
+    if use_numba:
+        from affine_deformers.accel.compiled import CHUNK
+
+        assert chunk == CHUNK
+    rng = np.random.default_rng(113)
+    n = 2 * chunk + 33
+    pts, params, idx, val = blend_case(rng, n)
+    params[:2] = lifted_params(rng)[[1, 4]]  # fix-up rows too
+    subsets = {
+        "empty": np.zeros(0, dtype=np.intp),
+        "one": np.array([chunk + 5]),
+        "boundaries": np.array([0, chunk - 1, chunk, chunk + 1, 2 * chunk - 1, 2 * chunk, n - 1]),
+        "reversed": np.arange(n)[::-1].copy(),
+        "sparse": np.flatnonzero(rng.random(n) < 0.3),
+        "int32 rows": np.arange(0, n, 3, dtype=np.int32),
+    }
+    for name, rows in subsets.items():
+        for offsets in (False, True):
+            want = np.full((n, 3), 7.0)
+            accel.deform_points_params_rows(pts, params, idx, val, rows, want, offsets=offsets)
+            out = np.full((n, 3), 7.0)
+            out32 = np.full((n, 3), -3.25, dtype=np.float32)
+            got = accel.deform_points_params_rows(pts, params, idx, val, rows, out, offsets=offsets,
+                                                  out32=out32)
+            assert got is out
+            assert np.array_equal(out, want), name  # out is unaffected by out32
+            assert np.array_equal(_bits(out32[rows]), _bits(out[rows].astype(np.float32))), name
+            assert np.all(np.delete(out32, rows, axis=0) == np.float32(-3.25)), name
+            if len(rows):
+                assert not np.all(out32[rows] == np.float32(-3.25)), name  # it wrote something
+
+
+@pytest.mark.parametrize("use_numba", [True, False])
+def test_out32_rounds_like_numpy_at_ties_overflow_and_subnormals(
+    use_numba: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Pure translations applied to the origin give the translation exactly, so the offsets are
+    chosen doubles: their float32 in out32 is numpy's cast of them, bit for bit (±inf included)."""
+    _backend(use_numba, monkeypatch)
+    u = np.resize(ROUNDING_CASES, (-(-len(ROUNDING_CASES) // 3) * 3)).reshape(-1, 3)
+    n = len(u)
+    params = np.zeros((n, 12))
+    params[:, 3:6] = u  # ω = 0, Y = 0: φ(p) 0 = u
+    idx = np.arange(n, dtype=np.int32)[:, None]
+    out = np.zeros((n, 3))
+    out32 = np.zeros((n, 3), dtype=np.float32)
+    rows = np.arange(n)[::-1].copy()
+    accel.deform_points_params_rows(np.zeros((n, 3)), params, idx, np.ones((n, 1)), rows, out, offsets=True,
+                                    out32=out32)
+    assert np.array_equal(out, u)  # the cases reach the cast unchanged
+    with np.errstate(over="ignore"):
+        want = u.astype(np.float32)
+    assert np.isinf(want).sum() >= 4 and np.any((want != 0) & (np.abs(want) < np.finfo(np.float32).tiny))
+    assert np.array_equal(_bits(out32), _bits(want))
+
+
+OUT32_BAD = [
+    (np.zeros((4, 3)), "out32 must be a writable C-contiguous float32"),
+    (np.zeros((5, 3), dtype=np.float32), "out32 must be a writable C-contiguous float32"),
+    (np.zeros((3, 4), dtype=np.float32).T, "out32 must be a writable C-contiguous float32"),
+    (np.zeros((4, 6), dtype=np.float32)[:, ::2], "out32 must be a writable C-contiguous float32"),
+    ("read-only", "out32 must be a writable C-contiguous float32"),
+    ("aliases out", "out32 must not share memory with out"),
+]
+
+
+@pytest.mark.parametrize("use_numba", [True, False])
+@pytest.mark.parametrize(("bad", "message"), OUT32_BAD)
+def test_bad_out32_raises_before_writing(
+    bad: object, message: str, use_numba: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _backend(use_numba, monkeypatch)
+    out = np.zeros((4, 3))
+    if isinstance(bad, str) and bad == "read-only":
+        bad = np.zeros((4, 3), dtype=np.float32)
+        bad.flags.writeable = False
+    elif isinstance(bad, str):
+        bad = np.ndarray((4, 3), dtype=np.float32, buffer=out)  # a float32 view of out's bytes
+    args = (np.ones((4, 3)), np.ones((3, 12)) * 0.1, np.zeros((4, 2), dtype=np.int32), np.ones((4, 2)))
+    with pytest.raises(ValueError, match=message):
+        accel.deform_points_params_rows(*args, np.array([0, 3]), out, offsets=True, out32=bad)
+    assert not np.any(out)
 
 
 # --------------------------------------------------------------------------------------------------
