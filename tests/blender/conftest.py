@@ -162,6 +162,21 @@ def dense_weights(obj, deformer) -> np.ndarray:
     return dense
 
 
+def stored_offsets(target, deformer) -> np.ndarray:
+    """A copy of the offsets the deformer last wrote into the target mesh (float32, (N, 3))."""
+    storage = importlib.import_module(f"{PACKAGE}.blender.storage")
+    return storage.read_offsets(target.data, deformer.uid).copy()
+
+
+def recomputed_offsets(target, deformer) -> np.ndarray:
+    """The offsets of a from-scratch evaluation (every cache dropped first): what incremental updates
+    must equal exactly."""
+    evaluate = importlib.import_module(f"{PACKAGE}.blender.evaluate")
+    evaluate.forget()
+    evaluate.evaluate_object(target, bpy.context.evaluated_depsgraph_get())
+    return stored_offsets(target, deformer)
+
+
 def local_motion(target, probe, rest_matrix) -> np.ndarray:
     """A = C · C_rest⁻¹ with C = target_world⁻¹ · probe_world, independently of the add-on (float64)."""
     depsgraph = bpy.context.evaluated_depsgraph_get()
@@ -222,5 +237,6 @@ def bl() -> SimpleNamespace:
         uv_sphere=uv_sphere, grid_cube=grid_cube, empty=empty, add_probe_deformer=add_probe_deformer,
         run_op=run_op, evaluated_positions=evaluated_positions, rest_positions=rest_positions,
         dense_weights=dense_weights, local_motion=local_motion, run_blender=run_blender,
-        reopened_positions=reopened_positions,
+        reopened_positions=reopened_positions, stored_offsets=stored_offsets,
+        recomputed_offsets=recomputed_offsets,
     )

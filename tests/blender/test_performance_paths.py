@@ -20,16 +20,6 @@ def ns(bl, installed) -> SimpleNamespace:
     return SimpleNamespace(**vars(bl), evaluate=installed.evaluate, storage=installed.storage)
 
 
-def _offsets(ns, target, deformer) -> np.ndarray:
-    return ns.storage.read_offsets(target.data, deformer.uid).copy()
-
-
-def _full_recompute(ns, target, deformer) -> np.ndarray:
-    ns.evaluate.forget()
-    ns.evaluate.evaluate_object(target, bpy.context.evaluated_depsgraph_get())
-    return _offsets(ns, target, deformer)
-
-
 def _rig(ns, n_probes: int = 6):
     target = ns.grid_cube(cuts=14)
     rng = np.random.default_rng(7)
@@ -57,10 +47,10 @@ def test_random_control_changes_match_a_full_recompute_bit_for_bit(ns):
         if step == 12:
             deformer.strength = 0.7  # settings changes recompute everything
         bpy.context.view_layer.update()
-        incremental = _offsets(ns, target, deformer)
+        incremental = ns.stored_offsets(target, deformer)
         touched += int(np.any(incremental != 0.0))
         assert deformer.status == ""
-        assert np.array_equal(incremental, _full_recompute(ns, target, deformer)), step
+        assert np.array_equal(incremental, ns.recomputed_offsets(target, deformer)), step
         bpy.context.view_layer.update()  # warm the caches again for the next step
     assert touched > 15  # the sequence really deformed the mesh
 
@@ -94,7 +84,7 @@ def test_incremental_update_touches_only_influenced_vertices(ns):
     assert calls == [("rows", len(influenced))], "one kernel call, on exactly the vertices probe 1 influences"
     assert 0 < len(influenced) < len(bound.points)
     assert bound.offsets is first  # updated in place
-    assert np.array_equal(_offsets(ns, target, deformer), _full_recompute(ns, target, deformer))
+    assert np.array_equal(ns.stored_offsets(target, deformer), ns.recomputed_offsets(target, deformer))
 
 
 def test_edited_rest_shape_is_picked_up_without_rebinding(ns):
@@ -108,8 +98,8 @@ def test_edited_rest_shape_is_picked_up_without_rebinding(ns):
     ns.storage.write_positions(target.data, co)
     bpy.context.view_layer.update()
     bpy.context.view_layer.update()
-    after_edit = _offsets(ns, target, deformer)
-    assert np.array_equal(after_edit, _full_recompute(ns, target, deformer))
+    after_edit = ns.stored_offsets(target, deformer)
+    assert np.array_equal(after_edit, ns.recomputed_offsets(target, deformer))
     evaluated = ns.evaluated_positions(target)
     assert np.allclose(evaluated, co + after_edit, atol=1e-6)
 
@@ -118,9 +108,9 @@ def test_rebind_and_reweight_invalidate_the_cached_weights(ns):
     target, probes, deformer, _ = _rig(ns)
     probes[0].location.y -= 0.4
     bpy.context.view_layer.update()
-    before = _offsets(ns, target, deformer)
+    before = ns.stored_offsets(target, deformer)
     deformer.radius = 0.6  # re-weights live (new bind generation)
     bpy.context.view_layer.update()
-    reweighted = _offsets(ns, target, deformer)
+    reweighted = ns.stored_offsets(target, deformer)
     assert not np.array_equal(reweighted, before)
-    assert np.array_equal(reweighted, _full_recompute(ns, target, deformer))
+    assert np.array_equal(reweighted, ns.recomputed_offsets(target, deformer))

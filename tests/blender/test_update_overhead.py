@@ -22,16 +22,6 @@ def _rig(bl, n_probes: int = 5):
     return target, probes, deformer
 
 
-def _offsets(installed, target, deformer) -> np.ndarray:
-    return installed.storage.read_offsets(target.data, deformer.uid).copy()
-
-
-def _fresh(installed, target, deformer) -> np.ndarray:
-    installed.evaluate.forget()
-    installed.evaluate.evaluate_object(target, bpy.context.evaluated_depsgraph_get())
-    return _offsets(installed, target, deformer)
-
-
 def test_only_changed_controls_are_recomputed(bl, installed, monkeypatch):
     kinds = importlib.import_module(f"{installed.package}.blender.kinds")
     evaluate = installed.evaluate
@@ -77,9 +67,9 @@ def test_memoised_updates_match_a_fresh_evaluation_bit_for_bit(bl, installed):
         poses.append([(p.location.copy(), (p.rotation_euler.copy(), tuple(p.rotation_axis_angle),
                                            p.rotation_quaternion.copy()), p.scale.copy()) for p in probes])
         bpy.context.view_layer.update()
-        memoised = _offsets(installed, target, deformer)
+        memoised = bl.stored_offsets(target, deformer)
         assert deformer.status == ""
-        assert np.array_equal(memoised, _fresh(installed, target, deformer)), step
+        assert np.array_equal(memoised, bl.recomputed_offsets(target, deformer)), step
         bpy.context.view_layer.update()
     assert np.abs(memoised).max() > 0.05
 
@@ -105,9 +95,9 @@ def test_updates_write_without_reading_the_offsets_back(bl, installed, monkeypat
     installed.evaluate.evaluate_object(target, bpy.context.evaluated_depsgraph_get())  # nothing changed
     assert len(writes) == 3
     monkeypatch.undo()
-    memoised = _offsets(installed, target, deformer)
+    memoised = bl.stored_offsets(target, deformer)
     assert np.abs(memoised).max() > 0.05
-    assert np.array_equal(memoised, _fresh(installed, target, deformer))
+    assert np.array_equal(memoised, bl.recomputed_offsets(target, deformer))
 
 
 def test_an_error_in_between_does_not_leave_a_stale_copy(bl, installed):
@@ -116,17 +106,17 @@ def test_an_error_in_between_does_not_leave_a_stale_copy(bl, installed):
     target, probes, deformer = _rig(bl)
     probes[0].location.x += 0.4
     bpy.context.view_layer.update()
-    before = _offsets(installed, target, deformer)
+    before = bl.stored_offsets(target, deformer)
     probes[0].scale = (0.0, 0.0, 0.0)
     bpy.context.view_layer.update()
     assert deformer.status != ""
-    assert not np.any(_offsets(installed, target, deformer))
+    assert not np.any(bl.stored_offsets(target, deformer))
     probes[0].scale = (1.0, 1.0, 1.0)
     bpy.context.view_layer.update()
     assert deformer.status == ""
-    after = _offsets(installed, target, deformer)
+    after = bl.stored_offsets(target, deformer)
     assert np.array_equal(after, before)
-    assert np.array_equal(after, _fresh(installed, target, deformer))
+    assert np.array_equal(after, bl.recomputed_offsets(target, deformer))
 
 
 def test_rest_shape_edit_by_script_is_seen_with_the_cached_copy(bl, installed):
@@ -138,11 +128,11 @@ def test_rest_shape_edit_by_script_is_seen_with_the_cached_copy(bl, installed):
     co[:, 2] += 0.25
     installed.storage.write_positions(target.data, co)
     bpy.context.view_layer.update()
-    edited = _offsets(installed, target, deformer)
-    assert np.array_equal(edited, _fresh(installed, target, deformer))
+    edited = bl.stored_offsets(target, deformer)
+    assert np.array_equal(edited, bl.recomputed_offsets(target, deformer))
     probes[2].location.x -= 0.1
     bpy.context.view_layer.update()
-    assert np.array_equal(_offsets(installed, target, deformer), _fresh(installed, target, deformer))
+    assert np.array_equal(bl.stored_offsets(target, deformer), bl.recomputed_offsets(target, deformer))
 
 
 def test_finiteness_check_of_changed_rows(installed):
@@ -248,10 +238,10 @@ def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, install
     assert all(n > 0 and fused for n, fused in calls), calls  # ... filling the copy
     assert max(n for n, _ in calls) < len(bound.points)
     assert bound.written is copy  # written in place, never reallocated
-    attribute = _offsets(installed, target, deformer)
+    attribute = bl.stored_offsets(target, deformer)
     assert np.array_equal(attribute.view(np.uint32), copy.view(np.uint32))
     cached = bound.offsets.astype(np.float32)
-    fresh = _fresh(installed, target, deformer)
+    fresh = bl.recomputed_offsets(target, deformer)
     assert np.abs(fresh).max() > 0.05
     assert np.array_equal(attribute.view(np.uint32), fresh.view(np.uint32))
     assert np.array_equal(cached.view(np.uint32), fresh.view(np.uint32))
