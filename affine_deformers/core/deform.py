@@ -652,6 +652,9 @@ class DeformKernel:
         tq *= zq
         sh = sinc_q
         np.subtract(1.0, tq, out=t0)
+        # Past θ ≈ 2π the polynomial's tq can exceed 1; those rows are redone exactly below, and the
+        # clamp (a no-op on every other row) keeps NaN warnings out of the user's console.
+        np.maximum(t0, 0.0, out=t0)
         np.sqrt(t0, out=t0)
         sh *= t0  # sin(θ/2)/(θ/2)
         mul(tq, -2.0, out=t0)

@@ -443,3 +443,21 @@ def test_keyed_calls_reuse_gathered_rows_and_stay_bit_identical(m: int) -> None:
     out = np.zeros((n, 3))
     kernel.deform_rows(pts, params, idx2, val2, rows, out, key="bind-2")
     assert np.array_equal(out[rows], expected[rows])
+
+
+def test_lifted_rotations_raise_no_numpy_warnings() -> None:
+    """Rows past θ = 1.8π take the exact fallback; the polynomial path must not leave NaN warnings on the
+    way (they print in the user's console at every update)."""
+    import warnings
+
+    theta = np.linspace(1.7 * np.pi, 14.0 * np.pi, 64)  # the polynomial leaves [0, 1] near 11.4π
+    params = np.zeros((64, 12))
+    params[:, :3] = theta[:, None] * np.array([0.48, -0.6, 0.64])
+    params[:, 3:6] = 0.3
+    pts = np.random.default_rng(3).normal(size=(64, 3))
+    idx = np.arange(64, dtype=np.int32)[:, None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = deform.deform_points_params(pts, params, idx, np.ones((64, 1)), cache_weights=False)
+    scale = vertex_scale(pts, params).max()
+    np.testing.assert_allclose(out, reference(pts, params), rtol=0, atol=1e-13 * scale)
