@@ -128,15 +128,19 @@ def _load() -> ModuleType | None:
 
                     _state.module = compiled
                 except Exception as exc:  # ImportError, numba's RuntimeError/OSError on odd platforms …
-                    _fail(f"numba unavailable: {type(exc).__name__}: {exc}")
+                    # A package built without the wheels has no numba by design: say so in backend()
+                    # (the preferences show it), without a warning at every start.
+                    absent = isinstance(exc, ModuleNotFoundError) and exc.name in ("numba", "llvmlite")
+                    _fail(f"numba unavailable: {type(exc).__name__}: {exc}", warn=not absent)
     return _state.module
 
 
-def _fail(reason: str) -> None:
+def _fail(reason: str, warn: bool = True) -> None:
     """Stay on numpy for the rest of the process."""
     _state.failure = reason
     _state.module = None
-    warnings.warn(f"affine_deformers: compiled kernel disabled ({reason}); using numpy", stacklevel=3)
+    if warn:
+        warnings.warn(f"affine_deformers: compiled kernel disabled ({reason}); using numpy", stacklevel=3)
 
 
 def _threads(numba: ModuleType) -> int:
