@@ -8,12 +8,15 @@ bit-identical whichever entry point, thread count or row subset computes it.
 
 The compiled path is skipped when
 
-* the environment variable AFFINE_DEFORMERS_ACCEL is "0" (checked on every call), or
+* the environment variable AFFINE_DEFORMERS_ACCEL is "0" (checked on every call), or the add-on
+  preference turned it off (`set_enabled(False)`), or
 * importing numba or compiling the kernel failed once (ImportError, RuntimeError, numba's errors, …):
-  the process then stays on numpy and `backend()` says why. Such a failure never reaches the caller.
+  the process then stays on numpy and `backend()` says why. Such a failure never reaches the caller, or
+* another thread is compiling it right now (`warm_up`): callers get numpy instead of waiting.
 
 numba is imported on first use, not when this package is imported (it takes ~0.1–0.5 s and the first
-call compiles the kernel, ~5 s, or loads it from numba's cache next to compiled.py in well under 1 s).
+call compiles the kernel, ~5–8 s, or loads it from numba's cache next to compiled.py in well under 1 s;
+`warm_up` does that ahead of the first update).
 Calls into the compiled kernel are serialised by a lock: numba's workqueue threading layer aborts the
 process on concurrent parallel launches, and Blender may evaluate from more than one thread.
 """
