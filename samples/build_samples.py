@@ -899,6 +899,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help=f"samples to build (default: all of {', '.join(SAMPLES)})",
     )
     parser.add_argument("--output-dir", type=Path, default=SAMPLES_DIR, help="where the .blend files go")
+    add_install_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def add_install_arguments(parser: argparse.ArgumentParser) -> None:
+    """--user-dir and --package: where and what `start_blender` installs (shared with render_samples)."""
     parser.add_argument(
         "--user-dir",
         type=Path,
@@ -911,7 +917,6 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         default=None,
         help="extension .zip (default: dist/, built first when missing or stale)",
     )
-    return parser.parse_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -197,18 +197,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         default=build_samples.SAMPLES_DIR,
         help="where the sample .blend files are (missing ones are built there)",
     )
-    parser.add_argument(
-        "--user-dir",
-        type=Path,
-        default=build_samples.DEFAULT_USER_DIR,
-        help="isolated Blender user directory the extension is installed into",
-    )
-    parser.add_argument(
-        "--package",
-        type=Path,
-        default=None,
-        help="extension .zip (default: dist/, built first when missing or stale)",
-    )
+    build_samples.add_install_arguments(parser)
     parser.add_argument(
         "--sheets-dir",
         type=Path,

@@ -34,9 +34,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..core import deform as _np_kernel
 from ..core.deform import (
+    _check_given_out,
     _check_indices,
     _check_out,
     _check_points,
+    _check_rows,
     _check_table,
     _unchanged,
     default_threads,
@@ -242,15 +244,6 @@ def _check_out32(out32: object, shape: tuple[int, ...]) -> None:
         raise ValueError(f"out32 must be a writable C-contiguous float32 array of shape {shape}")
 
 
-def _check_rows(rows: ArrayLike, n_points: int) -> NDArray[np.intp]:
-    sel = np.asarray(rows)
-    if sel.ndim != 1 or not np.issubdtype(sel.dtype, np.integer):
-        raise ValueError(f"rows must be a 1-D integer array, got {sel.dtype} {sel.shape}")
-    if sel.size and (int(sel.min()) < 0 or int(sel.max()) >= n_points):
-        raise ValueError(f"rows must lie in [0, {n_points})")
-    return _c(sel, np.intp)
-
-
 # ----------------------------------------------------------------------------------------------
 # entry points
 
@@ -323,11 +316,10 @@ def deform_points_params_rows(
     if _usable() is None:
         return _numpy_rows(points, params, indices, values, rows, out, offsets, key, out32)
     pts, table, idx, val = _inputs(points, params, indices, values, key)
-    if not isinstance(out, np.ndarray) or out.shape != pts.shape or out.dtype != np.float64:
-        raise ValueError(f"out must be a float64 array of shape {pts.shape}")
+    _check_given_out(out, pts)
     if not out.flags.writeable:
         raise ValueError("out must be writable")
-    sel = _check_rows(rows, pts.shape[0])
+    sel = _c(_check_rows(rows, pts.shape[0]), np.intp)
     if table.shape[0] == 0:  # then K = 0 or N = 0 (checked): φ(0) v = v
         table = np.zeros((1, 12))
     p = _c(pts, np.float64)

@@ -43,7 +43,7 @@ class Motions:
     the rotation-log branch of controls turned past 180°; empty for kinds without channels.
     channel_frames (m, 3, 3): rotation taking vectors of the frame each control's channels turn in
     (its parent frame) to the target's local space; pivots (m, 3): the controls' current origins in
-    the target's local space (see `channel_references`); empty = identity frames / origin pivots.
+    the target's local space (see `reference_rotvecs`); empty = identity frames / origin pivots.
 
     Optional, for kinds whose blend parameters are not ψ of one matrix per control (cages):
     params (m, 12): the controls' blend parameters, used instead of ψ(matrices) (matrices then hold
@@ -218,15 +218,6 @@ def reference_rotvecs(rest_modes: list[str], rest_rotations, modes: list[str], c
     if frames is None or len(frames) != m:
         return w_channels
     return np.einsum("mij,mj->mi", frames, w_channels)
-
-
-def channel_references(motions: Motions) -> np.ndarray:
-    """`reference_rotvecs` of the controls of `motions` (m, 3); zero rows (= shortest branch) for
-    kinds without channel data."""
-    if len(motions.rotation_modes) == 0:
-        return np.zeros((len(motions.matrices), 3))
-    return reference_rotvecs(motions.rest_rotation_modes, motions.rest_rotations, motions.rotation_modes,
-                             motions.current_rotations, motions.channel_frames)
 
 
 class ProbeKind:

@@ -53,6 +53,23 @@ def _lock_render_interface(context: bpy.types.Context) -> None:
         context.scene.render.use_lock_interface = True
 
 
+def _bind_new(op: bpy.types.Operator, context: bpy.types.Context, target: bpy.types.Object, deformer,
+              created: bpy.types.Object | None = None) -> bool:
+    """Bind a deformer the operator just created; on failure remove it again (and the Empty made for
+    it), report why and return False, so a failed add leaves nothing behind."""
+    try:
+        binding.bind(target, deformer, context.evaluated_depsgraph_get())
+    except (BindError, ValueError) as exc:
+        binding.remove(target, binding.deformer_index(target, deformer))
+        if created is not None:
+            bpy.data.objects.remove(created, do_unlink=True)
+        op.report({"ERROR"}, str(exc))
+        return False
+    _lock_render_interface(context)
+    _refresh(context, target)
+    return True
+
+
 def _deformer(op: bpy.types.Operator, context: bpy.types.Context):
     """(object, deformer) addressed by op.index on the active object, or (None, None) after a report."""
     obj = active_target(context)
@@ -94,16 +111,8 @@ class AFFINE_OT_probe_deformer_add(bpy.types.Operator):
         deformer = binding.create(target, "PROBE", "Probe Deformer")
         for probe in probes:
             deformer.probes.add().object = probe
-        try:
-            binding.bind(target, deformer, context.evaluated_depsgraph_get())
-        except (BindError, ValueError) as exc:
-            binding.remove(target, binding.deformer_index(target, deformer))
-            if created is not None:
-                bpy.data.objects.remove(created, do_unlink=True)
-            self.report({"ERROR"}, str(exc))
+        if not _bind_new(self, context, target, deformer, created):
             return {"CANCELLED"}
-        _lock_render_interface(context)
-        _refresh(context, target)
         if ignored:
             self.report({"WARNING"}, "Ignored selected non-Empty objects: "
                         + ", ".join(o.name for o in ignored))
@@ -138,14 +147,8 @@ class AFFINE_OT_cage_deformer_add(bpy.types.Operator):
         with binding.quiet():  # bound below in one go
             deformer.cage = cage
             deformer.max_influences = 8
-        try:
-            binding.bind(target, deformer, context.evaluated_depsgraph_get())
-        except (BindError, ValueError) as exc:
-            binding.remove(target, binding.deformer_index(target, deformer))
-            self.report({"ERROR"}, str(exc))
+        if not _bind_new(self, context, target, deformer):
             return {"CANCELLED"}
-        _lock_render_interface(context)
-        _refresh(context, target)
         ignored = [o for o in selected if o not in (target, cage)]
         if ignored:
             self.report({"WARNING"}, "Ignored selected non-mesh objects: "

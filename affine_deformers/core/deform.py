@@ -276,13 +276,8 @@ class DeformKernel:
         """Only the listed rows; see `deform_points_params_rows`."""
         table = _check_table(params, 12, "params")
         pts, idx, val, dense = self._inputs(points, indices, values, table.shape[0], key)
-        if not isinstance(out, np.ndarray) or out.shape != pts.shape or out.dtype != np.float64:
-            raise ValueError(f"out must be a float64 array of shape {pts.shape}")
-        sel = np.asarray(rows)
-        if sel.ndim != 1 or not np.issubdtype(sel.dtype, np.integer):
-            raise ValueError(f"rows must be a 1-D integer array, got {sel.dtype} {sel.shape}")
-        if sel.size and (int(sel.min()) < 0 or int(sel.max()) >= pts.shape[0]):
-            raise ValueError(f"rows must lie in [0, {pts.shape[0]})")
+        _check_given_out(out, pts)
+        sel = _check_rows(rows, pts.shape[0])
         rs = self._row_set(key, sel, pts, idx, val, dense)
         table_t = np.ascontiguousarray(table.T)
 
@@ -832,11 +827,24 @@ def _check_indices(
 
 
 def _check_out(out: FloatArray | None, pts: FloatArray) -> FloatArray:
-    if out is None:
-        return np.empty_like(pts)
+    """`out` checked against the points, or a new array when None."""
+    return np.empty_like(pts) if out is None else _check_given_out(out, pts)
+
+
+def _check_given_out(out: FloatArray, pts: FloatArray) -> FloatArray:
     if not isinstance(out, np.ndarray) or out.shape != pts.shape or out.dtype != np.float64:
         raise ValueError(f"out must be a float64 array of shape {pts.shape}")
     return out
+
+
+def _check_rows(rows: ArrayLike, n_points: int) -> NDArray[np.integer]:
+    """`rows` as a checked 1-D integer array of row indices in [0, n_points)."""
+    sel = np.asarray(rows)
+    if sel.ndim != 1 or not np.issubdtype(sel.dtype, np.integer):
+        raise ValueError(f"rows must be a 1-D integer array, got {sel.dtype} {sel.shape}")
+    if sel.size and (int(sel.min()) < 0 or int(sel.max()) >= n_points):
+        raise ValueError(f"rows must lie in [0, {n_points})")
+    return sel
 
 
 # ----------------------------------------------------------------------------------------------

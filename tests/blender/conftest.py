@@ -206,6 +206,42 @@ def run_blender(script: str, python: str | None = None, env_extra: dict | None =
     return proc
 
 
+def check_frames_in_any_order(target, deformer, rest: np.ndarray, expected_at) -> dict:
+    """Visit frames 20, 1, 10, 20: at each the evaluated positions match `expected_at(frame)` (an
+    independent computation) to 1e-5, a revisited frame gives the same bits (a frame depends only on
+    that frame), the status stays clean, and frame 1 (the bind pose) is the rest shape. Returns the
+    positions per frame."""
+    results = {}
+    for frame in (20, 1, 10, 20):
+        bpy.context.scene.frame_set(frame)
+        got = evaluated_positions(target)
+        expected = expected_at(frame)
+        assert np.abs(got - expected).max() < 1e-5, f"frame {frame}"
+        if frame in results:
+            assert np.array_equal(results[frame], got), "the result at a frame depends only on that frame"
+        results[frame] = got.copy()
+        assert deformer.status == ""
+    assert np.array_equal(results[1], rest.astype(np.float32)), "frame 1 is the bind pose"
+    return results
+
+
+def check_frames_survive_reopen(target, frames, tmp_path: Path) -> None:
+    """Positions at `frames` evaluated here equal those of the saved file reopened in a fresh process
+    (bind data and offsets live in the .blend), and the file opens showing what was saved."""
+    expected = {}
+    for frame in frames:
+        bpy.context.scene.frame_set(frame)
+        expected[frame] = evaluated_positions(target).copy()
+    bpy.context.scene.frame_set(10)
+    path = tmp_path / "reopened.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    got = reopened_positions(path, target.name, (20, 1, 10), tmp_path / "positions.npz")
+    assert str(got["status"]) == ""
+    assert np.array_equal(got["opened"], expected[10]), "offsets saved in the .blend"
+    for frame in frames:
+        assert np.array_equal(got[str(frame)], expected[frame]), f"frame {frame}"
+
+
 def reopened_positions(path: Path, object_name: str, frames, out: Path) -> dict:
     """Open `path` in a fresh bpy process and return the evaluated positions of `object_name` right
     after opening ("opened") and after frame_set(f) for each frame (str(f)), plus its first
@@ -238,5 +274,7 @@ def bl() -> SimpleNamespace:
         run_op=run_op, evaluated_positions=evaluated_positions, rest_positions=rest_positions,
         dense_weights=dense_weights, local_motion=local_motion, run_blender=run_blender,
         reopened_positions=reopened_positions, stored_offsets=stored_offsets,
+        check_frames_in_any_order=check_frames_in_any_order,
+        check_frames_survive_reopen=check_frames_survive_reopen,
         recomputed_offsets=recomputed_offsets,
     )

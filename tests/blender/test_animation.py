@@ -38,36 +38,19 @@ def test_frames_match_the_core_on_the_same_inputs_in_any_order(bl, installed):
     rest = bl.rest_positions(target).astype(np.float64)
     weights = bl.dense_weights(target, deformer)
     assert np.allclose(weights.sum(axis=1), 1.0, atol=1e-6)
-    results = {}
-    for frame in (20, 1, 10, 20):
-        bpy.context.scene.frame_set(frame)
-        got = bl.evaluated_positions(target)
+
+    def expected_at(_frame: int) -> np.ndarray:
         pairs = zip(probes, deformer.probes, strict=True)
         A = np.stack([bl.local_motion(target, probe, item.rest_matrix) for probe, item in pairs])
-        expected = installed.deform.deform_points(rest, A, weights)
-        assert np.abs(got - expected).max() < 1e-5, f"frame {frame}"
-        if frame in results:
-            assert np.array_equal(results[frame], got), "the result at a frame depends only on that frame"
-        results[frame] = got.copy()
-        assert deformer.status == ""
-    assert np.array_equal(results[1], rest.astype(np.float32)), "frame 1 is the bind pose"
+        return installed.deform.deform_points(rest, A, weights)
+
+    results = bl.check_frames_in_any_order(target, deformer, rest, expected_at)
     assert np.abs(results[10] - results[20]).max() > 0.1
 
 
 def test_save_and_reopen_in_a_fresh_process_gives_identical_positions(bl, tmp_path):
     target, _probes, _deformer = _animated_scene(bl)
-    expected = {}
-    for frame in FRAMES:
-        bpy.context.scene.frame_set(frame)
-        expected[frame] = bl.evaluated_positions(target).copy()
-    bpy.context.scene.frame_set(10)
-    path = tmp_path / "animated.blend"
-    bpy.ops.wm.save_as_mainfile(filepath=str(path))
-    got = bl.reopened_positions(path, "Cube", (20, 1, 10), tmp_path / "positions.npz")
-    assert str(got["status"]) == ""
-    assert np.array_equal(got["opened"], expected[10]), "offsets saved in the .blend"
-    for frame in FRAMES:
-        assert np.array_equal(got[str(frame)], expected[frame]), f"frame {frame}"
+    bl.check_frames_survive_reopen(target, FRAMES, tmp_path)
 
 
 def _render_scene(bl):

@@ -60,6 +60,20 @@ def _stack(obj) -> list[tuple]:
 # ------------------------------------------------------------------------------------------------ PC2
 
 
+def _check_baked_equals_live(bl, target, live: dict, tmp_path) -> None:
+    """The baked result equals the live one at FRAMES: in this process, in a fresh process without the
+    add-on (after saving the open file), and after an Alembic round trip."""
+    baked = _live(bl, target)
+    for frame in FRAMES:
+        assert np.abs(baked[frame] - live[frame]).max() <= TOL, f"in-process frame {frame}"
+
+    bpy.ops.wm.save_mainfile()
+    got = _play_back_without_addon(bl, tmp_path, tmp_path / "bake.blend")
+    for frame in FRAMES:
+        assert np.abs(got[f"blend{frame}"] - live[frame]).max() <= TOL, f"fresh process, frame {frame}"
+        assert np.abs(got[f"abc{frame}"] - live[frame]).max() <= TOL, f"Alembic round trip, frame {frame}"
+
+
 def test_pc2_file_layout_round_trip_and_atomic_writes(installed, tmp_path):
     pc2 = _module(installed, "pc2")
     rng = np.random.default_rng(3)
@@ -161,15 +175,7 @@ def test_pc2_bake_plays_back_without_the_addon_and_through_alembic(bl, installed
     assert state["mode"] == "PC2" and (state["frame_start"], state["frame_end"]) == (1, 20)
 
     # With the add-on still enabled the cache replaces the live result exactly.
-    baked = _live(bl, target)
-    for frame in FRAMES:
-        assert np.abs(baked[frame] - live[frame]).max() <= TOL, f"in-process frame {frame}"
-
-    bpy.ops.wm.save_mainfile()
-    got = _play_back_without_addon(bl, tmp_path, tmp_path / "bake.blend")
-    for frame in FRAMES:
-        assert np.abs(got[f"blend{frame}"] - live[frame]).max() <= TOL, f"fresh process, frame {frame}"
-        assert np.abs(got[f"abc{frame}"] - live[frame]).max() <= TOL, f"Alembic round trip, frame {frame}"
+    _check_baked_equals_live(bl, target, live, tmp_path)
 
 
 def test_pc2_bake_keeps_modifiers_below_live_and_captures_only_our_deformer(bl, installed, tmp_path):
@@ -234,15 +240,7 @@ def test_shape_key_bake_plays_back_without_the_addon_and_through_alembic(bl, ins
         values = {f: blocks[names[f - 1]].value for f in range(1, 21)}
         for f, value in values.items():
             assert value == pytest.approx(expected.get(f, 0.0), abs=1e-6), (frame, subframe, f)
-    baked = _live(bl, target)
-    for frame in FRAMES:
-        assert np.abs(baked[frame] - live[frame]).max() <= TOL, f"in-process frame {frame}"
-
-    bpy.ops.wm.save_mainfile()
-    got = _play_back_without_addon(bl, tmp_path, tmp_path / "bake.blend")
-    for frame in FRAMES:
-        assert np.abs(got[f"blend{frame}"] - live[frame]).max() <= TOL, f"fresh process, frame {frame}"
-        assert np.abs(got[f"abc{frame}"] - live[frame]).max() <= TOL, f"Alembic round trip, frame {frame}"
+    _check_baked_equals_live(bl, target, live, tmp_path)
 
 
 # ------------------------------------------------------------------------------------- un-bake, re-bake

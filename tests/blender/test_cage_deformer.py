@@ -404,37 +404,20 @@ def test_animated_cage_matches_the_core_at_every_frame(bl, installed, core_cage)
     rest = bl.rest_positions(target).astype(np.float64)
     rest_cage = in_target_space(target, cage, evaluated_cage_points(cage))  # bound at frame 1
     idx, val = core_cage.cage_weights(rest, rest_cage, topo, k=8)
-    results = {}
-    for frame in (20, 1, 10, 20):
-        bpy.context.scene.frame_set(frame)
-        got = bl.evaluated_positions(target)
+
+    def expected_at(_frame: int) -> np.ndarray:
         current = in_target_space(target, cage, evaluated_cage_points(cage))
         motion = core_cage.face_motions(rest_cage, current, topo)
-        expected = installed.deform.deform_points_params(rest, motion.params, idx, val)
-        assert np.abs(got - expected).max() < 1e-5, f"frame {frame}"
-        if frame in results:
-            assert np.array_equal(results[frame], got), "the result at a frame depends only on that frame"
-        results[frame] = got.copy()
-        assert deformer.status == ""
-    assert np.array_equal(results[1], rest.astype(np.float32)), "frame 1 is the bind pose"
+        return installed.deform.deform_points_params(rest, motion.params, idx, val)
+
+    results = bl.check_frames_in_any_order(target, deformer, rest, expected_at)
     assert np.abs(results[10] - results[1]).max() > 0.05
     assert np.abs(results[20] - results[10]).max() > 0.05
 
 
 def test_animated_cage_survives_save_and_reopen_in_a_fresh_process(bl, tmp_path):
     target, _cage, _deformer = _animated_cage_scene(bl)
-    expected = {}
-    for frame in FRAMES:
-        bpy.context.scene.frame_set(frame)
-        expected[frame] = bl.evaluated_positions(target).copy()
-    bpy.context.scene.frame_set(10)
-    path = tmp_path / "cage.blend"
-    bpy.ops.wm.save_as_mainfile(filepath=str(path))
-    got = bl.reopened_positions(path, "Cube", (20, 1, 10), tmp_path / "positions.npz")
-    assert str(got["status"]) == ""
-    assert np.array_equal(got["opened"], expected[10]), "offsets saved in the .blend"
-    for frame in FRAMES:
-        assert np.array_equal(got[str(frame)], expected[frame]), f"frame {frame}"
+    bl.check_frames_survive_reopen(target, FRAMES, tmp_path)
 
 
 # ---------------------------------------------------------------------------------------------- bad cages
