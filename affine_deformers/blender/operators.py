@@ -165,7 +165,6 @@ class AFFINE_OT_deformer_bind(DeformerIndexed, bpy.types.Operator):
     bl_idname = "object.affine_deformer_bind"
     bl_label = "Bind Affine Deformer"
 
-
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj, deformer = _deformer(self, context)
         if obj is None:
@@ -188,7 +187,6 @@ class AFFINE_OT_deformer_remove(DeformerIndexed, bpy.types.Operator):
     bl_idname = "object.affine_deformer_remove"
     bl_label = "Remove Affine Deformer"
 
-
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj = active_target(context)
         if obj is None or not 0 <= self.index < len(obj.affine_deformers):
@@ -208,7 +206,6 @@ class AFFINE_OT_deformer_apply(DeformerIndexed, bpy.types.Operator):
 
     bl_idname = "object.affine_deformer_apply"
     bl_label = "Apply Affine Deformer"
-
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj, deformer = _deformer(self, context)
@@ -236,7 +233,6 @@ class AFFINE_OT_deformer_probe_add(DeformerIndexed, bpy.types.Operator):
 
     bl_idname = "object.affine_deformer_probe_add"
     bl_label = "Add Probes"
-
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj, deformer = _deformer(self, context)
