@@ -54,7 +54,10 @@ STAGE_POINTS = (
     ("core.deform", "deform_points", "kernel"),
     ("accel", "deform_points_params", "kernel"),  # the compiled kernel's dispatch (numpy fallback inside)
     ("accel", "deform_points_params_rows", "kernel"),
+    ("core.deform", "vertex_motions", "kernel"),
+    ("accel", "vertex_motions", "kernel"),
     ("blender.storage", "write_offsets", "write"),
+    ("blender.storage", "write_motions", "write"),
     ("blender.storage", "write_offsets_unchecked", "write"),
 )
 

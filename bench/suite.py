@@ -118,16 +118,23 @@ def validity(samples: Samples | None) -> str:
 
 def run_ours_probes(
     plan: Plan, n_target: int, n_probes: int, label: str, report: Report, dense_weights: bool = False,
-    move_all: bool = False,
+    move_all: bool = False, shape_keyed: bool = False,
 ) -> tuple[Samples | None, ours.OurRig | None, object]:
     """(samples, rig, dense weights or None) for our probe deformer; the scene is cleared afterwards.
 
     rig.influences holds (K, mean non-zero weights per vertex) of the bind when the attributes are readable.
     move_all: every update moves every probe (each differently) instead of the first one only.
+    shape_keyed: the target gets two shape keys (Basis, and one at 0) first, so the deformer takes its
+    general (motion) path, which applies each vertex's affine map to whatever reaches the modifier,
+    instead of the fast path (offsets from the rest shape, exact only first in the stack without shape
+    keys).
     """
     try:
         ours.forget_caches()
         target = common.sphere_object("Target", n_target)
+        if shape_keyed:
+            target.shape_key_add(name="Basis", from_mix=False)
+            target.shape_key_add(name="Key", from_mix=False)  # at value 0: a key the rig has, not keyed now
         empties = native.add_empties(common.probe_sites(n_probes))
         rig = ours.probe_rig(target, empties, plan.radius)
         if move_all:
@@ -207,6 +214,18 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
         )
         if mine_all is not None:
             report.split_rows.append((f"(a) {m} probes all moving, {n:,} verts", mine_all))
+    stack_one = stack_all = None
+    if have_ours and ours.operator_exists(ours.PROBE_OP):
+        stack_one, _, _ = run_ours_probes(
+            plan, plan.a_verts, m, f"ours: {m} probes, motion path", report, shape_keyed=True
+        )
+        stack_all, _, _ = run_ours_probes(
+            plan, plan.a_verts, m, f"ours: {m} probes, motion path, all moving", report, move_all=True,
+            shape_keyed=True,
+        )
+        for name, s in (("", stack_one), (" all moving", stack_all)):
+            if s is not None:
+                report.split_rows.append((f"(a) {m} probes{name}, motion path, {n:,} verts", s))
     mine_np = None
     if have_ours and ours.operator_exists(ours.PROBE_OP) and ours.kernel_backend().startswith("numba"):
         ours.use_compiled_kernel(False)
@@ -230,6 +249,12 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
     if mine_all is not None:
         t.add(f"Affine probes (ours), all {m} moving", fmt_ms(mine_all.median), _iqr(mine_all),
               fmt_ratio(mine_all.median, _median(mine)), validity(mine_all))
+    if stack_one is not None:
+        t.add("Affine probes (ours), motion path", fmt_ms(stack_one.median), _iqr(stack_one),
+              fmt_ratio(stack_one.median, _median(mine)), validity(stack_one))
+    if stack_all is not None:
+        t.add(f"Affine probes (ours), motion path, all {m} moving", fmt_ms(stack_all.median),
+              _iqr(stack_all), fmt_ratio(stack_all.median, _median(mine_all)), validity(stack_all))
     if mine_np is not None:
         t.add("Affine probes (ours), numpy kernel", fmt_ms(mine_np.median), _iqr(mine_np),
               fmt_ratio(mine_np.median, _median(mine)), validity(mine_np))
@@ -249,6 +274,13 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
         f"ours, all {m} moving: every update moves every probe (ratio column: ÷ ours with one moving). "
         "Ours recomputes only vertices influenced by a control that moved, so the one-probe row is its "
         "best case; Blender's modifiers recompute every vertex either way, so their rows hold for both."
+    )
+    t.notes.append(
+        "ours, motion path: the same rig on a mesh with shape keys, so the deformer writes each "
+        "vertex's affine map (12 floats) and applies it to what reaches its modifier, as it does after "
+        "shape keys, an Armature or another deformer; the other rows are the fast path (first in the "
+        "stack, no shape keys: offsets from the rest shape, 3 floats). Ratio column: ÷ the same case on the "
+        "fast path."
     )
     if mine_np is not None:
         t.notes.append(

@@ -1,22 +1,23 @@
 """Bake a deformer into data Blender plays without the add-on: a PC2 point cache read by a Mesh Cache
 modifier, or one keyed shape key per frame. For render farms and Alembic / USD exports.
 
-What is captured: only this deformer's effect on the base mesh, p_f(v) = v + offset_f(v), where v is the
-rest position and offset_f the deformer's offset attribute at frame f — the positions the live modifier
-produces when nothing above it moves the vertices. Positions are read from an evaluated mesh (a hidden
-temporary object sharing the target's mesh and carrying only a copy of the deformer's Geometry Nodes
-modifier, with the basis shape key shown), so modifiers above and below ours and the target's other
-shape keys never leak into the cache, and the user's modifier stack is never toggled.
+What is captured: the deformer applied to the mesh's shape-key mix at frame f (its output where it is
+first in the stack after the shape keys): positions read from an evaluated mesh (a hidden temporary
+object sharing the target's mesh, showing its shape-key mix and carrying only a copy of the deformer's
+Geometry Nodes modifier), so modifiers above and below ours never leak into the cache, and the user's
+modifier stack is never toggled. A previous shape-key bake of the same deformer is muted meanwhile.
 
 How it replaces the live deformer (which is muted, not deleted, so Un-bake can bring it back):
 - PC2: a Mesh Cache modifier (overwrite mode) inserted directly above the muted modifier. Modifiers
-  below keep working on the cached shape exactly as they worked on the live one. Enabled modifiers
-  above, and shape keys, are overwritten by the cache: the bake warns and names them.
-- Shape keys: key f holds p_f relative to the basis, so it adds exactly offset_f on top of the other
-  shape keys (relative keys add up); its value is 1 at frame f and 0 at the neighbouring baked frames,
-  linear in between (motion blur sees a linear blend of consecutive frames), and the first and last
-  keys hold outside the baked range. Enabled modifiers above ours now act on the offset shape
-  instead of before the offset: warned.
+  below keep working on the cached shape exactly as they worked on the live one; the shape keys'
+  effect at each frame is part of the cache. Enabled modifiers above are overwritten by the cache:
+  the bake warns and names them.
+- Shape keys: key f holds, relative to the basis, what the deformer adds to the shape-key mix at frame
+  f (a second hidden object without modifiers gives the mix), so the other keys at their values of
+  frame f plus key f give the output exactly; its value is 1 at frame f and 0 at the neighbouring
+  baked frames, linear in between (motion blur sees a linear blend of consecutive frames), and the
+  first and last keys hold outside the baked range. Enabled modifiers above ours now act on the
+  baked shape instead of before the deformation: warned.
 
 Safety: the result does not change until every frame is captured (new keys stay at 0 until then). A
 failure or Esc mid-bake drops the temporary file / keys; the modifiers, shape keys, cache file and
@@ -232,38 +233,56 @@ def _remove_artifacts(obj: bpy.types.Object, state: dict) -> None:
 
 
 class _Capture:
-    """A hidden object sharing the target's mesh, carrying only a copy of the deformer's modifier and
-    showing only the basis shape key: its evaluated positions are exactly rest + offset."""
+    """Hidden objects sharing the target's mesh and showing its shape-key mix: one carries only a copy
+    of the deformer's modifier (its evaluated positions are the deformer applied to the shape keys'
+    result, with no other modifier), the other, when `with_input`, carries nothing (the deformer's
+    input). The user's own object and stack are never touched."""
 
-    def __init__(self, scene: bpy.types.Scene, obj: bpy.types.Object, offset_attr: str) -> None:
+    def __init__(self, scene: bpy.types.Scene, obj: bpy.types.Object, uid: str, with_input: bool) -> None:
+        offset_attr, motion_attrs = storage.offset_name(uid), storage.motion_names(uid)
         self.count = len(obj.data.vertices)
-        self.object = bpy.data.objects.new(CAPTURE_NAME, obj.data)
+        self.object = self.input = None
         try:
-            capture = nodes.ensure_modifier(self.object, offset_attr, "Capture")
+            self.object = self._stand_in(scene, obj)
+            capture = nodes.ensure_modifier(self.object, offset_attr, motion_attrs, "Capture")
             # Keeps the controls evaluated while the live modifier is muted (a re-bake).
             relations.copy_controls(nodes.find_modifier(obj, offset_attr), capture)
-            self.object.show_only_shape_key = True
-            self.object.active_shape_key_index = 0
-            self.object.hide_render = True
-            scene.collection.objects.link(self.object)
-            # Hidden objects are still evaluated; this only keeps the stand-in out of the artist's view.
-            with contextlib.suppress(RuntimeError):  # not in the context's view layer: stays visible
-                self.object.hide_set(True)
+            if with_input:
+                self.input = self._stand_in(scene, obj)
         except BaseException:
             self.remove()
             raise
 
+    @staticmethod
+    def _stand_in(scene: bpy.types.Scene, obj: bpy.types.Object) -> bpy.types.Object:
+        stand_in = bpy.data.objects.new(CAPTURE_NAME, obj.data)
+        stand_in.show_only_shape_key = False
+        stand_in.hide_render = True
+        scene.collection.objects.link(stand_in)
+        # Hidden objects are still evaluated; this only keeps the stand-in out of the artist's view.
+        with contextlib.suppress(RuntimeError):  # not in the context's view layer: stays visible
+            stand_in.hide_set(True)
+        return stand_in
+
     def positions(self, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
-        """Evaluated positions (N, 3) float32 in the target's local space."""
-        mesh = self.object.evaluated_get(depsgraph).data
+        """The deformer's output: evaluated positions (N, 3) float32 in the target's local space."""
+        return self._read(self.object, depsgraph)
+
+    def input_positions(self, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
+        """The shape-key mix the deformer deforms (needs `with_input`)."""
+        return self._read(self.input, depsgraph)
+
+    def _read(self, stand_in: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
+        mesh = stand_in.evaluated_get(depsgraph).data
         if len(mesh.vertices) != self.count:
             raise BakeError(f"The evaluated mesh has {len(mesh.vertices)} vertices, expected {self.count}")
         return storage.read_positions(mesh)
 
     def remove(self) -> None:
-        if self.object is not None:
-            bpy.data.objects.remove(self.object, do_unlink=True)
-            self.object = None
+        for stand_in in (self.object, self.input):
+            if stand_in is not None:
+                bpy.data.objects.remove(stand_in, do_unlink=True)
+        self.object = self.input = None
 
 
 # ------------------------------------------------------------------------------------------------ job
@@ -310,9 +329,6 @@ class BakeJob:
         if mode == "PC2":
             self.filepath = bpy.path.ensure_ext(filepath or default_filepath(obj, deformer), ".pc2")
             self.path = resolve_cache_path(self.filepath)
-            if key is not None and len(key.key_blocks) > 1:
-                self.warnings.append(f"'{obj.name}' has shape keys: the Mesh Cache overwrites their effect "
-                                     "(Shape Keys mode keeps them)")
         else:
             if obj.data.users > 1:
                 raise BakeError(f"'{obj.data.name}' is used by {obj.data.users} objects and shape keys "
@@ -335,6 +351,7 @@ class BakeJob:
         self._capture: _Capture | None = None
         self._writer: PC2Writer | None = None
         self._frame = (scene.frame_current, scene.frame_subframe)
+        self._muted: list[str] = []  # keys of a previous shape-key bake, muted while capturing
         self._shape_view = (obj.active_shape_key_index, obj.show_only_shape_key)
 
     @property
@@ -355,7 +372,16 @@ class BakeJob:
         elif obj.data.shape_keys is None:
             obj.shape_key_add(name="Basis", from_mix=False)
             self.basis_created = True
-        self._capture = _Capture(self.scene, obj, storage.offset_name(self.uid))
+        self._capture = _Capture(self.scene, obj, self.uid, with_input=self.mode == "SHAPE_KEYS")
+        # A previous shape-key bake of this deformer must not be part of the shape-key mix captured
+        # now: muted while baking (commit removes those keys; abort un-mutes them).
+        previous = bake_state(_find(obj, self.uid)[1])
+        blocks = obj.data.shape_keys.key_blocks if obj.data.shape_keys is not None else {}
+        for name in (previous or {}).get("keys", []) if (previous or {}).get("mode") == "SHAPE_KEYS" else []:
+            block = blocks.get(name)
+            if block is not None and not block.mute:
+                block.mute = True
+                self._muted.append(name)
 
     def step(self, context: bpy.types.Context) -> bool:
         """Bake the next frame; True while frames remain."""
@@ -369,16 +395,23 @@ class BakeJob:
         error = evaluate.blocking_error(obj, deformer)
         if error:
             raise BakeError(f"Frame {frame}: {error}")
-        positions = self._capture.positions(context.evaluated_depsgraph_get())
+        depsgraph = context.evaluated_depsgraph_get()
+        positions = self._capture.positions(depsgraph)
         if not np.all(np.isfinite(positions)):
             raise BakeError(f"Frame {frame}: the deformed positions are not finite")
         if self._writer is not None:
             self._writer.add(positions)
         else:
+            # Relative to the basis, the key adds what the deformer adds to the shape-key mix at this
+            # frame, so the other keys (at their values of this frame) plus this one give the output.
+            key = obj.data.shape_keys
+            basis = np.empty(len(positions) * 3, dtype=np.float32)
+            key.reference_key.data.foreach_get("co", basis)
+            delta = positions.astype(np.float64) - self._capture.input_positions(depsgraph)
             block = obj.shape_key_add(name=_key_name(deformer.name, frame), from_mix=False)
             self.keys.append(block.name)  # Blender appends .001 when the name is taken
             block.value = 0.0
-            block.data.foreach_set("co", positions.ravel())
+            block.data.foreach_set("co", (basis.reshape(-1, 3) + delta).astype(np.float32).ravel())
         self.done += 1
         return self.done < self.total
 
@@ -478,6 +511,11 @@ class BakeJob:
         finally:
             obj = self.object
             key = obj.data.shape_keys
+            for name in self._muted:  # those commit did not remove (an abort) come back as they were
+                block = key.key_blocks.get(name) if key is not None else None
+                if block is not None:
+                    block.mute = False
+            self._muted = []
             index, only = self._shape_view
             obj.active_shape_key_index = min(index, max(len(key.key_blocks) - 1, 0)) if key else 0
             obj.show_only_shape_key = only

@@ -62,10 +62,11 @@ def _new_uid(obj: bpy.types.Object) -> str:
     the same attribute names; the counter skips ids already used by this object or present on its mesh (a mesh
     shared with another object may carry that object's ids)."""
     used = {d.uid for d in obj.affine_deformers}
-    names = {a.name for a in obj.data.attributes} if obj.type == "MESH" else set()
+    if obj.type == "MESH":
+        used |= {storage.uid_of(a.name) for a in obj.data.attributes}
     for k in itertools.count():
         uid = format(zlib.crc32(f"{obj.name}\0{k}".encode()), "08x")
-        if uid not in used and storage.offset_name(uid) not in names:
+        if uid not in used:
             return uid
     raise AssertionError("unreachable")
 
@@ -99,7 +100,8 @@ def bind(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
     kind = _kind(deformer)
     # The modifier names the controls first, so the depsgraph evaluates them even when they are
     # disabled in viewports (relations.py) and the rest poses read below are current.
-    nodes.ensure_modifier(obj, storage.offset_name(deformer.uid), f"Affine {deformer.name}",
+    nodes.ensure_modifier(obj, storage.offset_name(deformer.uid), storage.motion_names(deformer.uid),
+                          f"Affine {deformer.name}",
                           bool(deformer.get("stored_show_viewport", True)),
                           bool(deformer.get("stored_show_render", True)))
     if relations.sync(obj, deformer):
@@ -188,8 +190,10 @@ def remove(obj: bpy.types.Object, index: int) -> None:
 
 
 def apply(obj: bpy.types.Object, index: int) -> None:
-    """Write the current deformed shape (rest + stored offsets, as the modifier adds them) into the mesh,
-    then remove the deformer. The caller evaluates the deformer first so the offsets are current."""
+    """Write the deformer's current effect on the mesh's own shape into the mesh (its stored output
+    applied to the rest positions: what its modifier gives when it is first in the stack, as Blender's
+    Apply does for a modifier that is not first), then remove the deformer. The caller evaluates the
+    deformer first so the output is current."""
     problem = target_problem(obj)
     if problem:
         raise BindError(problem)
@@ -199,8 +203,47 @@ def apply(obj: bpy.types.Object, index: int) -> None:
     if mesh.users > 1:
         raise BindError(f"'{mesh.name}' is used by {mesh.users} objects: make it single-user first")
     deformer = obj.affine_deformers[index]
-    rest = storage.read_positions(mesh)
-    offsets = storage.read_offsets(mesh, deformer.uid)
+    deformed = storage.deformed_positions(mesh, deformer.uid)
     remove(obj, index)
-    if offsets is not None and offsets.shape == rest.shape:
-        storage.write_positions(mesh, rest + offsets)
+    if deformed is not None:
+        storage.write_positions(mesh, deformed)
+
+
+def sharing_objects(obj: bpy.types.Object) -> list[bpy.types.Object]:
+    """Other local objects using `obj`'s mesh (linked duplicates), O(objects) only when it is shared."""
+    mesh = obj.data
+    if obj.type != "MESH" or mesh is None or mesh.users <= 1:
+        return []
+    return [other for other in bpy.data.objects
+            if other.data == mesh and other != obj and other.library is None]
+
+
+def separate_shared_ids(obj: bpy.types.Object) -> list[str]:
+    """Give `obj`'s deformers that share their id with a deformer of a linked duplicate (another object
+    using the same mesh: Alt+D copies the deformers and their modifiers) an id of their own, so the two
+    objects never read or write each other's attributes on the shared mesh. The object whose name
+    comes first keeps the id; the other's bind data is copied to its new id, so its shape is the same.
+    Returns the names of the deformers that got a new id."""
+    others = sharing_objects(obj)
+    if not others or obj.library is not None or obj.data.library is not None:
+        return []
+    renamed = []
+    for deformer in obj.affine_deformers:
+        uid = deformer.uid
+        holders = [o for o in others if any(d.uid == uid for d in o.affine_deformers)]
+        if not uid or not holders or min(o.name_full for o in holders) > obj.name_full:
+            continue
+        new_uid = _new_uid(obj)
+        mesh = obj.data
+        storage.copy_bind_data(mesh, uid, new_uid)
+        mod = nodes.find_modifier(obj, storage.offset_name(uid))
+        deformer.uid = new_uid
+        if mod is not None:
+            nodes.set_offset_name(mod, storage.offset_name(new_uid))
+            nodes.set_motion_names(mod, storage.motion_names(new_uid))
+        relations.sync(obj, deformer)
+        from . import evaluate  # see remove()
+
+        evaluate.forget(obj, uid)
+        renamed.append(deformer.name)
+    return renamed

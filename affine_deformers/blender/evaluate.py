@@ -25,7 +25,7 @@ from bpy.app.handlers import persistent
 
 from .. import accel
 from ..core import aff3, deform, unwrap
-from . import cage_kind, kinds, nodes, relations, storage
+from . import binding, cage_kind, kinds, nodes, relations, storage
 from .kinds import KINDS, Motions, reference_rotvecs
 
 # Branch lift tolerances for Blender's float32 matrices (relative noise ~1e-7); core.unwrap's defaults
@@ -77,6 +77,8 @@ class _Bound:
     params: np.ndarray | None = None  # (m, 12) blend parameters of the last result
     offsets: np.ndarray | None = None  # (N, 3) float64 last offsets
     written: np.ndarray | None = None  # (N, 3) float32 the offset attribute holds (None = unknown)
+    motions: np.ndarray | None = None  # (4, N, 3) float32 last motions (motion path)
+    motions_written: np.ndarray | None = None  # (4, N, 3) float32 the motion attributes hold (None = unknown)
 
     def scaled_values(self, strength: float) -> np.ndarray:
         if self.scaled is None or self.scaled[0] != strength:
@@ -103,7 +105,7 @@ class _Bound:
         return np.flatnonzero(mask)
 
     def forget_result(self) -> None:
-        self.state = self.params = self.offsets = None
+        self.state = self.params = self.offsets = self.motions = None
 
 
 def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
@@ -259,21 +261,27 @@ def _precheck(obj: bpy.types.Object, deformer) -> str:
 _modifiers: dict[tuple[int, str], str] = {}
 
 
-def _has_modifier(obj: bpy.types.Object, uid: str) -> bool:
-    """`nodes.find_modifier(obj, offset attribute of uid) is not None`, trying the modifier found last
-    time first: it still counts when it is still ours and still reads this deformer's attribute
-    (the same test find_modifier applies), otherwise the stack is searched again."""
+def _modifier(obj: bpy.types.Object, uid: str) -> bpy.types.Modifier | None:
+    """`nodes.find_modifier(obj, offset attribute of uid)`, trying the modifier found last time first:
+    it still counts when it is still ours and still reads this deformer's attribute (the same test
+    find_modifier applies), otherwise the stack is searched again."""
     key = (obj.session_uid, uid)
     offset_attr = storage.offset_name(uid)
     name = _modifiers.get(key)
-    if name is not None and nodes.is_modifier_for(obj.modifiers.get(name), offset_attr):
-        return True
+    if name is not None:
+        mod = obj.modifiers.get(name)
+        if nodes.is_modifier_for(mod, offset_attr):
+            return mod
     mod = nodes.find_modifier(obj, offset_attr)
     if mod is None:
         _modifiers.pop(key, None)
-        return False
+        return None
     _modifiers[key] = mod.name
-    return True
+    return mod
+
+
+def _has_modifier(obj: bpy.types.Object, uid: str) -> bool:
+    return _modifier(obj, uid) is not None
 
 
 def redistribute(indices: np.ndarray, values: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -374,8 +382,168 @@ def _offsets_affine(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarr
     return offsets, None
 
 
+def _motions(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarray, np.ndarray | None]:
+    """(each rest vertex's motion x ↦ M x + t as (4, N, 3) float32 columns M e_x, M e_y, M e_z, t,
+    rows): the motion path's counterpart of `_offsets` (same rules, same `rows` meaning); exactly the
+    identity when every control is at rest. The array may be the cache's own: do not modify it."""
+    outer = _outer(motions, deformer)
+    n = len(bound.points)
+    if (deformer.blend_mode != "LINEAR" and outer is None
+            and (motions.valid is None or np.all(motions.valid))):
+        return _motions_affine(deformer, motions, bound)
+    bound.forget_result()
+    if deformer.strength == 0.0 or len(motions.matrices) == 0 or np.all(motions.at_rest):
+        result = _identity_motions(n)
+    else:
+        indices, values = bound.indices, bound.values
+        if motions.valid is not None and not np.all(motions.valid):
+            values = redistribute(indices, values, motions.valid) * deformer.strength
+        else:
+            values = bound.scaled_values(deformer.strength)
+        if deformer.blend_mode == "LINEAR":
+            result = _linear_motions(motions.matrices, indices, values)
+        else:
+            result = accel.vertex_motions(motions_to_params(motions, deformer), indices, values)
+    if outer is not None:
+        result = _compose(outer, result)
+    return np.ascontiguousarray(result, dtype=np.float32), None
+
+
+def _identity_motions(n: int) -> np.ndarray:
+    result = np.zeros((4, n, 3))
+    for c in range(3):
+        result[c, :, c] = 1.0
+    return result
+
+
+def _linear_motions(matrices: np.ndarray, indices: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The 'LINEAR' blend as motions: M = I + Σ_k w_k (M_k − I), t = Σ_k w_k t_k (the identity carries
+    the leftover weight, as in deform.blend_linear_sparse), (4, N, 3) float64."""
+    m = len(matrices)
+    table = (matrices[:, :3, :] - np.eye(3, 4)).transpose(0, 2, 1).reshape(m, 12)
+    blended = deform.blend_params(table, indices, values).reshape(-1, 4, 3).transpose(1, 0, 2)
+    return blended + _identity_motions(len(indices))
+
+
+def _compose(outer: np.ndarray, motions: np.ndarray) -> np.ndarray:
+    """Motions (4, N, 3) followed by the affine map `outer` (4, 4): columns G₃ M e_c, and G₃ t + g."""
+    result = np.asarray(motions, dtype=np.float64) @ outer[:3, :3].T
+    result[3] += outer[:3, 3]
+    return result
+
+
+def _motions_affine(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarray, np.ndarray | None]:
+    """`_motions` for the plain affine blend, recomputing only the vertices whose motion can differ
+    from the cached one (see `_offsets_affine`: the same rule, for motions instead of offsets)."""
+    params = motions_to_params(motions, deformer)
+    values = bound.scaled_values(deformer.strength)
+    state = ("MOTION", deformer.strength, deformer.branch_rule, accel.active())
+    key = (bound.serial, deformer.strength)
+    result = bound.motions
+    if result is not None and bound.state == state and bound.params.shape == params.shape:
+        changed = np.flatnonzero((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1))
+        rows = bound.affected_rows(changed)
+        if len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points):
+            if len(rows):
+                accel.vertex_motions(params, bound.indices, values, out=result, rows=rows, key=key)
+            bound.params = params
+            return result, rows
+    bound.forget_result()
+    result = accel.vertex_motions(params, bound.indices, values,
+                                  out=np.empty((4, len(bound.points), 3), dtype=np.float32), key=key)
+    bound.state, bound.params, bound.motions = state, params, result
+    return result, None
+
+
+def _write_motions(mesh: bpy.types.Mesh, uid: str, result: np.ndarray, rows: np.ndarray | None,
+                   bound: _Bound | None) -> None:
+    """Write `result` (4, N, 3) float32 to the motion attributes unless they already hold it (as
+    `_write_offsets`: an incremental result is written when rows changed, a full one when it differs
+    from what this process wrote last, or from what the mesh holds when that is unknown), and drop the
+    offset attribute, which would add to the motion."""
+    if storage.remove_output(mesh, uid, keep="MOTION"):
+        mesh.update_tag()
+        if bound is not None:
+            bound.written = None
+    known = bound.motions_written if bound is not None else None
+    if known is not None and known.shape == result.shape:
+        if rows is not None and len(rows) == 0 and known is result:
+            return
+        if rows is None and known is not result and np.array_equal(known, result):
+            if bound.motions is result:
+                bound.motions = known  # keep one array: later incremental updates write into it
+            return
+    elif rows is None:
+        stored = storage.read_motions(mesh, uid)
+        if stored is not None and np.array_equal(stored, result):
+            if bound is not None:
+                bound.motions_written = result
+            return
+    storage.write_motions(mesh, uid, result)
+    if bound is not None:
+        bound.motions_written = result
+
+
+def _finite_motions(result: np.ndarray, rows: np.ndarray | None) -> bool:
+    """Whether the motions (4, N, 3) are all finite, given that only `rows` changed (see `_finite`)."""
+    if rows is not None:
+        if len(rows) == 0:
+            return True
+        if 4 * len(rows) < result.shape[1]:
+            changed = np.take(result, rows, axis=1).reshape(-1).astype(np.float64)
+            return bool(np.isfinite(np.dot(changed, changed)))
+    flat = result.reshape(-1)
+    return bool(np.isfinite(np.dot(flat, flat.astype(np.float64))))
+
+
+#: Modifier types that rebuild the mesh from scratch and drop its point attributes: a deformer after
+#: one of them receives no motions (measured on 4.2 and 5.0; Subdivision, Multires, Mirror, Array,
+#: Bevel, Solidify, Triangulate, Decimate, Weld, Edge Split, Screw, Wireframe and Boolean keep or
+#: interpolate them).
+DROPS_ATTRIBUTES = frozenset({"REMESH", "SKIN", "OCEAN"})
+
+
+def output_path(obj: bpy.types.Object, deformer, rest32: np.ndarray) -> tuple[str, str]:
+    """('OFFSET' or 'MOTION', error) for the deformer's modifier where it stands in the stack.
+
+    OFFSET (v' − v from the rest shape, 3 floats per vertex) is exact only when the positions that
+    reach the modifier are the mesh's own (`rest32`, as stored): no modifier before it is enabled in
+    the viewport or in renders, and the mesh has no shape keys, or only its reference key holding
+    exactly those positions (a Basis nothing is keyed on yet). Otherwise MOTION: each vertex's affine
+    map, applied to whatever reaches the modifier. A modifier before it that drops point attributes is
+    an error naming it (the modifier then passes its input through)."""
+    mod = _modifier(obj, deformer.uid)
+    before = []
+    for other in obj.modifiers:
+        if other == mod:
+            break
+        if other.show_viewport or other.show_render:
+            before.append(other)
+    if not before and _keys_keep_rest(obj.data, rest32):
+        return "OFFSET", ""
+    for other in before:
+        if other.type in DROPS_ATTRIBUTES:
+            return "MOTION", (f"'{other.name}' rebuilds the mesh before '{mod.name}', which then gets no "
+                              f"per-vertex motions: move '{other.name}' below '{mod.name}' in the stack "
+                              "(until then the deformer has no effect)")
+    return "MOTION", ""
+
+
+def _keys_keep_rest(mesh: bpy.types.Mesh, rest32: np.ndarray) -> bool:
+    """Whether the shape keys (if any) leave the mesh's stored positions as they are: none, or only the
+    reference key, holding exactly `rest32`."""
+    key = mesh.shape_keys
+    if key is None:
+        return True
+    if len(key.key_blocks) != 1:
+        return False
+    basis = np.empty(rest32.size, dtype=np.float32)
+    key.key_blocks[0].data.foreach_get("co", basis)
+    return np.array_equal(basis.reshape(rest32.shape), rest32)
+
+
 def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> str:
-    """Evaluate one deformer and write its offsets when they changed. Returns its status ('' = fine)."""
+    """Evaluate one deformer and write its output when it changed. Returns its status ('' = fine)."""
     error = _precheck(obj, deformer)
     motions = None
     if not error:
@@ -391,8 +559,11 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
             bound = _bind_data(obj, deformer, len(motions.matrices))
         except storage.StorageError as exc:
             error = str(exc)
+    path = "OFFSET"
+    if not error:
+        path, error = output_path(obj, deformer, bound.rest32)
     signature = (
-        mesh.session_uid, None if bound is None else bound.serial, error, deformer.strength,
+        mesh.session_uid, None if bound is None else bound.serial, error, path, deformer.strength,
         deformer.blend_mode, deformer.branch_rule, deformer.bind_generation,
         None if motions is None else (motions.matrices.tobytes(), motions.at_rest.tobytes(),
                                       motions.current_rotations.tobytes(), tuple(motions.rotation_modes),
@@ -405,27 +576,34 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     key = (obj.session_uid, deformer.uid)
     if _signatures.get(key) == signature:
         return deformer.status
-    offsets, rows = None, None
+    output, rows = None, None
     if not error:
+        compute, finite = (_motions, _finite_motions) if path == "MOTION" else (_offsets, _finite)
         try:
-            offsets, rows = _offsets(deformer, motions, bound)
+            output, rows = compute(deformer, motions, bound)
         except storage.StorageError as exc:
             error = str(exc)
         except ValueError as exc:  # core refuses to blend (e.g. a motion too degenerate for its log)
             error = f"The controls' motions cannot be blended ({exc}): the mesh shows its rest shape"
-        if not error and not _finite(offsets, rows):
+        if not error and not finite(output, rows):
             error = "The deformation is not finite: the mesh shows its rest shape"
         if error:
             bound.forget_result()  # start the next update from a full recompute
     if error:
-        offsets, rows = np.zeros((len(mesh.vertices), 3)), None
+        # Zero offsets and no motions: the modifier passes its input through, wherever it stands.
+        path, output, rows = "OFFSET", np.zeros((len(mesh.vertices), 3)), None
         cached = _bound.get((obj.session_uid, deformer.uid))
         if cached is not None:
-            cached.written = None  # written below without it
+            cached.written = cached.motions_written = None  # written below without them
     if mesh.library is None:
-        _write_offsets(mesh, deformer.uid, offsets, rows, None if error else bound)
+        if path == "MOTION":
+            _write_motions(mesh, deformer.uid, output, rows, bound)
+        else:
+            if storage.remove_output(mesh, deformer.uid, keep="OFFSET") and bound is not None:
+                bound.motions_written = None
+            _write_offsets(mesh, deformer.uid, output, rows, None if error else bound)
     elif bound is not None:
-        bound.written = None
+        bound.written = bound.motions_written = None
     status = error or "; ".join(m for m in (motions.warning if motions else "", deformer.bind_warning) if m)
     _set_status(deformer, status)
     _signatures[key] = signature
@@ -492,6 +670,10 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
         depsgraph = bpy.context.evaluated_depsgraph_get()
     if obj.mode == "EDIT":
         return [d.status for d in obj.affine_deformers]
+    try:
+        binding.separate_shared_ids(obj)  # linked duplicates must not share output attributes
+    except Exception:  # never let it stop the evaluation; the ids stay shared and the next update retries
+        traceback.print_exc()
     statuses = []
     for deformer in obj.affine_deformers:
         try:
@@ -503,6 +685,7 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
             try:
                 _bound.pop((obj.session_uid, deformer.uid), None)  # its copy of the attribute is stale
                 if obj.type == "MESH" and obj.data.library is None:
+                    storage.remove_output(obj.data, deformer.uid, keep="OFFSET")
                     storage.write_offsets(obj.data, deformer.uid, np.zeros((len(obj.data.vertices), 3)))
                 _set_status(deformer, message)
             except Exception:

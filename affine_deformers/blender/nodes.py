@@ -1,15 +1,29 @@
 """Geometry Nodes plumbing: the shared "AffineDeformer" node group, one modifier per deformer, and a
 throw-away node evaluation that reads painted vertex-group weights without a loop over vertices.
 
-The group is Group Input (Geometry, "Offset Attribute": String) → Named Attribute (FLOAT_VECTOR) →
-Set Position (Offset) → Group Output, so each deformer is a real entry in the modifier stack that adds
-the per-vertex offset attribute written by the evaluation handler; the mesh data keeps the rest shape.
+Each deformer is a real entry in the modifier stack: a Geometry Nodes modifier with our group, which
+moves the positions that REACH it (shape keys, an Armature or another deformer before it included) by
+what the evaluation handler wrote on the mesh, in one of two forms (evaluate.py chooses):
 
-Version 2 adds two inputs that no node reads, "Cage" (Object) and "Probes" (Collection), hidden in the
-modifier panel: Geometry Nodes adds a depsgraph relation for every ID set on a modifier's inputs, used
-or not, so the controls named there are evaluated whenever the modifier is (see relations.py). Groups
-of version 1 (files saved before) are upgraded in place by `upgrade_group`; the geometry they output
-is unchanged.
+* motion: four FLOAT_VECTOR point attributes holding each vertex's affine map x ↦ M x + t as the
+  columns M e_x, M e_y, M e_z and t ("Motion X/Y/Z/T" inputs). The group computes
+  x·c_x + y·c_y + z·c_z + t for the incoming position (x, y, z), on the points where the attributes
+  exist. Plain vectors rather than one FLOAT4X4 attribute: modifiers that add vertices before ours
+  (Subdivision, Multires, Mirror, Array, Bevel, Solidify, …) interpolate or copy vector attributes
+  onto the new vertices, so a motion shared by all controls still gives exactly that motion there
+  (Subdivision does not interpolate matrix attributes: measured on 4.2 and 5.0);
+* offset: one FLOAT_VECTOR attribute v' − v added to the position ("Offset Attribute"), exact only
+  when the positions reaching the modifier are the mesh's own (first in the stack, no shape keys): the
+  fast path, 3 floats per vertex instead of 12.
+
+An attribute that is missing reads as no change, so a modifier with neither passes its input through.
+
+Version 2 added two inputs that no node reads, "Cage" (Object) and "Probes" (Collection), hidden in
+the modifier panel: Geometry Nodes adds a depsgraph relation for every ID set on a modifier's inputs,
+used or not, so the controls named there are evaluated whenever the modifier is (see relations.py).
+Version 3 added the motion inputs and nodes. Groups of older versions (files saved before) are
+upgraded in place by `upgrade_group`: the inputs are added and the nodes rebuilt; modifiers keep
+their values.
 """
 
 from __future__ import annotations
@@ -19,17 +33,26 @@ import numpy as np
 
 GROUP_NAME = "AffineDeformer"
 GROUP_MARK = "affine_deformers_group"  # custom property identifying our group (value = version)
-GROUP_VERSION = 2
-KNOWN_VERSIONS = (1, 2)  # 1: Geometry + Offset Attribute; 2: + the Cage and Probes inputs
+GROUP_VERSION = 3
+KNOWN_VERSIONS = (1, 2, 3)  # 1: Geometry + Offset Attribute; 2: + Cage and Probes; 3: + Motion X/Y/Z/T
 OFFSET_SOCKET = "Offset Attribute"
 CAGE_SOCKET = "Cage"
 PROBES_SOCKET = "Probes"
+MOTION_SOCKETS = ("Motion X", "Motion Y", "Motion Z", "Motion T")
 CONTROL_SOCKETS = (
     (CAGE_SOCKET, "NodeSocketObject", "The cage of a cage deformer (set by the add-on; only makes the "
                                       "depsgraph evaluate it)"),
     (PROBES_SOCKET, "NodeSocketCollection", "The probes of a probe deformer (set by the add-on; only "
                                             "makes the depsgraph evaluate them)"),
 )
+_MOTION_INPUTS = tuple(
+    (name, "NodeSocketString", f"Point attribute holding the {what} of each vertex's motion (set by the "
+                               "add-on)")
+    for name, what in zip(MOTION_SOCKETS, ("image of the X axis", "image of the Y axis",
+                                           "image of the Z axis", "translation"), strict=True)
+)
+#: Inputs added after version 1, in interface order, all managed by the add-on (hidden in the panel).
+_MANAGED_INPUTS = CONTROL_SOCKETS + _MOTION_INPUTS
 _READER_NAME = ".AffineDeformer VertexGroupReader"
 _READER_ATTR = "affdef_tmp_vg{}"
 
@@ -54,23 +77,83 @@ def offset_socket_identifier(ng: bpy.types.NodeTree) -> str | None:
 
 
 def is_current(ng: bpy.types.NodeTree | None) -> bool:
-    """Our group at GROUP_VERSION, with the control inputs."""
+    """Our group at GROUP_VERSION, with every managed input."""
     return (_is_our_group(ng) and ng.get(GROUP_MARK) == GROUP_VERSION
-            and all(_input_identifier(ng, name, kind) is not None for name, kind, _ in CONTROL_SOCKETS))
+            and all(_input_identifier(ng, name, kind) is not None for name, kind, _ in _MANAGED_INPUTS))
 
 
 def upgrade_group(ng: bpy.types.NodeTree) -> bool:
     """Bring our group of an older version up to GROUP_VERSION in place (versioning of saved files):
-    add the missing control inputs. Modifiers keep their offset attribute. True when it changed."""
+    add the missing inputs and rebuild the nodes. Modifiers keep the values of the inputs they had
+    (the motion names are set by `set_attribute_names`). True when it changed."""
     if not _is_our_group(ng) or is_current(ng):
         return False
-    for name, socket_type, description in CONTROL_SOCKETS:
+    for name, socket_type, description in _MANAGED_INPUTS:
         if _input_identifier(ng, name, socket_type) is None:
             socket = ng.interface.new_socket(name, in_out="INPUT", socket_type=socket_type)
             socket.description = description
-            socket.hide_in_modifier = True  # managed by the add-on: a hand-picked object would go stale
+            socket.hide_in_modifier = True  # managed by the add-on: a hand-picked value would go stale
+    _build_nodes(ng)
     ng[GROUP_MARK] = GROUP_VERSION
     return True
+
+
+def _build_nodes(ng: bpy.types.NodeTree) -> None:
+    """(Re)create the group's nodes: position' = Σ_c x_c·(Motion c) + Motion T where the motion exists,
+    then + Offset (see the module doc)."""
+    nodes, links = ng.nodes, ng.links
+    nodes.clear()
+    group_in = nodes.new("NodeGroupInput")
+    group_out = nodes.new("NodeGroupOutput")
+    group_in.location, group_out.location = (-900, 0), (500, 0)
+    position = nodes.new("GeometryNodeInputPosition")
+    position.location = (-700, 250)
+    separate = nodes.new("ShaderNodeSeparateXYZ")
+    separate.location = (-500, 250)
+    links.new(position.outputs[0], separate.inputs[0])
+    columns = []
+    for i, name in enumerate(MOTION_SOCKETS):
+        named = nodes.new("GeometryNodeInputNamedAttribute")
+        named.data_type = "FLOAT_VECTOR"
+        named.location = (-500, -150 * i)
+        links.new(group_in.outputs[name], named.inputs["Name"])
+        columns.append(named)
+    total = None
+    for i, (named, coordinate) in enumerate(zip(columns[:3], separate.outputs, strict=True)):
+        scale = nodes.new("ShaderNodeVectorMath")
+        scale.operation = "SCALE"
+        scale.location = (-300, -150 * i)
+        links.new(named.outputs["Attribute"], scale.inputs[0])
+        links.new(coordinate, scale.inputs["Scale"])
+        if total is None:
+            total = scale
+        else:
+            total = _vector_add(ng, total.outputs[0], scale.outputs[0], (-100, -150 * i))
+    total = _vector_add(ng, total.outputs[0], columns[3].outputs["Attribute"], (100, -300))
+    moved = nodes.new("GeometryNodeSetPosition")
+    moved.location = (100, 0)
+    links.new(group_in.outputs[0], moved.inputs["Geometry"])
+    links.new(columns[3].outputs["Exists"], moved.inputs["Selection"])
+    links.new(total.outputs[0], moved.inputs["Position"])
+    offset = nodes.new("GeometryNodeInputNamedAttribute")
+    offset.data_type = "FLOAT_VECTOR"
+    offset.location = (100, 250)
+    links.new(group_in.outputs[OFFSET_SOCKET], offset.inputs["Name"])
+    shifted = nodes.new("GeometryNodeSetPosition")
+    shifted.location = (300, 0)
+    links.new(moved.outputs["Geometry"], shifted.inputs["Geometry"])
+    links.new(offset.outputs["Attribute"], shifted.inputs["Offset"])
+    links.new(shifted.outputs["Geometry"], group_out.inputs[0])
+
+
+def _vector_add(ng: bpy.types.NodeTree, a: bpy.types.NodeSocket, b: bpy.types.NodeSocket,
+                location: tuple[float, float]) -> bpy.types.Node:
+    node = ng.nodes.new("ShaderNodeVectorMath")
+    node.operation = "ADD"
+    node.location = location
+    ng.links.new(a, node.inputs[0])
+    ng.links.new(b, node.inputs[1])
+    return node
 
 
 def find_group() -> bpy.types.NodeTree | None:
@@ -92,19 +175,7 @@ def ensure_group() -> bpy.types.NodeTree:
     ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
     ng.interface.new_socket(OFFSET_SOCKET, in_out="INPUT", socket_type="NodeSocketString")
     ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-    nodes, links = ng.nodes, ng.links
-    group_in = nodes.new("NodeGroupInput")
-    group_out = nodes.new("NodeGroupOutput")
-    named = nodes.new("GeometryNodeInputNamedAttribute")
-    named.data_type = "FLOAT_VECTOR"
-    set_pos = nodes.new("GeometryNodeSetPosition")
-    group_in.location, named.location = (-400, 0), (-200, -150)
-    set_pos.location, group_out.location = (0, 0), (200, 0)
-    links.new(group_in.outputs[0], set_pos.inputs["Geometry"])
-    links.new(group_in.outputs[OFFSET_SOCKET], named.inputs["Name"])
-    links.new(named.outputs["Attribute"], set_pos.inputs["Offset"])
-    links.new(set_pos.outputs["Geometry"], group_out.inputs[0])
-    upgrade_group(ng)  # one code path for the control inputs, new or saved by an older version
+    upgrade_group(ng)  # one code path for the later inputs and the nodes, new or saved by an older version
     return ng
 
 
@@ -124,17 +195,43 @@ def is_modifier_for(mod: bpy.types.Modifier | None, offset_attr: str) -> bool:
     return _is_our_group(ng) and mod.get(offset_socket_identifier(ng)) == offset_attr
 
 
-def ensure_modifier(obj: bpy.types.Object, offset_attr: str, label: str,
+def ensure_modifier(obj: bpy.types.Object, offset_attr: str, motion_attrs: tuple[str, ...], label: str,
                     show_viewport: bool = True, show_render: bool = True) -> bpy.types.NodesModifier:
+    """Our modifier reading `offset_attr` on `obj` (found, or added at the bottom of the stack), with
+    its motion inputs naming `motion_attrs` (storage.motion_names)."""
     mod = find_modifier(obj, offset_attr)
-    if mod is not None:
-        return mod
-    ng = ensure_group()
-    mod = obj.modifiers.new(name=label, type="NODES")
-    mod.node_group = ng
-    mod[offset_socket_identifier(ng)] = offset_attr
-    mod.show_viewport, mod.show_render = show_viewport, show_render
+    if mod is None:
+        ng = ensure_group()
+        mod = obj.modifiers.new(name=label, type="NODES")
+        mod.node_group = ng
+        mod[offset_socket_identifier(ng)] = offset_attr
+        mod.show_viewport, mod.show_render = show_viewport, show_render
+    set_motion_names(mod, motion_attrs)
     return mod
+
+
+def set_motion_names(mod: bpy.types.NodesModifier, motion_attrs: tuple[str, ...]) -> bool:
+    """Name the four motion attributes on our modifier's inputs, upgrading its group first when needed.
+    True when something changed (the modifier is then tagged for re-evaluation)."""
+    ng = mod.node_group
+    changed = upgrade_group(ng)
+    if changed:
+        mod.node_group = ng  # let the modifier pick up the new inputs before they are set
+    for name, value in zip(MOTION_SOCKETS, motion_attrs, strict=True):
+        identifier = _input_identifier(ng, name, "NodeSocketString")
+        if mod.get(identifier) != value:
+            mod[identifier] = value
+            changed = True
+    if changed:
+        mod.node_group = ng  # assigning an ID property does not tag the modifier; re-assigning does
+    return changed
+
+
+def set_offset_name(mod: bpy.types.NodesModifier, offset_attr: str) -> None:
+    """Point our modifier at another offset attribute (a deformer that got a new id)."""
+    ng = mod.node_group
+    mod[offset_socket_identifier(ng)] = offset_attr
+    mod.node_group = ng
 
 
 def controls(mod: bpy.types.NodesModifier) -> tuple[bpy.types.Object | None, bpy.types.Collection | None]:

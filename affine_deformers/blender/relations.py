@@ -76,6 +76,7 @@ def sync(obj: bpy.types.Object, deformer) -> bool:
     held = set(old_collection.objects) if old_collection is not None else set()
     collection = _probe_collection(old_collection, probes)
     changed = nodes.set_controls(mod, cage, collection)
+    changed = nodes.set_motion_names(mod, storage.motion_names(deformer.uid)) or changed
     if old_collection is not None and old_collection != collection:
         _drop_if_unused(old_collection)
     return changed or (collection is not None and set(collection.objects) != held)

@@ -3,7 +3,12 @@
 Per deformer with short id `uid`, on the target mesh:
   `.affdef_<uid>_idx<k>`  INT   POINT  k-th influencing control of each vertex   (k < K)
   `.affdef_<uid>_w<k>`    FLOAT POINT  its weight (strength not applied)
-  `affdef_<uid>_offset`   FLOAT_VECTOR POINT  deformed − rest, added by our Geometry Nodes modifier.
+  `affdef_<uid>_offset`   FLOAT_VECTOR POINT  deformed − rest, added by our Geometry Nodes modifier
+                                              (the fast path: first in the stack, no shape keys), or
+  `.affdef_<uid>_m{x,y,z,t}` FLOAT_VECTOR POINT  each vertex's motion x ↦ M x + t as the columns
+                                              M e_x, M e_y, M e_z and t, applied by the modifier to
+                                              the positions that reach it (nodes.py).
+A deformer's output is one of the two forms at a time (the other is removed when it switches).
 All reads and writes go through foreach_get/foreach_set on numpy buffers (no loops over vertices).
 """
 
@@ -23,12 +28,29 @@ def offset_name(uid: str) -> str:
     return f"affdef_{uid}_offset"
 
 
+MOTION_SUFFIXES = ("mx", "my", "mz", "mt")
+
+
+def motion_names(uid: str) -> tuple[str, str, str, str]:
+    """The four motion attributes of deformer `uid`: columns M e_x, M e_y, M e_z and t."""
+    return tuple(f".affdef_{uid}_{suffix}" for suffix in MOTION_SUFFIXES)
+
+
 def index_name(uid: str, k: int) -> str:
     return f".affdef_{uid}_idx{k}"
 
 
 def weight_name(uid: str, k: int) -> str:
     return f".affdef_{uid}_w{k}"
+
+
+_ANY_PATTERN = re.compile(r"^\.?affdef_([0-9a-f]+)_")
+
+
+def uid_of(attribute_name: str) -> str:
+    """The deformer id in one of our attribute names ('' for other attributes)."""
+    match = _ANY_PATTERN.match(attribute_name)
+    return match.group(1) if match else ""
 
 
 def _bind_pattern(uid: str) -> re.Pattern[str]:
@@ -81,12 +103,43 @@ def remove_bind_data(mesh: bpy.types.Mesh, uid: str) -> None:
 
 
 def remove_all(mesh: bpy.types.Mesh, uid: str) -> None:
-    """Remove every attribute of deformer `uid`, offsets included: the mesh shows the rest shape."""
+    """Remove every attribute of deformer `uid`, its output included: the mesh shows the rest shape."""
     remove_bind_data(mesh, uid)
-    attr = mesh.attributes.get(offset_name(uid))
-    if attr is not None:
-        mesh.attributes.remove(attr)
+    remove_output(mesh, uid)
     mesh.update_tag()
+
+
+def remove_output(mesh: bpy.types.Mesh, uid: str, keep: str = "") -> bool:
+    """Remove deformer `uid`'s output attributes (offset and motion), except the form `keep`
+    ('OFFSET' or 'MOTION'); True when something was removed (the caller tags the mesh)."""
+    names = [] if keep == "MOTION" else list(motion_names(uid))
+    if keep != "OFFSET":
+        names.append(offset_name(uid))
+    removed = False
+    for name in names:
+        attr = mesh.attributes.get(name)
+        if attr is not None:
+            mesh.attributes.remove(attr)
+            removed = True
+    return removed
+
+
+def copy_bind_data(mesh: bpy.types.Mesh, uid: str, new_uid: str) -> None:
+    """Copy deformer `uid`'s weight attributes to the names of `new_uid` (a deformer given a new id)."""
+    remove_bind_data(mesh, new_uid)
+    n = len(mesh.vertices)
+    k = 0
+    while (a_i := mesh.attributes.get(index_name(uid, k))) is not None:
+        a_w = mesh.attributes.get(weight_name(uid, k))
+        if a_w is None:
+            break
+        column_i = np.empty(n, dtype=np.int32)
+        column_w = np.empty(n, dtype=np.float32)
+        a_i.data.foreach_get("value", column_i)
+        a_w.data.foreach_get("value", column_w)
+        _point_attribute(mesh, index_name(new_uid, k), "INT").data.foreach_set("value", column_i)
+        _point_attribute(mesh, weight_name(new_uid, k), "FLOAT").data.foreach_set("value", column_w)
+        k += 1
 
 
 def write_weights(mesh: bpy.types.Mesh, uid: str, indices: np.ndarray, values: np.ndarray) -> None:
@@ -157,3 +210,39 @@ def write_offsets_unchecked(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray)
         raise StorageError(f"offsets must be C-contiguous float32 of shape ({len(mesh.vertices)}, 3)")
     _point_attribute(mesh, offset_name(uid), "FLOAT_VECTOR").data.foreach_set("vector", offsets.ravel())
     mesh.update_tag()
+
+
+def read_motions(mesh: bpy.types.Mesh, uid: str) -> np.ndarray | None:
+    """The stored motions (4, N, 3) float32 (columns M e_x, M e_y, M e_z, t), or None when any of the
+    four attributes is missing or of another type."""
+    n = len(mesh.vertices)
+    out = np.empty((4, n, 3), dtype=np.float32)
+    for column, name in zip(out, motion_names(uid), strict=True):
+        attr = mesh.attributes.get(name)
+        if attr is None or attr.data_type != "FLOAT_VECTOR" or attr.domain != "POINT":
+            return None
+        attr.data.foreach_get("vector", column.reshape(-1))
+    return out
+
+
+def write_motions(mesh: bpy.types.Mesh, uid: str, motions: np.ndarray) -> None:
+    """Write motions (4, N, 3) float32 C-contiguous into the four motion attributes (created when
+    needed) and tag the mesh. The caller knows they differ from the stored ones."""
+    shape = (4, len(mesh.vertices), 3)
+    if motions.dtype != np.float32 or not motions.flags.c_contiguous or motions.shape != shape:
+        raise StorageError(f"motions must be C-contiguous float32 of shape {shape}")
+    for column, name in zip(motions, motion_names(uid), strict=True):
+        _point_attribute(mesh, name, "FLOAT_VECTOR").data.foreach_set("vector", column.reshape(-1))
+    mesh.update_tag()
+
+
+def deformed_positions(mesh: bpy.types.Mesh, uid: str) -> np.ndarray | None:
+    """The mesh's rest positions moved by deformer `uid`'s stored output (motion or offset), float32
+    (N, 3), as its modifier computes them when it is first in the stack; None without an output."""
+    rest = read_positions(mesh)
+    motions = read_motions(mesh, uid)
+    if motions is not None:
+        x, y, z = (rest[:, i : i + 1] for i in range(3))
+        return x * motions[0] + y * motions[1] + z * motions[2] + motions[3]
+    offsets = read_offsets(mesh, uid)
+    return None if offsets is None or offsets.shape != rest.shape else rest + offsets

@@ -606,9 +606,10 @@ def test_cage_disabled_in_viewports_is_evaluated_while_the_deformer_is_on(bl, no
     deformer = add_cage_deformer(target, cage)
     mod = our_modifier(nodes, target, deformer)
     assert nodes.controls(mod) == (cage, None)
-    assert mod.node_group.get(nodes.GROUP_MARK) == nodes.GROUP_VERSION == 2
+    assert mod.node_group.get(nodes.GROUP_MARK) == nodes.GROUP_VERSION == 3
     inputs = control_inputs(mod.node_group)
-    assert inputs["Cage"].hide_in_modifier and inputs["Probes"].hide_in_modifier, "managed by the add-on"
+    managed = ("Cage", "Probes", "Motion X", "Motion Y", "Motion Z", "Motion T")
+    assert all(inputs[name].hide_in_modifier for name in managed), "managed by the add-on"
     rest = bl.rest_positions(target).astype(np.float64)
 
     cage.hide_viewport = True
@@ -779,8 +780,9 @@ def _as_version_1(nodes) -> None:
     1, and no probe collections."""
     for group in bpy.data.node_groups:
         if group.get(nodes.GROUP_MARK) is not None:
-            for name in ("Cage", "Probes"):
-                group.interface.remove(control_inputs(group)[name])
+            for name, item in control_inputs(group).items():
+                if name not in ("Geometry", "Offset Attribute"):  # added by later versions
+                    group.interface.remove(item)
             group[nodes.GROUP_MARK] = 1
     for collection in list(bpy.data.collections):
         if collection.get("affine_deformers_probes"):
