@@ -11,6 +11,9 @@ Kernels (d = distance to a control's rest position):
 * inverse distance  w = (r / max(d, d_min))^p — finite and dominant on top of a control;
 * smooth falloff    w = (1 − (d/R)²)^q for d < R, exactly 0 for d ≥ R (C^{q−1} at R, smooth at 0).
 
+Truncation to K is continuous (`truncate`: the (K+1)-th weight is subtracted from the kept K), so a
+control leaving a vertex's K strongest fades out instead of jumping to zero.
+
 Normalisation of the kept K weights of a row: 'NONE' (as is), 'SUM' (divide by the row sum; all-zero
 rows stay zero), 'SOFTMAX' (exp(w − max w) over the row's positive entries, summing to 1; zero
 entries stay zero, so a falloff's locality survives).
@@ -37,6 +40,7 @@ __all__ = [
     "sparse_from_blocks",
     "top_k",
     "top_k_dense",
+    "truncate",
 ]
 
 NORMALIZE_MODES = ("NONE", "SUM", "SOFTMAX")
@@ -128,6 +132,27 @@ def top_k(W: ArrayLike, k: int) -> tuple[IntArray, FloatArray]:
     return idx, np.take_along_axis(vals, order, axis=1)
 
 
+def truncate(W: ArrayLike, k: int) -> tuple[IntArray, FloatArray]:
+    """Continuous top-K: the k largest entries of each row of W (n, m) minus the row's (k+1)-th largest
+    (0 when m ≤ k) -> (indices (n, K) int32, values (n, K) ≥ 0), K = min(k, m), ordered as `top_k`.
+
+    Plain top-K with renormalisation jumps where the K-th and (K+1)-th controls swap: the one leaving
+    drops from w_K to 0. Subtracting the (K+1)-th value w_{K+1} (an order statistic, so a continuous
+    function of W) makes the leaving control's weight w_K − w_{K+1} = 0 at the swap, so the truncated
+    weights, and after 'SUM' normalisation the blend, are continuous wherever the kept sum
+    Σ_{j ≤ K} (w_j − w_{K+1}) is positive (it is zero only where the K+1 strongest weights tie).
+    """
+    W = np.asarray(W, dtype=np.float64)
+    if W.ndim != 2:
+        raise ValueError(f"weights must have shape (n, m), got {W.shape}")
+    if k < 1:
+        raise ValueError(f"k must be at least 1, got {k}")
+    if W.shape[1] <= k:
+        return top_k(W, k)
+    idx, vals = top_k(W, k + 1)
+    return idx[:, :k].copy(), np.maximum(vals[:, :k] - vals[:, k:], 0.0)
+
+
 def sparse_from_blocks(
     n_points: int,
     n_controls: int,
@@ -136,11 +161,14 @@ def sparse_from_blocks(
     normalize_mode: str = "SUM",
     chunk_size: int | None = None,
     temperature: float = 1.0,
+    continuous: bool = True,
 ) -> tuple[IntArray, FloatArray]:
     """Build sparse top-K weights from `block(lo, hi)` -> dense non-negative (hi − lo, n_controls).
 
-    Each chunk's block is reduced to its K = min(k, n_controls) largest entries, which are then
-    normalised ('SUM' renormalises over the kept K, so rows still sum to 1). Peak memory is
+    Each chunk's block is reduced to its K = min(k, n_controls) largest entries minus the (K+1)-th
+    (`truncate`: continuous where controls swap ranks; with continuous=False the K largest as they
+    are, for painted weights whose values the artist chose), which are then normalised ('SUM'
+    renormalises over the kept K, so rows still sum to 1). Peak memory is
     O(n_points · K + chunk · n_controls); the result does not depend on chunk_size.
     ValueError if a block has the wrong shape, negative or non-finite entries.
     """
@@ -167,7 +195,7 @@ def sparse_from_blocks(
             raise ValueError(f"weights for rows {lo}:{hi} contain non-finite values")
         if np.any(W < 0.0):
             raise ValueError(f"weights for rows {lo}:{hi} contain negative values")
-        idx, val = top_k(W, K)
+        idx, val = truncate(W, K) if continuous else top_k(W, K)
         indices[lo:hi] = idx
         values[lo:hi] = normalize(val, normalize_mode, temperature)
     return indices, values
@@ -176,11 +204,13 @@ def sparse_from_blocks(
 def top_k_dense(
     W: ArrayLike, k: int, normalize: str = "SUM", chunk_size: int | None = None
 ) -> tuple[IntArray, FloatArray]:
-    """Dense painted weights (N, m) -> sparse (indices (N, K) int32, values (N, K)), normalised."""
+    """Dense painted weights (N, m) -> sparse (indices (N, K) int32, values (N, K)), normalised: the K
+    largest of each row as painted (no continuous truncation: the values are the artist's)."""
     W = np.asarray(W, dtype=np.float64)
     if W.ndim != 2:
         raise ValueError(f"weights must have shape (N, m), got {W.shape}")
-    return sparse_from_blocks(W.shape[0], W.shape[1], lambda lo, hi: W[lo:hi], k, normalize, chunk_size)
+    return sparse_from_blocks(W.shape[0], W.shape[1], lambda lo, hi: W[lo:hi], k, normalize, chunk_size,
+                              continuous=False)
 
 
 def probe_weights(
@@ -203,7 +233,8 @@ def probe_weights(
     than once (up to 1e12 times on top of it) — so vertices within `radius` follow the probe fully
     and farther ones less. 'FALLOFF': smooth_falloff(d, radius) (exactly 0 at and beyond radius);
     'VERTEX_GROUPS': the dense painted weights `dense` (N, m) (negative paint is clamped to 0).
-    `scales` (m,) multiplies each probe's weight before the top-K selection.
+    `scales` (m,) multiplies each probe's weight before the top-K selection. Distance weights are
+    truncated continuously (`truncate`), painted ones keep their K largest values as painted.
     Returns (indices (N, K) int32, values (N, K)).
     """
     pts = np.asarray(points, dtype=np.float64)
@@ -247,4 +278,5 @@ def probe_weights(
 
     else:
         raise ValueError(f"weight mode must be one of {WEIGHT_MODES}, got {mode!r}")
-    return sparse_from_blocks(pts.shape[0], m, block, k, normalize, chunk_size)
+    return sparse_from_blocks(pts.shape[0], m, block, k, normalize, chunk_size,
+                              continuous=mode != "VERTEX_GROUPS")

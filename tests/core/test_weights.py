@@ -72,10 +72,29 @@ def test_top_k_orders_by_value_then_index() -> None:
     assert idx.shape == (3, 4) and np.array_equal(np.take_along_axis(W, idx.astype(np.intp), 1), val)
 
 
+def test_truncation_is_continuous_where_controls_swap_ranks() -> None:
+    """Along a path where the 3rd and 4th strongest of 6 controls swap, plain top-3 jumps; the
+    continuous truncation changes by O(step) per step, and rows still sum to 1."""
+    t = np.linspace(0.0, 1.0, 2001)[:, None]
+    W = np.hstack([np.full_like(t, 5.0), np.full_like(t, 4.0), 2.0 + t, 3.0 - t, 0.5 + 0 * t, 0.2 + 0 * t])
+    jumps = {}
+    for name, (idx, val) in (("plain", wt.top_k(W, 3)), ("continuous", wt.truncate(W, 3))):
+        dense = np.zeros_like(W)
+        np.put_along_axis(dense, idx.astype(np.intp), wt.normalize(val, "SUM"), 1)
+        np.testing.assert_allclose(dense.sum(1), 1.0, atol=1e-15)
+        jumps[name] = np.abs(np.diff(dense, axis=0)).max()
+    assert jumps["plain"] > 0.1, "plain top-K does jump (the test can fail)"
+    assert jumps["continuous"] < 5 * (t[1, 0] - t[0, 0])
+    idx, val = wt.truncate(W, 3)
+    fourth = np.sort(W, axis=1)[:, -4]
+    np.testing.assert_allclose(val, np.take_along_axis(W, idx.astype(np.intp), 1) - fourth[:, None], atol=1e-15)
+    assert np.array_equal(wt.truncate(W, 6)[1], wt.top_k(W, 6)[1]), "nothing dropped: nothing subtracted"
+
+
 def test_top_k_renormalises_to_one() -> None:
     rng = np.random.default_rng(1)
     W = rng.random((500, 9))
-    idx, val = wt.top_k_dense(W, 3, normalize="SUM")
+    idx, val = wt.top_k_dense(W, 3, normalize="SUM")  # painted weights: the 3 largest, as painted
     np.testing.assert_allclose(val.sum(axis=1), 1.0, rtol=0, atol=4e-16)
     kept = np.take_along_axis(W, idx.astype(np.intp), 1)
     np.testing.assert_allclose(val, kept / kept.sum(1, keepdims=True), rtol=1e-15)
@@ -103,7 +122,8 @@ def test_probe_weights_inverse_distance() -> None:
     idx, val = wt.probe_weights(pts, centers, mode="INVERSE_DISTANCE", exponent=2.0, normalize="SUM", k=2)
     assert idx[0, 0] == 0 and val[0, 0] > 1 - 1e-10  # a vertex on a probe follows it
     assert idx[1].tolist() == [0, 1] and np.allclose(val[1], [0.5, 0.5], rtol=0, atol=1e-15)
-    w = np.array([1 / 0.25, 1 / 2.25])  # distances 0.5 and 1.5 to the two nearest probes
+    # distances 0.5 and 1.5 to the two nearest probes, minus the third's weight (√9.25 away)
+    w = np.array([1 / 0.25, 1 / 2.25]) - 1 / 9.25
     np.testing.assert_allclose(val[2], w / w.sum(), rtol=1e-14)
     scaled = wt.probe_weights(
         pts, centers, mode="INVERSE_DISTANCE", normalize="SUM", k=2, scales=[0.0, 1.0, 1.0]
