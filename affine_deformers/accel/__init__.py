@@ -1,10 +1,11 @@
 """Optional compiled backend of the per-vertex kernel, with the numpy kernel as the fallback.
 
-`deform_points_params` and `deform_points_params_rows` have the signatures and the argument checks
-(same messages) of `affine_deformers.core.deform`; they run the numba kernel of `compiled.py` when it
-is available and the numpy kernel otherwise. The results agree to ~1e-15 relative (the compiled
-kernel uses polynomial transcendentals, see compiled.py), and within one backend every row is
-bit-identical whichever entry point, thread count or row subset computes it.
+`deform_points_params`, `deform_points_params_rows` and `vertex_motions` have the signatures and the
+argument checks (same messages) of `affine_deformers.core.deform`; they run the numba kernel of
+`compiled.py` when it is available and the numpy kernel otherwise. The results agree to ~1e-15
+relative (the compiled kernel uses polynomial transcendentals, see compiled.py), and within one
+backend every row is bit-identical whichever entry point, thread count or row subset computes it
+(for the compiled point entries with two known exceptions, see compiled.py's "Bit-identity").
 
 The compiled path is skipped when
 
@@ -36,10 +37,13 @@ from ..core import deform as _np_kernel
 from ..core.deform import (
     _check_given_out,
     _check_indices,
+    _check_motion_indices,
+    _check_motion_out,
     _check_out,
     _check_points,
     _check_rows,
     _check_table,
+    _identity_motions,
     _unchanged,
     default_threads,
 )
@@ -51,6 +55,7 @@ __all__ = [
     "deform_points_params",
     "deform_points_params_rows",
     "set_enabled",
+    "vertex_motions",
     "warm_up",
 ]
 
@@ -68,7 +73,8 @@ class _State:
         self.failure: str | None = None
         self.compiled: set[str] = set()  # entry points that have run once (compiled or cache-loaded)
         self.lock = threading.RLock()
-        self.checked_key: Hashable | None = None
+        self.checked_key: Hashable | None = None  # names checked points, indices and values
+        self.checked_weights_key: Hashable | None = None  # names checked indices and values only
         self.enabled = True
         self.warming: threading.Thread | None = None  # the thread compiling in `warm_up`
 
@@ -103,7 +109,7 @@ def _usable() -> ModuleType | None:
 
 
 def warm_up() -> str:
-    """Compile (or load from numba's cache) both entry points on a tiny input, so the first real
+    """Compile (or load from numba's cache) every entry point on a tiny input, so the first real
     update does not pay for it; returns `backend()`. Safe to call from a helper thread: calls into
     the compiled module are serialised by a lock, and a failure only switches the process to numpy."""
     pts = np.zeros((2, 3))
@@ -116,6 +122,7 @@ def warm_up() -> str:
         deform_points_params(pts, params, idx, val)
         deform_points_params_rows(pts, params, idx, val, np.array([1], dtype=np.intp), np.zeros((2, 3)),
                                   out32=np.zeros((2, 3), dtype=np.float32))
+        vertex_motions(params, idx, val)  # one specialisation serves both output types
     finally:
         _state.warming = None
     return backend()
@@ -339,6 +346,66 @@ def deform_points_params_rows(
 
 
 _NO_OUT32 = np.empty((0, 3), dtype=np.float32)
+_NO_ROWS = np.empty(0, dtype=np.intp)
+_NO_MOTIONS = np.empty((4, 0, 3))
+_NO_MOTIONS32 = np.empty((4, 0, 3), dtype=np.float32)
+
+
+def _weights_inputs(
+    params: ArrayLike, indices: ArrayLike, values: ArrayLike, key: Hashable | None
+) -> tuple[FloatArray, NDArray[np.integer], FloatArray]:
+    """Checked table, indices and values (no points: `vertex_motions`). With a key of an earlier
+    checked call (with or without points) only the shapes are checked, as in `_inputs`."""
+    table = _check_table(params, 12, "params")
+    if key is not None and key in (_state.checked_key, _state.checked_weights_key):
+        idx = np.asarray(indices)
+        val = np.asarray(values, dtype=np.float64)
+        if idx.ndim == 2 and idx.shape == val.shape and np.issubdtype(idx.dtype, np.integer):
+            return table, idx, val
+    _check_motion_indices(indices, values, table.shape[0])
+    idx, val = _check_indices(indices, values, None, table.shape[0])
+    if key is not None:
+        _state.checked_weights_key = key
+    return table, idx, val
+
+
+def vertex_motions(
+    params: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    out: FloatArray | NDArray[np.float32] | None = None,
+    *,
+    rows: ArrayLike | None = None,
+    key: Hashable | None = None,
+) -> FloatArray | NDArray[np.float32]:
+    """Each vertex's affine map φ(p_v) as out[:, v] = (M_v e_x, M_v e_y, M_v e_z, t_v): as
+    `core.deform.vertex_motions` (same arguments, checks and messages; out (4, N, 3) float64 or
+    float32, a float32 out gets the float64 value rounded once; `rows` recomputes only those rows,
+    bit-identical to the same rows of a full call with the same backend). `key`: as in
+    `deform_points_params` (naming the indices and values); a call with the key of an earlier checked
+    call skips re-validating them."""
+    if _usable() is None:
+        return _np_kernel.vertex_motions(params, indices, values, out, rows=rows, key=key)
+    table, idx, val = _weights_inputs(params, indices, values, key)
+    n = idx.shape[0]
+    out = _check_motion_out(out, n)
+    if not out.flags.writeable:
+        raise ValueError("out must be writable")
+    sel = None if rows is None else _c(_check_rows(rows, n), np.intp)
+    if not table.any():  # every control at rest (also m = 0, which the kernel cannot index)
+        return _identity_motions(out, sel)
+    dst = out if out.flags.c_contiguous else np.ascontiguousarray(out)
+    use32 = dst.dtype == np.float32
+    args = (_c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), _NO_ROWS if sel is None else sel,
+            sel is not None, _NO_MOTIONS if use32 else dst, dst if use32 else _NO_MOTIONS32, use32)
+    if not _run("motion_params", *args):
+        return _np_kernel.vertex_motions(params, indices, values, out, rows=rows, key=key)
+    if dst is not out:
+        if sel is None:
+            np.copyto(out, dst)
+        else:
+            out[:, sel] = dst[:, sel]
+    return out
 
 
 def _numpy_rows(

@@ -1,15 +1,20 @@
-"""The per-vertex kernel v ↦ φ(Σ_k w_k P_idx(k)) v compiled with numba (optional backend).
+"""The per-vertex kernel v ↦ φ(Σ_k w_k P_idx(k)) v compiled with numba (optional backend), and its
+motion twin p ↦ φ(p) itself (`motion_params`: the columns of M = R(ω) exp(Y) and t = V(ω) u).
 
 Same mathematics as `core/deform.py` (parameter layout of docs/DEVELOPING.md, P = (ω, u, Y₆)):
 
     v' = R(ω) exp(Y) v + V(ω) u,
-    exp(Y) v = e^{e₁} (v + α Z v + g Z² v),  Z = Y − e₁ I,  e₀ ≤ e₁ ≤ e₂ the eigenvalues of Y,
+    exp(Y) = e^{e₁} (I + α Z + g Z²),  Z = Y − e₁ I,  e₀ ≤ e₁ ≤ e₂ the eigenvalues of Y,
     x = e₀ − e₁ ≤ 0 ≤ y = e₂ − e₁,  g = (y h2(y) − x h2(x))/(y − x),  α = 1 + x (h2(x) − g),
     h2(z) = (eᶻ − 1 − z)/z²,
     R w + V u = cos θ w + A u + ω × (A w + B u) + (B ω·w + C ω·u) ω,
     A = sin θ/θ, B = (1 − cos θ)/θ², C = (θ − sin θ)/θ³, θ = |ω|.
 
 The eigenvalues come from the trigonometric cubic on the traceless part (a = arccos(r)/3 ≤ π/3).
+The pieces are inlined scalar functions shared by both maps: `_exp_sym_coeffs` (spectrum → E, α', g',
+Z), `_stretch` (exp(Y) v) or `_exp_sym_matrix` (exp(Y) itself), `_rotation_coeffs_poly` /
+`_rotation_coeffs_libm` (A, B, C, cos θ) and `_rigid` (R e + V u; the motion calls it with u = 0 on
+the columns of exp(Y) and with e = 0 for t), as the numpy kernel's stages of the same names.
 
 Layout: vertices go in chunks of CHUNK rows (threads take whole chunks). Per chunk, `_chunk` blends
 the parameters into a structure-of-arrays scratch (12 parameter rows, 3 point rows, 3 result rows)
@@ -42,6 +47,19 @@ reassociation, so no sum is reordered); and the map always runs a full chunk, so
 by a scalar remainder loop whose FMA contraction could differ from the vector body's (see `_map`).
 The float32 copy `deform_rows` can store next to a row is one conversion of the stored float64
 (round to nearest even, overflow to ±inf), the same rounding as numpy's astype(np.float32).
+`motion_params` follows the same rules with its own chunk routine (`_motion_chunk`: blend, map,
+fix-up, store), and is a single specialisation for both output types (float64 `out` or float32
+`out32`, the other passed empty), for the first caveat below; its fix-up loop carries a barrier
+against vectorisation, for the second.
+
+Two caveats found for the point entries (`deform_params`/`deform_rows`, left as they are):
+* an entry loaded from numba's cache and one compiled in the session can differ in the last bit
+  (the cached object holds its own re-optimised copy of `_chunk`; a fresh entry calls the standalone
+  one), so the two entries agree only when both come from the cache or both were compiled in the
+  session (`warm_up` runs both, which keeps them together in practice);
+* `_fixup` (variable trip count) is vectorised by LLVM in the entry despite its libm calls, so a
+  θ > 1.8π row can get other bits in a full chunk than alone in a short one (seen with cached
+  entries); `_scalar_barrier()` at the top of its loop would fix that, changing those rows' bits.
 
 Memory safety: indices are clamped to the table in the blend (one min per slot), so inputs the caller
 vouched for (a `key`) but that are wrong can give wrong values but never read out of bounds.
@@ -64,7 +82,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["CHUNK", "deform_params", "deform_rows"]
+__all__ = ["CHUNK", "deform_params", "deform_rows", "motion_params"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -74,6 +92,7 @@ CHUNK = 2048
 # vectorised map reads and writes ~20 rows at once.
 _STRIDE = CHUNK + 8
 _N_SCRATCH = 18  # 12 parameters, 3 point coordinates, 3 results
+_N_MOTION_SCRATCH = 24  # 12 parameters, 12 results (M e_x, M e_y, M e_z, t)
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -121,6 +140,20 @@ def _f2i(typingctx, x):
         return builder.bitcast(args[0], ir.IntType(64))
 
     return types.int64(types.float64), codegen
+
+
+@intrinsic
+def _scalar_barrier(typingctx):
+    """An empty inline asm with a memory clobber: LLVM can neither vectorise a loop containing it nor
+    move memory accesses across it, so every iteration of such a loop runs the same scalar code
+    (a loop with a variable trip count is otherwise vectorised, and then a row's bits depend on
+    whether it fell into the vector body or the scalar remainder)."""
+
+    def codegen(context, builder, signature, args):
+        builder.asm(ir.FunctionType(ir.VoidType(), []), "", "~{memory}", [], True)
+        return context.get_dummy_value()
+
+    return types.none(), codegen
 
 
 # ---------------------------------------------------------------------------------------------
@@ -202,10 +235,12 @@ def _acos_third(r: float) -> float:
 
 
 @_inline
-def _stretch(
-    yxx: float, yyy: float, yzz: float, yxy: float, yxz: float, yyz: float, v0: float, v1: float, v2: float
-) -> tuple[float, float, float]:
-    """exp(Y) v for Y = [[yxx, yxy, yxz], [yxy, yyy, yyz], [yxz, yyz, yzz]] (see the module doc)."""
+def _exp_sym_coeffs(
+    yxx: float, yyy: float, yzz: float, yxy: float, yxz: float, yyz: float
+) -> tuple[float, float, float, float, float, float]:
+    """(E, α', g', z0, z1, z2) with exp(Y) = E I + α' Z + g' Z², Z = Y − e₁ I (z0 … z2 its diagonal,
+    its off-diagonal is Y's), E = e^{e₁}, α' = E α, g' = E g, for Y = [[yxx, yxy, yxz],
+    [yxy, yyy, yyz], [yxz, yyz, yzz]] (see the module doc)."""
     q = (yxx + yyy + yzz) * (1.0 / 3.0)
     b0 = yxx - q
     b1 = yyy - q
@@ -232,9 +267,15 @@ def _stretch(
     E = _exp(e1)
     alpha *= E
     g *= E
-    z0 = yxx - e1
-    z1 = yyy - e1
-    z2 = yzz - e1
+    return E, alpha, g, yxx - e1, yyy - e1, yzz - e1
+
+
+@_inline
+def _stretch(
+    yxx: float, yyy: float, yzz: float, yxy: float, yxz: float, yyz: float, v0: float, v1: float, v2: float
+) -> tuple[float, float, float]:
+    """exp(Y) v = (α' Z v + g' Z² v) + E v (`_exp_sym_coeffs`)."""
+    E, alpha, g, z0, z1, z2 = _exp_sym_coeffs(yxx, yyy, yzz, yxy, yxz, yyz)
     zv0 = z0 * v0 + yxy * v1 + yxz * v2
     zv1 = yxy * v0 + z1 * v1 + yyz * v2
     zv2 = yxz * v0 + yyz * v1 + z2 * v2
@@ -242,6 +283,24 @@ def _stretch(
     zz1 = yxy * zv0 + z1 * zv1 + yyz * zv2
     zz2 = yxz * zv0 + yyz * zv1 + z2 * zv2
     return (alpha * zv0 + g * zz0 + E * v0, alpha * zv1 + g * zz1 + E * v1, alpha * zv2 + g * zz2 + E * v2)
+
+
+@_inline
+def _exp_sym_matrix(
+    yxx: float, yyy: float, yzz: float, yxy: float, yxz: float, yyz: float
+) -> tuple[float, float, float, float, float, float]:
+    """exp(Y) = (α' Z + g' Z²) + E I as (xx, yy, zz, xy, xz, yz) (`_exp_sym_coeffs`)."""
+    E, alpha, g, z0, z1, z2 = _exp_sym_coeffs(yxx, yyy, yzz, yxy, yxz, yyz)
+    a, b, c = yxy, yxz, yyz  # Z = [[z0, a, b], [a, z1, c], [b, c, z2]]
+    aa, bb, cc = a * a, b * b, c * c
+    return (
+        alpha * z0 + g * (z0 * z0 + aa + bb) + E,
+        alpha * z1 + g * (z1 * z1 + aa + cc) + E,
+        alpha * z2 + g * (z2 * z2 + bb + cc) + E,
+        alpha * a + g * (a * (z0 + z1) + b * c),
+        alpha * b + g * (b * (z0 + z2) + a * c),
+        alpha * c + g * (c * (z1 + z2) + a * b),
+    )
 
 
 @_inline
@@ -291,10 +350,21 @@ def _rigid(
 @_inline
 def _blend(T: np.ndarray, I: np.ndarray, V: np.ndarray, P: np.ndarray, K: int, last: np.uint64,
            W: np.ndarray, j: int, r: int) -> None:
-    """Column j of the scratch from row r: parameters Σ_k V[r, k] T[I[r, k]] (slot order) in
-    scratch rows 0–11, the point P[r] in rows 12–14. T, I, V, P are the flat (row-major) table,
-    indices, values and points; `last` = m − 1. Indices are clamped to the table (no effect on valid
-    input, see the module doc)."""
+    """Column j of the scratch from row r: parameters (`_blend_params`) in scratch rows 0–11, the
+    point P[r] (P the flat points) in rows 12–14."""
+    _blend_params(T, I, V, K, last, W, j, r)
+    S = _STRIDE
+    W[12 * S + j] = P[3 * r]
+    W[13 * S + j] = P[3 * r + 1]
+    W[14 * S + j] = P[3 * r + 2]
+
+
+@_inline
+def _blend_params(T: np.ndarray, I: np.ndarray, V: np.ndarray, K: int, last: np.uint64, W: np.ndarray, j: int,
+                  r: int) -> None:
+    """Scratch rows 0–11 of column j = Σ_k V[r, k] T[I[r, k]] (slot order). T, I, V are the flat
+    (row-major) table, indices and values; `last` = m − 1. Indices are clamped to the table (no effect
+    on valid input, see the module doc)."""
     # Unsigned offsets: numba adds a negative-index wraparound select to every signed subscript,
     # which here would cost as much as the arithmetic.
     one = np.uint64(1)
@@ -340,9 +410,6 @@ def _blend(T: np.ndarray, I: np.ndarray, V: np.ndarray, P: np.ndarray, K: int, l
     W[9 * S + j] = a9
     W[10 * S + j] = a10
     W[11 * S + j] = a11
-    W[12 * S + j] = P[3 * r]
-    W[13 * S + j] = P[3 * r + 1]
-    W[14 * S + j] = P[3 * r + 2]
 
 
 @_inline
@@ -398,14 +465,98 @@ def _map(W: np.ndarray) -> int:
 def _fixup(W: np.ndarray, n: int) -> None:
     """Redo the columns j < n with θ > 1.8π with libm θ-coefficients (rare: lifted rotations).
 
-    A scalar loop (libm calls and a branch are not vectorised), so its values do not depend on the
-    position either; both entry points send the same rows through it."""
+    Meant as a scalar loop so its values do not depend on the position; LLVM does vectorise it in
+    the entry points, though (see the module doc's caveats; `_fixup_motion` has a barrier)."""
     for j in range(n):
         s = _theta_sq(W, j)
         if s > POLY_MAX_S:
             e0, e1, e2 = _stretch_at(W, j)
             A, B, C, cth = _rotation_coeffs_libm(s)
             _rigid_store(W, j, e0, e1, e2, A, B, C, cth)
+
+
+@_inline
+def _motion_store_at(W: np.ndarray, j: int, A: float, B: float, C: float, cth: float) -> None:
+    """Scratch rows 12–23 of column j = φ(rows 0–11) as the columns of M = R(ω) exp(Y) (rows 12–14,
+    15–17, 18–20) and t = V(ω) u (rows 21–23): `_rigid` with u = 0 on the columns of exp(Y), and with
+    the point 0."""
+    S = _STRIDE
+    w0, w1, w2 = W[j], W[S + j], W[2 * S + j]
+    xx, yy, zz, xy, xz, yz = _exp_sym_matrix(
+        W[6 * S + j], W[7 * S + j], W[8 * S + j], W[9 * S + j], W[10 * S + j], W[11 * S + j]
+    )
+    o0, o1, o2 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xx, xy, xz, A, B, C, cth)
+    W[12 * S + j] = o0
+    W[13 * S + j] = o1
+    W[14 * S + j] = o2
+    o0, o1, o2 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xy, yy, yz, A, B, C, cth)
+    W[15 * S + j] = o0
+    W[16 * S + j] = o1
+    W[17 * S + j] = o2
+    o0, o1, o2 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xz, yz, zz, A, B, C, cth)
+    W[18 * S + j] = o0
+    W[19 * S + j] = o1
+    W[20 * S + j] = o2
+    o0, o1, o2 = _rigid(w0, w1, w2, W[3 * S + j], W[4 * S + j], W[5 * S + j], 0.0, 0.0, 0.0, A, B, C, cth)
+    W[21 * S + j] = o0
+    W[22 * S + j] = o1
+    W[23 * S + j] = o2
+
+
+@numba.njit(fastmath=FASTMATH, error_model="numpy")
+def _map_motion(W: np.ndarray) -> int:
+    """Rows 12–23 = φ(rows 0–11) as (M e_x, M e_y, M e_z, t) for every column of the flat motion
+    scratch (row stride _STRIDE), θ-coefficients by polynomial; returns how many columns have
+    θ > 1.8π (to be redone by `_fixup_motion`). Always all CHUNK columns, as `_map`."""
+    n_big = 0
+    for j in range(CHUNK):
+        s = _theta_sq(W, j)
+        A, B, C, cth = _rotation_coeffs_poly(s)
+        _motion_store_at(W, j, A, B, C, cth)
+        n_big += 1 if s > POLY_MAX_S else 0
+    return n_big
+
+
+@numba.njit(fastmath=FASTMATH, error_model="numpy")
+def _fixup_motion(W: np.ndarray, n: int) -> None:
+    """Redo the columns j < n with θ > 1.8π with libm θ-coefficients. Kept scalar by a barrier:
+    without it LLVM vectorises this loop (variable trip count) in the entry point, and a row then
+    gets different bits in a full chunk than alone in a short one."""
+    for j in range(n):
+        _scalar_barrier()
+        s = _theta_sq(W, j)
+        if s > POLY_MAX_S:
+            A, B, C, cth = _rotation_coeffs_libm(s)
+            _motion_store_at(W, j, A, B, C, cth)
+
+
+@numba.njit(fastmath=FASTMATH, error_model="numpy")
+def _motion_chunk(
+    table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, a: int, n: int, use_rows: bool,
+    out: np.ndarray, out32: np.ndarray, use32: bool,
+) -> None:
+    """Rows a … a+n−1 of the work list (0 … N−1, or `rows` when use_rows): blend, motion map, store
+    into out[:, r] (float64), or with use32 into out32[:, r] (the float64 value rounded once: IEEE
+    round to nearest, as numpy's cast)."""
+    W = np.empty(_N_MOTION_SCRATCH * _STRIDE)
+    T, I, V = table.reshape(-1), idx.reshape(-1), val.reshape(-1)
+    K = idx.shape[1]
+    last = np.uint64(table.shape[0] - 1)
+    for j in range(n):
+        _blend_params(T, I, V, K, last, W, j, rows[a + j] if use_rows else a + j)
+    for c in range(12):  # φ(0) in the unused columns (see `_map`)
+        W[c * _STRIDE + n : c * _STRIDE + CHUNK] = 0.0
+    if _map_motion(W) > 0:
+        _fixup_motion(W, n)
+    for j in range(n):
+        r = rows[a + j] if use_rows else a + j
+        for c in range(4):
+            for t in range(3):
+                res = W[(12 + 3 * c + t) * _STRIDE + j]
+                if use32:
+                    out32[c, r, t] = np.float32(res)
+                else:
+                    out[c, r, t] = res
 
 
 @numba.njit(fastmath=FASTMATH, error_model="numpy")
@@ -484,3 +635,24 @@ def deform_rows(
         a = c * CHUNK
         _chunk(points, table, idx, val, rows, a, min(CHUNK, n - a), True, offsets, out, out32, use32)
     return out
+
+
+@_entry
+def motion_params(
+    table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool, out: np.ndarray,
+    out32: np.ndarray, use32: bool,
+) -> None:
+    """The affine map φ(p_v), p_v = Σ_k val[v, k] table[idx[v, k]], of every vertex v (use_rows
+    False) or of v = rows[i] (use_rows), as out[:, v] = (M e_x, M e_y, M e_z, t) (M = R(ω) exp(Y),
+    t = V(ω) u); other rows untouched. table (m ≥ 1, 12) f64, idx (N, K) int32, val (N, K) f64,
+    rows (n,) intp in [0, N) (empty when not use_rows), out (4, N, 3) f64; with use32 out32
+    (4, N, 3) f32 gets the float64 value rounded once instead and out is not accessed.
+
+    One compiled specialisation for both output types (pass an empty (4, 0, 3) array for the unused
+    one): a specialisation loaded from numba's cache and one compiled in the session can differ in
+    the last bit (the cached object holds its own re-optimised copy of the callees), so two would
+    break "float32 out = float64 out rounded" whenever only one of them was cached."""
+    n = rows.shape[0] if use_rows else idx.shape[0]
+    for c in numba.prange((n + CHUNK - 1) // CHUNK):
+        a = c * CHUNK
+        _motion_chunk(table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)

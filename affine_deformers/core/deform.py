@@ -1,8 +1,15 @@
-"""The per-vertex kernel: v ↦ φ(Σ_k w_k P_idx(k)) v, vectorised over vertices (ERRATA 1).
+"""The per-vertex kernel: v ↦ φ(Σ_k w_k P_idx(k)) v, vectorised over vertices (ERRATA 1), and the
+motion map p_v ↦ φ(p_v) itself (`vertex_motions`: the columns of M = R(ω) exp(Y) and t = V(ω) u).
 
 Parameters follow docs/DEVELOPING.md: P = (ω, u, Y₆) ∈ R¹²; for a point v
 
     v' = R(ω) · exp(Y) v + V(ω) u.
+
+Both maps run the same stages (module-level functions on rows, named as the compiled kernel's
+pieces): `_exp_sym_coeffs` (spectrum of Y → E, α', g', Z), then `_exp_sym_apply` (exp(Y) v) or
+`_exp_sym_matrix` (exp(Y) = E I + α' Z + g' Z²), `_rotation_coeffs` (A, B, C, cos θ, with the exact
+fallback past 1.8π) and `_rigid` (R e + V u; the motion map calls it with u = 0 on the columns of
+exp(Y) and with e = 0 for t). Scratch rows go from stage to stage through `_FreeRows`.
 
 No 3×3 matrix is formed per vertex. Vertices are processed in chunks, as structure-of-arrays rows
 (12, n) in preallocated scratch rows, with in-place ufuncs only:
@@ -38,6 +45,11 @@ exp(Y)v ≈ 2 ms, θ-coefficients ≈ 1 ms, final assembly with the output trans
 transpose 0.2 ms), the blend ≈ 0.5 ms from cached dense weights (≈ 2.2 ms scattering them per
 chunk), checks ≈ 0.2 ms. That is ~250 ufunc calls per chunk at ~0.2 ns per element each: memory
 traffic between the scratch rows (L2), not arithmetic, is the limit for numpy code.
+
+`vertex_motions` (same box, same case): 11.5–13.7 ms per call (float64 or float32 out), 3.8–4.4 ms
+for a quarter of the rows; its map costs about what φ(p)v does (the three columns of R exp(Y) replace
+exp(Y)v and one rigid step), plus twelve strided component stores. Accuracy against aff3:
+≤ 3e-15 relative to ‖M‖ for M, to ‖M‖ + ‖t‖ for t (tests).
 """
 
 from __future__ import annotations
@@ -65,6 +77,7 @@ __all__ = [
     "deform_points",
     "deform_points_params",
     "deform_points_params_rows",
+    "vertex_motions",
 ]
 
 #: Vertices per chunk: 40-odd scratch rows of this length stay in a core's L2 cache.
@@ -149,12 +162,13 @@ class _WeightsEntry:
 
 @dataclass
 class _RowSet:
-    """Inputs of a subset of rows, gathered once: `rows` (n,), their points as rows (3, n) and either
-    their dense weight columns (m, n) or their sparse (idx, val) rows (n, K)."""
+    """Inputs of a subset of rows, gathered once: `rows` (n,), their points as rows (3, n) (None until
+    a call with points needs them: `vertex_motions` has none) and either their dense weight columns
+    (m, n) or their sparse (idx, val) rows (n, K)."""
 
     key: Hashable | None
     rows: NDArray[np.intp]
-    points_t: FloatArray
+    points_t: FloatArray | None
     weights: FloatArray | None
     idx: IntArray | None
     val: FloatArray | None
@@ -279,17 +293,15 @@ class DeformKernel:
         _check_given_out(out, pts)
         sel = _check_rows(rows, pts.shape[0])
         rs = self._row_set(key, sel, pts, idx, val, dense)
+        points_t = rs.points_t
+        assert points_t is not None  # _row_set gathers them when given points
         table_t = np.ascontiguousarray(table.T)
 
         def work(kernel: DeformKernel, a: int, b: int) -> None:
             n = b - a
             P = kernel._param_rows(n)
-            if rs.weights is not None:
-                # The same product as the full call's, on gathered columns: same values per row.
-                np.matmul(table_t, rs.weights[:, a:b], out=P)
-            else:
-                kernel._blend_sparse(table_t, rs.idx[a:b], rs.val[a:b], P)
-            V = rs.points_t[:, a:b]
+            kernel._row_set_blend(table_t, rs, a, b, P)
+            V = points_t[:, a:b]
             O = kernel._result_rows(n)
             kernel._apply_soa(V, P, O)
             if offsets:
@@ -298,6 +310,53 @@ class DeformKernel:
 
         self._run(sel.shape[0], work)
         return out
+
+    def motions(
+        self,
+        params: ArrayLike,
+        indices: ArrayLike,
+        values: ArrayLike,
+        out: FloatArray | NDArray[np.float32] | None = None,
+        *,
+        rows: ArrayLike | None = None,
+        key: Hashable | None = None,
+    ) -> FloatArray | NDArray[np.float32]:
+        """The per-vertex affine maps; see `vertex_motions`."""
+        table = _check_table(params, 12, "params")
+        m = table.shape[0]
+        n_total = _check_motion_indices(indices, values, m)
+        idx, val, dense = self._sparse_weights(indices, values, n_total, m, key)
+        out = _check_motion_out(out, n_total)
+        sel = None if rows is None else _check_rows(rows, n_total)
+        if not table.any():  # every control at rest (also m = 0)
+            return _identity_motions(out, sel)
+        table_t = np.ascontiguousarray(table.T)
+        if sel is None:
+
+            def work(kernel: DeformKernel, a: int, b: int) -> None:
+                P = kernel._param_rows(b - a)
+                kernel._blend(table_t, idx, val, dense, a, b, P)
+                kernel._motion_chunk(P, out, slice(a, b))
+
+            self._run(n_total, work)
+            return out
+        rs = self._row_set(key, sel, None, idx, val, dense)
+
+        def work_rows(kernel: DeformKernel, a: int, b: int) -> None:
+            P = kernel._param_rows(b - a)
+            kernel._row_set_blend(table_t, rs, a, b, P)
+            kernel._motion_chunk(P, out, rs.rows[a:b])
+
+        self._run(sel.shape[0], work_rows)
+        return out
+
+    def _row_set_blend(self, table_t: FloatArray, rs: _RowSet, a: int, b: int, P: FloatArray) -> None:
+        """P (12, b − a) = the blended parameters of the row set's entries a:b."""
+        if rs.weights is not None:
+            # The same product as the full call's, on gathered columns: same values per row.
+            np.matmul(table_t, rs.weights[:, a:b], out=P)
+        else:
+            self._blend_sparse(table_t, rs.idx[a:b], rs.val[a:b], P)
 
     def _inputs(
         self, points: ArrayLike, indices: ArrayLike, values: ArrayLike, m: int, key: Hashable | None
@@ -316,21 +375,24 @@ class DeformKernel:
         return pts, idx, val, dense
 
     def _row_set(
-        self, key: Hashable | None, sel: NDArray[np.integer], pts: FloatArray, idx: IntArray, val: FloatArray,
-        dense: FloatArray | None,
+        self, key: Hashable | None, sel: NDArray[np.integer], pts: FloatArray | None, idx: IntArray,
+        val: FloatArray, dense: FloatArray | None,
     ) -> _RowSet:
         """The gathered inputs of the rows `sel`, kept between calls with the same key and rows: an
         interactive drag recomputes the same rows every update, and gathering them (points transposed
-        to rows, the weight columns) costs about as much as the map itself."""
+        to rows, the weight columns) costs about as much as the map itself. pts None: no points
+        (`motions`); a kept set gathered without them gets them when a call with points finds it."""
         for i, rs in enumerate(self._row_sets):
             if rs.key == key and rs.rows.shape == sel.shape and np.array_equal(rs.rows, sel):
                 self._row_sets.insert(0, self._row_sets.pop(i))
+                if pts is not None and rs.points_t is None:
+                    rs.points_t = np.ascontiguousarray(pts[rs.rows].T)
                 return rs
         rows = sel.astype(np.intp)
         rs = _RowSet(
             key,
             rows,
-            np.ascontiguousarray(pts[rows].T),
+            None if pts is None else np.ascontiguousarray(pts[rows].T),
             None if dense is None else np.take(dense, rows, axis=1),
             None if dense is not None else idx[rows],
             None if dense is not None else val[rows],
@@ -507,7 +569,11 @@ class DeformKernel:
                 P += gathered
 
     # ------------------------------------------------------------------------------------------
-    # the per-vertex map
+    # the per-vertex maps: φ(p) v (points) and φ(p) itself (motions), from the same stages
+
+    def _free_rows(self, start: int, n: int) -> _FreeRows:
+        """The kernel's rows from `start` on, trimmed to n, as the free scratch of one chunk."""
+        return _FreeRows(self._rows.buf[start:_N_ROWS, :n])
 
     def _apply_chunk(self, pts: FloatArray, P: FloatArray, out: FloatArray) -> None:
         """out (n, 3) = φ(P) pts for blended parameters P (12, n) (structure of arrays)."""
@@ -519,189 +585,331 @@ class DeformKernel:
         np.copyto(out, O.T)
 
     def _apply_soa(self, V: FloatArray, P: FloatArray, O: FloatArray) -> None:
-        """O (3, n) = φ(P) V for points V (3, n) and blended parameters P (12, n), all as rows.
+        """O (3, n) = φ(P) V for points V (3, n) and blended parameters P (12, n), all as rows:
+        v' = R(ω) (exp(Y) v) + V(ω) u.
 
         O must not overlap V or P; V may be any (3, n) rows (the kernel's point rows or cached ones).
         """
+        free = self._free_rows(18, P.shape[1])
+        coeffs = _exp_sym_coeffs(P[6:12], free)
+        ew = _exp_sym_apply(P[9:12], coeffs, V, free)
+        free.give(*coeffs)
+        theta = _rotation_coeffs(P[0:3], free)
+        _rigid(P[0:3], P[3:6], ew, theta, O, free)
+
+    def _motion_chunk(self, P: FloatArray, out: FloatArray, where: slice | NDArray[np.intp]) -> None:
+        """out[:, where] = φ(P) as (columns of M, t) for blended parameters P (12, n) (see
+        `vertex_motions`); out float64 or float32 (one rounding of the float64 value)."""
         n = P.shape[1]
-        v0, v1, v2 = V[0], V[1], V[2]
-        sc = self._scratch()
-        mul, add, sub = np.multiply, np.add, np.subtract
-        w0, w1, w2, u0, u1, u2 = P[0], P[1], P[2], P[3], P[4], P[5]
-        yxx, yyy, yzz, yxy, yxz, yyz = P[6], P[7], P[8], P[9], P[10], P[11]
-        q, b0, b1, b2, p2, p, det, t0, t1, x, y, h2x, h2y = sc.take(n, 13)
+        O = self._rows.buf[12:24, :n]  # no point rows here: 12 result rows
+        self._motion_soa(P, O)
+        # One component at a time: a strided store from a contiguous row is ~5× faster than a
+        # transposing copy of three rows (and than a fancy-indexed row assignment).
+        with np.errstate(over="ignore"):  # a float32 out takes ±inf beyond its range, as astype does
+            for c in range(4):
+                for t in range(3):
+                    out[c, where, t] = O[3 * c + t]
 
-        # ---- spectrum of Y: q = tr/3, B = Y − qI, p = √(tr B²/6), cos 3a = det B/(2p³) -----------
-        add(yxx, yyy, out=q)
-        q += yzz
-        q *= 1.0 / 3.0
-        sub(yxx, q, out=b0)
-        sub(yyy, q, out=b1)
-        sub(yzz, q, out=b2)
-        # det B = b0 b1 b2 + 2 xy xz yz − b0 yz² − b1 xz² − b2 xy²;  6 p² = Σ b² + 2 Σ off²
-        mul(b0, b1, out=det)
-        det *= b2
-        mul(yxy, yxz, out=t0)
-        t0 *= yyz
+    def _motion_soa(self, P: FloatArray, O: FloatArray) -> None:
+        """O (12, n) = the map φ(P) for blended parameters P (12, n): rows 3c … 3c+2 hold M e_c
+        (c = 0, 1, 2), rows 9 … 11 hold t, M = R(ω) exp(Y), t = V(ω) u. O must not overlap P."""
+        free = self._free_rows(24, P.shape[1])
+        coeffs = _exp_sym_coeffs(P[6:12], free)
+        xx, yy, zz, xy, xz, yz = _exp_sym_matrix(P[9:12], coeffs, free)
+        free.give(*coeffs)
+        theta = _rotation_coeffs(P[0:3], free)
+        w = P[0:3]
+        for c, column in enumerate(((xx, xy, xz), (xy, yy, yz), (xz, yz, zz))):  # exp(Y) is symmetric
+            _rigid(w, None, column, theta, O[3 * c : 3 * c + 3], free)  # R(ω) exp(Y) e_c
+        _rigid(w, P[3:6], None, theta, O[9:12], free)  # V(ω) u
+
+
+class _FreeRows:
+    """Scratch rows of one chunk not in use: a stage takes the rows it needs and gives back those it
+    does not return (last given, first taken: the rows most recently written are the warm ones)."""
+
+    def __init__(self, rows: FloatArray) -> None:
+        self._rows = list(rows)
+
+    def take(self, count: int) -> list[FloatArray]:
+        if count > len(self._rows):
+            raise RuntimeError("kernel scratch exhausted")  # a programming error, not an input error
+        taken = self._rows[len(self._rows) - count :]
+        del self._rows[len(self._rows) - count :]
+        return taken
+
+    def give(self, *rows: FloatArray) -> None:
+        self._rows.extend(rows)
+
+
+# ----------------------------------------------------------------------------------------------
+# stages of the map, on (n,) rows with in-place ufuncs (the compiled kernel's `_exp_sym_coeffs`,
+# `_stretch`, `_exp_sym_matrix`, `_rotation_coeffs_poly`, `_rigid`, in the same order)
+
+
+def _exp_sym_coeffs(Y: FloatArray, free: _FreeRows) -> tuple[FloatArray, ...]:
+    """The spectral coefficients of exp(Y) for Y (6, n) = (Yxx, Yyy, Yzz, Yxy, Yxz, Yyz) rows:
+    (E, α', g', z0, z1, z2) with exp(Y) = E I + α' Z + g' Z², Z = Y − e₁ I (z0 … z2 its diagonal,
+    its off-diagonal is Y's), E = e^{e₁}, α' = E α, g' = E g (module doc). Takes 13 rows of `free`,
+    returns six of them and gives the other seven back."""
+    mul, add, sub = np.multiply, np.add, np.subtract
+    yxx, yyy, yzz, yxy, yxz, yyz = Y
+    q, b0, b1, b2, p2, p, det, t0, t1, x, y, h2x, h2y = free.take(13)
+
+    # ---- spectrum of Y: q = tr/3, B = Y − qI, p = √(tr B²/6), cos 3a = det B/(2p³) ---------------
+    add(yxx, yyy, out=q)
+    q += yzz
+    q *= 1.0 / 3.0
+    sub(yxx, q, out=b0)
+    sub(yyy, q, out=b1)
+    sub(yzz, q, out=b2)
+    # det B = b0 b1 b2 + 2 xy xz yz − b0 yz² − b1 xz² − b2 xy²;  6 p² = Σ b² + 2 Σ off²
+    mul(b0, b1, out=det)
+    det *= b2
+    mul(yxy, yxz, out=t0)
+    t0 *= yyz
+    t0 += t0
+    det += t0
+    mul(b0, b0, out=p2)
+    for bi, oi in ((b0, yyz), (b1, yxz), (b2, yxy)):
+        mul(oi, oi, out=t0)
+        mul(bi, t0, out=t1)
+        det -= t1
         t0 += t0
-        det += t0
-        mul(b0, b0, out=p2)
-        for bi, oi in ((b0, yyz), (b1, yxz), (b2, yxy)):
-            mul(oi, oi, out=t0)
-            mul(bi, t0, out=t1)
-            det -= t1
-            t0 += t0
-            p2 += t0
-        mul(b1, b1, out=t0)
         p2 += t0
-        mul(b2, b2, out=t0)
-        p2 += t0
-        p2 *= 1.0 / 6.0
-        np.sqrt(p2, out=p)
-        # r = det B/(2p³); a zero spread gives det = 0 and r = 0 (adding TINY only avoids 0/0).
-        mul(p2, p, out=t1)
-        t1 += t1
-        t1 += _TINY
-        r = t0
-        np.divide(det, t1, out=r)
-        np.minimum(r, 1.0, out=r)
-        np.maximum(r, -1.0, out=r)
-        ang = det
-        np.arccos(r, out=ang)
-        ang *= 1.0 / 3.0
-        # sin a from its polynomial; cos a = √(1 − sin² a) ≥ ½ (a ≤ π/3), well conditioned;
-        # sin(π/3 − a) = (√3/2) cos a − ½ sin a.
-        mul(ang, ang, out=t1)
-        _horner(x, _SINC_EIG_COEFFS, t1)
-        x *= ang
-        mul(x, x, out=t1)
-        np.subtract(1.0, t1, out=t1)
-        np.sqrt(t1, out=t1)
-        mul(t1, 0.5 * _SQRT3, out=y)
-        mul(x, 0.5, out=t1)
-        y -= t1
-        # x = e0 − e1 = −2√3 p sin a ≤ 0,  y = e2 − e1 = 2√3 p sin(π/3 − a) ≥ 0
-        p *= -2.0 * _SQRT3
-        x *= p
-        np.negative(p, out=p)
-        y *= p
-        e1 = q
-        add(x, y, out=t1)
-        t1 *= 1.0 / 3.0
-        e1 -= t1
+    mul(b1, b1, out=t0)
+    p2 += t0
+    mul(b2, b2, out=t0)
+    p2 += t0
+    p2 *= 1.0 / 6.0
+    np.sqrt(p2, out=p)
+    # r = det B/(2p³); a zero spread gives det = 0 and r = 0 (adding TINY only avoids 0/0).
+    mul(p2, p, out=t1)
+    t1 += t1
+    t1 += _TINY
+    r = t0
+    np.divide(det, t1, out=r)
+    np.minimum(r, 1.0, out=r)
+    np.maximum(r, -1.0, out=r)
+    ang = det
+    np.arccos(r, out=ang)
+    ang *= 1.0 / 3.0
+    # sin a from its polynomial; cos a = √(1 − sin² a) ≥ ½ (a ≤ π/3), well conditioned;
+    # sin(π/3 − a) = (√3/2) cos a − ½ sin a.
+    mul(ang, ang, out=t1)
+    _horner(x, _SINC_EIG_COEFFS, t1)
+    x *= ang
+    mul(x, x, out=t1)
+    np.subtract(1.0, t1, out=t1)
+    np.sqrt(t1, out=t1)
+    mul(t1, 0.5 * _SQRT3, out=y)
+    mul(x, 0.5, out=t1)
+    y -= t1
+    # x = e0 − e1 = −2√3 p sin a ≤ 0,  y = e2 − e1 = 2√3 p sin(π/3 − a) ≥ 0
+    p *= -2.0 * _SQRT3
+    x *= p
+    np.negative(p, out=p)
+    y *= p
+    e1 = q
+    add(x, y, out=t1)
+    t1 *= 1.0 / 3.0
+    e1 -= t1
 
-        # ---- exp(Y) v = E (v + α Z v + g Z² v), Z = Y − e1 I ------------------------------------
-        # g = (y h2(y) − x h2(x))/(y − x) ≥ 0 is a weighted mean of h2 values (no cancellation);
-        # α = h1(x) − x g = 1 + x (h2(x) − g). h2 = (eᶻ − 1 − z)/z² is evaluated at z clamped away
-        # from 0 (x ≤ −c, y ≥ c, c = _H2_CLAMP): the interpolant then still matches e^y at y and 1
-        # at 0 exactly, and misses eˣ by x²·|h2(−c) − h2(x)| ≤ c³/3 ≈ 3e-16. Unclamped, the
-        # direct formula's relative error ε/|z| is harmless for the same reason (it is multiplied
-        # by z²), so no series branch is needed.
-        np.minimum(x, -_H2_CLAMP, out=t0)
-        _h2_direct(t0, h2x, t1)
-        np.maximum(y, _H2_CLAMP, out=t0)
-        _h2_direct(t0, h2y, t1)
-        g = p2
-        mul(y, h2y, out=g)
-        mul(x, h2x, out=t0)
-        g -= t0
-        sub(y, x, out=t0)
-        t0 += _TINY  # y − x ≥ 0; only x = y = 0 (then g multiplies Z = 0) needs the guard
-        g /= t0
-        alpha = h2x
-        alpha -= g
-        alpha *= x
-        alpha += 1.0
-        E = p
-        np.exp(e1, out=E)
-        alpha *= E
-        g *= E
-        z0, z1, z2 = b0, b1, b2
-        sub(yxx, e1, out=z0)
-        sub(yyy, e1, out=z1)
-        sub(yzz, e1, out=z2)
-        zv0, zv1, zv2, zzv0, zzv1, zzv2 = sc.take(n, 6)
-        _sym_matvec(z0, z1, z2, yxy, yxz, yyz, v0, v1, v2, zv0, zv1, zv2, t0)
-        _sym_matvec(z0, z1, z2, yxy, yxz, yyz, zv0, zv1, zv2, zzv0, zzv1, zzv2, t0)
-        ew0, ew1, ew2 = zv0, zv1, zv2  # exp(Y) v, in place of Z v
-        for ew, vi, zzvi in ((ew0, v0, zzv0), (ew1, v1, zzv1), (ew2, v2, zzv2)):
-            ew *= alpha
-            mul(zzvi, g, out=t0)
-            ew += t0
-            mul(vi, E, out=t0)
-            ew += t0
+    # ---- exp(Y) = E (I + α Z + g Z²), Z = Y − e1 I ---------------------------------------------
+    # g = (y h2(y) − x h2(x))/(y − x) ≥ 0 is a weighted mean of h2 values (no cancellation);
+    # α = h1(x) − x g = 1 + x (h2(x) − g). h2 = (eᶻ − 1 − z)/z² is evaluated at z clamped away
+    # from 0 (x ≤ −c, y ≥ c, c = _H2_CLAMP): the interpolant then still matches e^y at y and 1
+    # at 0 exactly, and misses eˣ by x²·|h2(−c) − h2(x)| ≤ c³/3 ≈ 3e-16. Unclamped, the
+    # direct formula's relative error ε/|z| is harmless for the same reason (it is multiplied
+    # by z²), so no series branch is needed.
+    np.minimum(x, -_H2_CLAMP, out=t0)
+    _h2_direct(t0, h2x, t1)
+    np.maximum(y, _H2_CLAMP, out=t0)
+    _h2_direct(t0, h2y, t1)
+    g = p2
+    mul(y, h2y, out=g)
+    mul(x, h2x, out=t0)
+    g -= t0
+    sub(y, x, out=t0)
+    t0 += _TINY  # y − x ≥ 0; only x = y = 0 (then g multiplies Z = 0) needs the guard
+    g /= t0
+    alpha = h2x
+    alpha -= g
+    alpha *= x
+    alpha += 1.0
+    E = p
+    np.exp(e1, out=E)
+    alpha *= E
+    g *= E
+    z0, z1, z2 = b0, b1, b2
+    sub(yxx, e1, out=z0)
+    sub(yyy, e1, out=z1)
+    sub(yzz, e1, out=z2)
+    free.give(e1, ang, t0, t1, x, y, h2y)
+    return E, alpha, g, z0, z1, z2
 
-        # ---- θ-coefficients from s = θ² (quarter angle: x_q = θ/4) --------------------------------
-        s, zq, A, B, C, cth = zzv0, zzv1, zzv2, q, p2, y
-        mul(w0, w0, out=s)
-        mul(w1, w1, out=t0)
-        s += t0
-        mul(w2, w2, out=t0)
-        s += t0
-        mul(s, 1.0 / 16.0, out=zq)
-        sinc_q = x
-        _horner(sinc_q, _SINC_COEFFS, zq)  # sin(θ/4)/(θ/4)
-        # tq = sin²(θ/4); cos(θ/4) = √(1 − tq), conditioned for θ ≤ 1.8π (beyond: exact fallback)
-        tq = h2y
-        mul(sinc_q, sinc_q, out=tq)
-        tq *= zq
-        sh = sinc_q
-        np.subtract(1.0, tq, out=t0)
-        # Past θ ≈ 2π the polynomial's tq can exceed 1; those rows are redone exactly below, and the
-        # clamp (a no-op on every other row) keeps NaN warnings out of the user's console.
-        np.maximum(t0, 0.0, out=t0)
-        np.sqrt(t0, out=t0)
-        sh *= t0  # sin(θ/2)/(θ/2)
-        mul(tq, -2.0, out=t0)
-        t0 += 1.0  # cos(θ/2)
-        mul(sh, t0, out=A)  # sin θ/θ
-        mul(sh, sh, out=B)
-        B *= 0.5  # (1 − cos θ)/θ²
-        mul(B, s, out=cth)
-        np.subtract(1.0, cth, out=cth)  # cos θ
-        # C = (θ − sin θ)/θ³ = (1 − A)/θ². It only enters as C (ω·u) ω, of size ≤ C θ² |u|, so the
-        # direct formula's error ε/θ² costs ε|u| there; dividing by θ² + c (c = _C_CLAMP_S) instead
-        # moves the term by ≤ c|u|/6 < 2e-15 |u| and makes θ = 0 safe, so no series branch is needed.
-        np.add(s, _C_CLAMP_S, out=t0)
-        np.subtract(1.0, A, out=C)
-        C /= t0
-        if (s > _POLY_MAX_S).any():
-            _exact_rotation_coeffs(s, A, B, C, cth)
 
-        # ---- v' = cos θ w + A u + ω × (A w + B u) + (B ω·w + C ω·u) ω,  w = exp(Y) v ---------------
-        m0, m1, m2 = zzv0, h2x, h2y  # s, alpha and tq are no longer needed
-        k = z0
-        mul(w0, ew0, out=k)
-        mul(w1, ew1, out=t0)
+def _exp_sym_apply(
+    Y_off: FloatArray, coeffs: tuple[FloatArray, ...], V: FloatArray, free: _FreeRows
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """exp(Y) v = (α' Z v + g' Z² v) + E v for points V (3, n), from `_exp_sym_coeffs`; Y_off the
+    off-diagonal rows (Yxy, Yxz, Yyz). Returns three rows taken from `free`."""
+    E, alpha, g, z0, z1, z2 = coeffs
+    yxy, yxz, yyz = Y_off
+    v0, v1, v2 = V
+    zv0, zv1, zv2, zzv0, zzv1, zzv2, t0 = free.take(7)
+    _sym_matvec(z0, z1, z2, yxy, yxz, yyz, v0, v1, v2, zv0, zv1, zv2, t0)
+    _sym_matvec(z0, z1, z2, yxy, yxz, yyz, zv0, zv1, zv2, zzv0, zzv1, zzv2, t0)
+    ew0, ew1, ew2 = zv0, zv1, zv2  # exp(Y) v, in place of Z v
+    for ew, vi, zzvi in ((ew0, v0, zzv0), (ew1, v1, zzv1), (ew2, v2, zzv2)):
+        ew *= alpha
+        np.multiply(zzvi, g, out=t0)
+        ew += t0
+        np.multiply(vi, E, out=t0)
+        ew += t0
+    free.give(zzv0, zzv1, zzv2, t0)
+    return ew0, ew1, ew2
+
+
+def _exp_sym_matrix(
+    Y_off: FloatArray, coeffs: tuple[FloatArray, ...], free: _FreeRows
+) -> tuple[FloatArray, ...]:
+    """exp(Y) = (α' Z + g' Z²) + E I as its six rows (xx, yy, zz, xy, xz, yz), from
+    `_exp_sym_coeffs`; Y_off the off-diagonal rows (Yxy, Yxz, Yyz). Returns six rows of `free`."""
+    E, alpha, g, z0, z1, z2 = coeffs
+    a, b, c = Y_off  # Z = [[z0, a, b], [a, z1, c], [b, c, z2]]
+    mul = np.multiply
+    xx, yy, zz, xy, xz, yz, t0, t1 = free.take(8)
+    # Z²: off-diagonal (Z²)01 = a (z0 + z1) + b c, …; diagonal (Z²)00 = z0² + a² + b², …
+    for zij, s0, s1, f, p0, p1 in ((xy, z0, z1, a, b, c), (xz, z0, z2, b, a, c), (yz, z1, z2, c, a, b)):
+        np.add(s0, s1, out=zij)
+        zij *= f
+        mul(p0, p1, out=t0)
+        zij += t0
+    mul(a, a, out=t0)
+    mul(b, b, out=t1)
+    mul(z0, z0, out=xx)
+    xx += t0
+    xx += t1
+    mul(z1, z1, out=yy)
+    yy += t0
+    mul(z2, z2, out=zz)
+    zz += t1
+    mul(c, c, out=t0)
+    yy += t0
+    zz += t0
+    for xij, zij in ((xx, z0), (yy, z1), (zz, z2), (xy, a), (xz, b), (yz, c)):
+        xij *= g
+        mul(zij, alpha, out=t0)
+        xij += t0
+    xx += E
+    yy += E
+    zz += E
+    free.give(t0, t1)
+    return xx, yy, zz, xy, xz, yz
+
+
+def _rotation_coeffs(w: FloatArray, free: _FreeRows) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """(A, B, C, cos θ) rows for rotation vectors w (3, n): A = sin θ/θ, B = (1 − cos θ)/θ²,
+    C = (θ − sin θ)/θ³, by the quarter-angle polynomial, exact libm values for θ > 1.8π. Returns four
+    rows of `free`."""
+    mul = np.multiply
+    w0, w1, w2 = w
+    s, zq, A, B, C, cth, sinc_q, tq, t0 = free.take(9)
+    # ---- θ-coefficients from s = θ² (quarter angle: x_q = θ/4) --------------------------------
+    mul(w0, w0, out=s)
+    mul(w1, w1, out=t0)
+    s += t0
+    mul(w2, w2, out=t0)
+    s += t0
+    mul(s, 1.0 / 16.0, out=zq)
+    _horner(sinc_q, _SINC_COEFFS, zq)  # sin(θ/4)/(θ/4)
+    # tq = sin²(θ/4); cos(θ/4) = √(1 − tq), conditioned for θ ≤ 1.8π (beyond: exact fallback)
+    mul(sinc_q, sinc_q, out=tq)
+    tq *= zq
+    sh = sinc_q
+    np.subtract(1.0, tq, out=t0)
+    # Past θ ≈ 2π the polynomial's tq can exceed 1; those rows are redone exactly below, and the
+    # clamp (a no-op on every other row) keeps NaN warnings out of the user's console.
+    np.maximum(t0, 0.0, out=t0)
+    np.sqrt(t0, out=t0)
+    sh *= t0  # sin(θ/2)/(θ/2)
+    mul(tq, -2.0, out=t0)
+    t0 += 1.0  # cos(θ/2)
+    mul(sh, t0, out=A)  # sin θ/θ
+    mul(sh, sh, out=B)
+    B *= 0.5  # (1 − cos θ)/θ²
+    mul(B, s, out=cth)
+    np.subtract(1.0, cth, out=cth)  # cos θ
+    # C = (θ − sin θ)/θ³ = (1 − A)/θ². It only enters as C (ω·u) ω, of size ≤ C θ² |u|, so the
+    # direct formula's error ε/θ² costs ε|u| there; dividing by θ² + c (c = _C_CLAMP_S) instead
+    # moves the term by ≤ c|u|/6 < 2e-15 |u| and makes θ = 0 safe, so no series branch is needed.
+    np.add(s, _C_CLAMP_S, out=t0)
+    np.subtract(1.0, A, out=C)
+    C /= t0
+    if (s > _POLY_MAX_S).any():
+        _exact_rotation_coeffs(s, A, B, C, cth)
+    free.give(s, zq, sinc_q, tq, t0)
+    return A, B, C, cth
+
+
+def _rigid(
+    w: FloatArray,
+    u: FloatArray | None,
+    e: FloatArray | tuple[FloatArray, ...] | None,
+    theta: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+    O: FloatArray,
+    free: _FreeRows,
+) -> None:
+    """O (3, n) = R(ω) e + V(ω) u = cos θ e + A u + ω × (A e + B u) + (B ω·e + C ω·u) ω, with the
+    θ-coefficients (A, B, C, cos θ) of `_rotation_coeffs`; u = None is u = 0 (R e) and e = None is
+    the point 0 (V u): their terms are left out. O must not overlap the inputs."""
+    A, B, C, cth = theta
+    mul = np.multiply
+    w0, w1, w2 = w
+    k, t0, t1, m0, m1, m2 = free.take(6)
+    if e is not None:
+        e0, e1, e2 = e
+        mul(w0, e0, out=k)
+        mul(w1, e1, out=t0)
         k += t0
-        mul(w2, ew2, out=t0)
+        mul(w2, e2, out=t0)
         k += t0
         k *= B
-        mul(w0, u0, out=t1)
+    if u is not None:
+        u0, u1, u2 = u
+        wu = t1 if e is not None else k
+        mul(w0, u0, out=wu)
         mul(w1, u1, out=t0)
-        t1 += t0
+        wu += t0
         mul(w2, u2, out=t0)
-        t1 += t0
-        t1 *= C
-        k += t1
-        for mi, ewi, ui in ((m0, ew0, u0), (m1, ew1, u1), (m2, ew2, u2)):
-            mul(ewi, A, out=mi)
-            mul(ui, B, out=t0)
+        wu += t0
+        wu *= C
+        if e is not None:
+            k += wu
+    ms = (m0, m1, m2)
+    for i, mi in enumerate(ms):
+        if e is None:
+            mul(u[i], B, out=mi)  # type: ignore[index]
+            continue
+        mul(e[i], A, out=mi)
+        if u is not None:
+            mul(u[i], B, out=t0)
             mi += t0
-        for Oi, wa, mb, wb, ma, ewi, ui, wi in (
-            (O[0], w1, m2, w2, m1, ew0, u0, w0),
-            (O[1], w2, m0, w0, m2, ew1, u1, w1),
-            (O[2], w0, m1, w1, m0, ew2, u2, w2),
-        ):
-            mul(wa, mb, out=Oi)
-            mul(wb, ma, out=t0)
-            Oi -= t0
-            mul(ewi, cth, out=t0)
+    for i, (a_, b_) in enumerate(((1, 2), (2, 0), (0, 1))):  # (ω × m)_i = ω_a m_b − ω_b m_a
+        Oi = O[i]
+        mul(w[a_], ms[b_], out=Oi)
+        mul(w[b_], ms[a_], out=t0)
+        Oi -= t0
+        if e is not None:
+            mul(e[i], cth, out=t0)
             Oi += t0
-            mul(ui, A, out=t0)
+        if u is not None:
+            mul(u[i], A, out=t0)
             Oi += t0
-            mul(wi, k, out=t0)
-            Oi += t0
+        mul(w[i], k, out=t0)
+        Oi += t0
+    free.give(k, t0, t1, m0, m1, m2)
 
 
 def _h2_direct(z: FloatArray, out: FloatArray, tmp: FloatArray) -> None:
@@ -837,6 +1045,42 @@ def _check_given_out(out: FloatArray, pts: FloatArray) -> FloatArray:
     return out
 
 
+def _check_motion_indices(indices: ArrayLike, values: ArrayLike, m: int) -> int:
+    """N, the number of vertices, from (N, K) indices (there are no points to take it from);
+    ValueError with `_check_indices`' messages when the shapes do not fit."""
+    shape = np.shape(indices)
+    if len(shape) != 2:
+        raise ValueError(f"indices must have shape (N, K), got {shape}")
+    if np.shape(values) != shape:
+        _check_indices(indices, values, None, m)  # raises the shape message
+    return int(shape[0])
+
+
+def _check_motion_out(
+    out: FloatArray | NDArray[np.float32] | None, n: int
+) -> FloatArray | NDArray[np.float32]:
+    """`out` of `vertex_motions` checked ((4, n, 3), float64 or float32), or a new float64 array."""
+    if out is None:
+        return np.empty((4, n, 3))
+    if not isinstance(out, np.ndarray) or out.shape != (4, n, 3) or out.dtype not in (np.float64, np.float32):
+        raise ValueError(f"out must be a float64 or float32 array of shape {(4, n, 3)}")
+    return out
+
+
+def _identity_motions(
+    out: FloatArray | NDArray[np.float32], sel: NDArray[np.integer] | None
+) -> FloatArray | NDArray[np.float32]:
+    """The identity map (columns e_x, e_y, e_z, translation 0) in the rows `sel` of `out` (all rows
+    when None): the motion of every vertex when every control is at rest, exactly."""
+    ident = np.zeros((4, 1, 3), dtype=out.dtype)
+    ident[0, 0, 0] = ident[1, 0, 1] = ident[2, 0, 2] = 1.0
+    if sel is None:
+        out[...] = ident
+    else:
+        out[:, sel] = ident
+    return out
+
+
 def _check_rows(rows: ArrayLike, n_points: int) -> NDArray[np.integer]:
     """`rows` as a checked 1-D integer array of row indices in [0, n_points)."""
     sel = np.asarray(rows)
@@ -938,6 +1182,33 @@ def deform_points_params_rows(
     control (the same rows every update) does not gather them again.
     """
     return _kernel().deform_rows(points, params, indices, values, rows, out, offsets=offsets, key=key)
+
+
+def vertex_motions(
+    params: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    out: FloatArray | NDArray[np.float32] | None = None,
+    *,
+    rows: ArrayLike | None = None,
+    key: Hashable | None = None,
+) -> FloatArray | NDArray[np.float32]:
+    """Each vertex's affine map φ(p_v): x ↦ M_v x + t_v, p_v = Σ_k values[v, k] · params[indices[v, k]],
+    M_v = R(ω) exp(Y), t_v = V(ω) u (the map `deform_points_params` applies to points[v]).
+
+    params (m, 12), indices (N, K) integer in [0, m), values (N, K) as in `deform_points_params`.
+    `out`: (4, N, 3) float64 or float32 (default: a new float64 array), planar: out[0, v], out[1, v],
+    out[2, v] are the columns M_v e_x, M_v e_y, M_v e_z and out[3, v] = t_v, so
+    φ(p_v) x = x₀ out[0, v] + x₁ out[1, v] + x₂ out[2, v] + out[3, v] and each out[c] is one (N, 3)
+    block (C-contiguous when out is). A float32 out gets the float64 value rounded once (what
+    .astype(np.float32) gives; ±inf beyond its range). `rows`: None for every vertex, else a 1-D
+    integer array: only out[:, rows] is written, the other rows are left as they are, and each written
+    row is bit-identical to the same row of a full call (a row depends only on its own inputs, not on
+    N, chunking, threads or the other rows). All-zero params give the identity exactly. `key`: as in
+    `deform_points_params` (here naming the indices and values); with a key the gathered inputs of
+    the last few row sets are kept, as in `deform_points_params_rows`. Returns out.
+    """
+    return _kernel().motions(params, indices, values, out, rows=rows, key=key)
 
 
 def blend_params(params: ArrayLike, indices: ArrayLike, values: ArrayLike) -> FloatArray:

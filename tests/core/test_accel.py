@@ -16,7 +16,19 @@ from affine_deformers.core import aff3, deform
 from affine_deformers.core.weights import top_k_dense
 from tests.core import test_deform
 from tests.core.conftest import random_affine
-from tests.core.test_deform import KERNEL_ANGLES, adversarial_params, reference, sym6, vertex_scale
+from tests.core.test_deform import (
+    KERNEL_ANGLES,
+    MOTION_BAD_ARGUMENTS,
+    adversarial_params,
+    apply_motions,
+    assert_motions_match_reference,
+    identity_motions,
+    lifted_sweep,
+    motion_bad_call,
+    reference,
+    sym6,
+    vertex_scale,
+)
 
 
 @pytest.fixture
@@ -530,7 +542,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         "from numba.core import caching\n"
         "caching.CacheImpl._locator_classes = []\n"
         "from affine_deformers.accel import compiled as c\n"
-        "print(type(c.deform_params._cache).__name__, type(c.deform_rows._cache).__name__)\n"
+        "print(*(type(f._cache).__name__ for f in (c.deform_params, c.deform_rows, c.motion_params)))\n"
     )
     res = subprocess.run(
         [sys.executable, "-c", code],
@@ -540,7 +552,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache", "NullCache"]
+    assert res.stdout.split() == ["NullCache", "NullCache", "NullCache"]
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
@@ -564,3 +576,289 @@ def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatc
     assert accel.active() and accel._state.warming is None
     compiled = accel.deform_points_params(pts, params, idx, val)
     assert np.abs(compiled - expected_numpy).max() < 1e-12
+
+
+# --------------------------------------------------------------------------------------------------
+# vertex_motions: the compiled twin (motion_params) and its dispatch
+
+
+def _motion_case(rng: np.random.Generator, n: int, m: int = 8) -> tuple[np.ndarray, ...]:
+    _, params, idx, val = blend_case(rng, n, m)
+    params[:2] = lifted_params(rng)[[1, 4]]  # fix-up rows as well
+    return params, idx, val
+
+
+@pytest.mark.parametrize("extra", [False, True])
+def test_motions_match_aff3_and_the_numpy_kernel(compiled: ModuleType, extra: bool) -> None:
+    """The adversarial set (every KERNEL_ANGLES × KERNEL_SPECTRA pairing, translations 0 … 1e3) and the
+    lifted angles, one control per vertex with weight 1: M_v and t_v against aff3 and numpy."""
+    rng = np.random.default_rng(120)
+    P = lifted_params(rng) if extra else adversarial_params()
+    idx = np.arange(P.shape[0], dtype=np.int32)[:, None]
+    one = np.ones((P.shape[0], 1))
+    got = accel.vertex_motions(P, idx, one)
+    assert got.shape == (4, P.shape[0], 3) and got.dtype == np.float64
+    assert_motions_match_reference(P, got)
+    want = deform.vertex_motions(P, idx, one)
+    scale = np.linalg.norm(want[:3], axis=(0, 2)) + np.linalg.norm(want[3], axis=1)
+    assert (np.abs(got - want).max(axis=(0, 2)) / scale).max() <= 3e-15
+    # φ(p_v) v from the motion is the compiled point map's v'
+    pts = rng.uniform(-10.0, 10.0, size=(P.shape[0], 3))
+    moved = accel.deform_points_params(pts, P, idx, one)
+    assert (np.linalg.norm(apply_motions(got, pts) - moved, axis=1) / vertex_scale(pts, P)).max() <= 1e-14
+
+
+def test_motions_of_random_blends(compiled: ModuleType) -> None:
+    rng = np.random.default_rng(121)
+    pts, params, idx, val = blend_case(rng, 20_000)
+    got = accel.vertex_motions(params, idx, val)
+    blended = deform.blend_params(params, idx, val)
+    assert_motions_match_reference(blended, got)
+    want = deform.vertex_motions(params, idx, val)
+    scale = np.linalg.norm(want[:3], axis=(0, 2)) + np.linalg.norm(want[3], axis=1)
+    assert (np.abs(got - want).max(axis=(0, 2)) / scale).max() <= 1e-15
+    assert not np.array_equal(got, want)  # it did run the compiled kernel
+    err = np.linalg.norm(apply_motions(got, pts) - accel.deform_points_params(pts, params, idx, val), axis=1)
+    assert (err / vertex_scale(pts, blended)).max() <= 1e-14
+
+
+def test_motions_of_lifted_rotations_up_to_14_pi(compiled: ModuleType) -> None:
+    params, _, tol = lifted_sweep()
+    idx = np.arange(len(params), dtype=np.int32)[:, None]
+    assert_motions_match_reference(params, accel.vertex_motions(params, idx, np.ones((len(params), 1))), tol)
+
+
+def test_motion_fixup_redoes_lifted_rotations(compiled: ModuleType) -> None:
+    """θ > 1.8π: `_map_motion` counts the rows, `_fixup_motion` redoes them with libm (without it the
+    quarter-angle polynomial is off by far more than 1e-12)."""
+    from affine_deformers.accel import compiled as kernel  # needs numba
+
+    P = lifted_params(np.random.default_rng(122))
+    n = P.shape[0]
+    S = kernel._STRIDE
+    W = np.zeros(kernel._N_MOTION_SCRATCH * S)
+    for c in range(12):
+        W[c * S : c * S + n] = P[:, c]
+
+    def motions() -> np.ndarray:
+        rows = W.reshape(-1, S)[12:24, :n]  # (12, n): M e_x, M e_y, M e_z, t as component rows
+        return rows.reshape(4, 3, n).transpose(0, 2, 1).copy()
+
+    assert kernel._map_motion(W) == 5
+    poly = motions()
+    kernel._fixup_motion(W, n)
+    assert_motions_match_reference(P, motions())
+    with pytest.raises(AssertionError):
+        assert_motions_match_reference(P[1:], poly[:, 1:], 1e-12)  # the fix-up was needed
+
+
+def test_motion_rows_are_bit_identical_to_the_full_call(compiled: ModuleType) -> None:
+    from affine_deformers.accel.compiled import CHUNK  # needs numba
+
+    rng = np.random.default_rng(123)
+    n = 3 * CHUNK + 17
+    params, idx, val = _motion_case(rng, n)
+    full = accel.vertex_motions(params, idx, val)
+    subsets = {
+        "empty": np.zeros(0, dtype=np.int64),
+        "one": np.array([CHUNK + 5]),
+        "boundaries": np.array([0, CHUNK - 1, CHUNK, CHUNK + 1, 2 * CHUNK - 1, 2 * CHUNK, n - 1]),
+        "reversed": np.arange(n)[::-1].copy(),
+        "sparse": np.flatnonzero(rng.random(n) < 0.3),
+        "chunk+1": np.arange(CHUNK + 1, dtype=np.int32) * 3,
+        "repeats": np.array([7, 7, 9, 7]),
+    }
+    for name, rows in subsets.items():
+        for key in (None, "bind-1"):
+            out = np.full((4, n, 3), 7.0)
+            assert accel.vertex_motions(params, idx, val, out, rows=rows, key=key) is out
+            assert np.array_equal(out[:, rows], full[:, rows]), name
+            assert np.all(np.delete(out, rows, axis=1) == 7.0), name
+    # each row alone, at column 0 of a one-row chunk: random rows and every fix-up row (θ > 1.8π: a
+    # vectorised fix-up loop would give those other bits in a full chunk than in a short one)
+    theta_sq = np.einsum("ij,ij->i", *2 * [deform.blend_params(params, idx, val)[:, :3]])
+    lifted = np.flatnonzero(theta_sq > (1.8 * np.pi) ** 2)
+    assert len(lifted) >= 50
+    out = np.zeros((4, n, 3))
+    for r in np.r_[rng.choice(n, 40, replace=False), lifted]:
+        accel.vertex_motions(params, idx, val, out, rows=[r])
+        assert np.array_equal(out[:, r], full[:, r]), r
+    for size in (1, CHUNK - 1, CHUNK, CHUNK + 1):  # a row's value does not depend on N
+        assert np.array_equal(accel.vertex_motions(params, idx[:size], val[:size]), full[:, :size])
+
+
+def test_motion_thread_counts_give_bitwise_equal_results(
+    compiled: ModuleType, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from affine_deformers.accel import compiled as kernel  # needs numba
+
+    numba = compiled
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has a single thread")
+    rng = np.random.default_rng(124)
+    n = 4 * kernel.CHUNK + 3
+    params, idx, val = _motion_case(rng, n)
+    rows = np.flatnonzero(rng.random(n) < 0.5).astype(np.intp)
+    results = []
+    for threads in ("1", "2"):
+        monkeypatch.setenv(deform.THREADS_ENV, threads)
+        full = accel.vertex_motions(params, idx, val)
+        sub = np.zeros((4, n, 3), dtype=np.float32)
+        accel.vertex_motions(params, idx, val, sub, rows=rows)
+        results.append((full, sub))
+    assert np.array_equal(results[0][0], results[1][0])
+    assert np.array_equal(results[0][1].view(np.uint32), results[1][1].view(np.uint32))
+
+
+@pytest.mark.parametrize("use_numba", [True, False])
+def test_motions_float32_out_is_the_rounded_float64(use_numba: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A float32 out gets the float64 result rounded once (astype's rounding, full call and rows), and
+    the compiled kernel has one specialisation for both output types (two could disagree when only
+    one of them comes from numba's cache)."""
+    _backend(use_numba, monkeypatch)
+    rng = np.random.default_rng(125)
+    n = 2 * 2048 + 33  # compiled.CHUNK (not imported: the numpy run must not need numba)
+    params, idx, val = _motion_case(rng, n)
+    full = accel.vertex_motions(params, idx, val)
+    out32 = np.full((4, n, 3), -3.25, dtype=np.float32)
+    assert accel.vertex_motions(params, idx, val, out32) is out32
+    assert np.array_equal(_bits(out32), _bits(full.astype(np.float32)))
+    rows = np.flatnonzero(rng.random(n) < 0.3)
+    out32 = np.full((4, n, 3), -3.25, dtype=np.float32)
+    accel.vertex_motions(params, idx, val, out32, rows=rows)
+    assert np.array_equal(_bits(out32[:, rows]), _bits(full[:, rows].astype(np.float32)))
+    assert np.all(np.delete(out32, rows, axis=1) == np.float32(-3.25))
+    if use_numba:
+        from affine_deformers.accel import compiled as kernel
+
+        assert len(kernel.motion_params.signatures) == 1
+
+
+@pytest.mark.parametrize("use_numba", [True, False])
+def test_motions_float32_rounding_at_ties_overflow_and_subnormals(
+    use_numba: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Pure translations give t = u exactly, so the translations are chosen doubles: their float32 is
+    numpy's cast of them, bit for bit (±inf included); M is the identity."""
+    _backend(use_numba, monkeypatch)
+    u = np.resize(ROUNDING_CASES, (-(-len(ROUNDING_CASES) // 3) * 3)).reshape(-1, 3)
+    n = len(u)
+    params = np.zeros((n, 12))
+    params[:, 3:6] = u
+    idx = np.arange(n, dtype=np.int32)[:, None]
+    full = accel.vertex_motions(params, idx, np.ones((n, 1)))
+    assert np.array_equal(full[3], u) and np.array_equal(full[:3], identity_motions(n)[:3])
+    out32 = np.zeros((4, n, 3), dtype=np.float32)
+    accel.vertex_motions(params, idx, np.ones((n, 1)), out32, rows=np.arange(n)[::-1].copy())
+    with np.errstate(over="ignore"):
+        want = full.astype(np.float32)
+    assert np.isinf(want).sum() >= 4 and np.any((want != 0) & (np.abs(want) < np.finfo(np.float32).tiny))
+    assert np.array_equal(_bits(out32), _bits(want))
+
+
+@pytest.mark.parametrize("use_numba", [True, False])
+def test_motions_of_zero_params_are_the_identity(use_numba: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    _backend(use_numba, monkeypatch)
+    n = 40
+    idx = np.zeros((n, 2), dtype=np.int32)
+    val = np.ones((n, 2))
+    ident = identity_motions(n)
+    assert accel.vertex_motions(np.zeros((3, 12)), idx, val).tobytes() == ident.tobytes()
+    out32 = np.full((4, n, 3), 5.0, dtype=np.float32)
+    rows = np.array([0, 39, 7])
+    accel.vertex_motions(np.zeros((3, 12)), idx, val, out32, rows=rows)
+    assert out32[:, rows].tobytes() == ident[:, rows].astype(np.float32).tobytes()
+    assert np.all(np.delete(out32, rows, axis=1) == 5.0)
+    empty = accel.vertex_motions(np.zeros((0, 12)), np.zeros((n, 0), np.int32), np.zeros((n, 0)))
+    assert empty.tobytes() == ident.tobytes()
+    # zero weights on moving controls: the general path, the identity up to the sign of zeros
+    params = aff3.params_from_matrices(random_affine(np.random.default_rng(126), 3))
+    assert np.array_equal(accel.vertex_motions(params, idx, np.zeros((n, 2))), ident)
+
+
+def test_motions_out_layouts_and_keys(compiled: ModuleType) -> None:
+    rng = np.random.default_rng(127)
+    n = 5000
+    params, idx, val = _motion_case(rng, n)
+    want = accel.vertex_motions(params, idx, val)
+    strided = np.zeros((4, n, 6))[:, :, ::2]
+    got = accel.vertex_motions(params, idx.astype(np.int64), np.asfortranarray(val), strided)
+    assert got is strided and np.array_equal(strided, want)
+    rows = np.arange(0, n, 7)
+    sub = np.zeros((4, n, 6), dtype=np.float32)[:, :, ::2]
+    accel.vertex_motions(params, idx, val, sub, rows=rows)
+    assert np.array_equal(_bits(sub[:, rows]), _bits(want[:, rows].astype(np.float32)))
+    assert np.all(np.delete(sub, rows, axis=1) == 0.0)
+    ro = np.zeros((4, n, 3))
+    ro.flags.writeable = False
+    with pytest.raises(ValueError, match="out must be writable"):
+        accel.vertex_motions(params, idx, val, ro)
+    # keyed: the second call skips the checks; a caller breaking its promise gets wrong values, not a
+    # crash (indices are clamped); a new key is checked again
+    assert np.array_equal(accel.vertex_motions(params, idx, val, key="bind-m"), want)
+    assert np.array_equal(accel.vertex_motions(params, idx, val, key="bind-m"), want)
+    bad = idx.copy()
+    bad[0, 0] = 10**6
+    bad[1, 0] = -5
+    assert np.all(np.isfinite(accel.vertex_motions(params, bad, val, key="bind-m")))
+    with pytest.raises(ValueError, match="indices must lie"):
+        accel.vertex_motions(params, bad, val, key="bind-m2")
+    with pytest.raises(ValueError, match="indices and values must both have shape"):
+        accel.vertex_motions(params, idx, val[:10], key="bind-m")  # shapes are always checked
+
+
+@pytest.mark.parametrize("use_numba", [True, False])
+@pytest.mark.parametrize(("kwargs", "message"), [*MOTION_BAD_ARGUMENTS])
+def test_motions_bad_arguments_raise_the_core_messages(
+    kwargs: dict, message: str, use_numba: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _backend(use_numba, monkeypatch)
+    with pytest.raises(ValueError, match=message):
+        motion_bad_call(accel.vertex_motions, kwargs)
+
+
+def test_motions_fall_back_to_numpy(monkeypatch: pytest.MonkeyPatch, fresh_state: accel._State) -> None:
+    """AFFINE_DEFORMERS_ACCEL=0 gives the numpy kernel's values; a compile failure of motion_params
+    switches the process to numpy with correct results, like the other entry points."""
+    import types
+
+    rng = np.random.default_rng(128)
+    params, idx, val = _motion_case(rng, 300)
+    want = deform.vertex_motions(params, idx, val)
+    monkeypatch.setenv(accel.ACCEL_ENV, "0")
+    assert np.array_equal(accel.vertex_motions(params, idx, val), want)
+    assert fresh_state.module is None and fresh_state.failure is None  # never tried to load numba
+
+    def broken(*args: object) -> None:
+        raise RuntimeError("LLVM is unhappy")
+
+    monkeypatch.delenv(accel.ACCEL_ENV)
+    monkeypatch.setattr(fresh_state, "module", types.SimpleNamespace(motion_params=broken))
+    monkeypatch.setitem(
+        sys.modules,
+        "numba",
+        types.SimpleNamespace(
+            config=types.SimpleNamespace(NUMBA_NUM_THREADS=1), set_num_threads=lambda n: None, __version__="x"
+        ),
+    )
+    rows = np.array([3, 1, 200])
+    out = np.full((4, 300, 3), 9.0)
+    with pytest.warns(UserWarning, match="LLVM is unhappy"):
+        accel.vertex_motions(params, idx, val, out, rows=rows)
+    assert np.array_equal(out[:, rows], want[:, rows])
+    assert np.all(np.delete(out, rows, axis=1) == 9.0)
+    assert accel.backend() == "numpy (compiling motion_params failed: RuntimeError: LLVM is unhappy)"
+
+
+def test_warm_up_compiles_the_motion_entry_into_the_cache(compiled: ModuleType) -> None:
+    """warm_up runs motion_params once (so the first update with motions does not compile), and the
+    compiled specialisation is one numba can keep in its cache (when it has a cache location)."""
+    from affine_deformers.accel import compiled as kernel  # needs numba
+
+    assert accel.warm_up().startswith("numba ")
+    assert {"deform_params", "deform_rows", "motion_params"} <= accel._state.compiled
+    fn = kernel.motion_params
+    assert len(fn.signatures) == 1
+    if type(fn._cache).__name__ == "NullCache":
+        pytest.skip("numba has no cache location here")
+    assert fn._cache.load_overload(fn.signatures[0], fn.targetctx) is not None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -461,3 +463,261 @@ def test_lifted_rotations_raise_no_numpy_warnings() -> None:
         out = deform.deform_points_params(pts, params, idx, np.ones((64, 1)), cache_weights=False)
     scale = vertex_scale(pts, params).max()
     np.testing.assert_allclose(out, reference(pts, params), rtol=0, atol=1e-13 * scale)
+
+
+# --------------------------------------------------------------------------------------------------
+# vertex_motions: the per-vertex affine map φ(p_v) itself, planar (4, N, 3)
+
+
+def motion_errors(blended: np.ndarray, motions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex, ‖M − M_ref‖/‖M_ref‖ and ‖t − t_ref‖/(‖M_ref‖ + ‖t_ref‖) against aff3's matrices
+    (np.sin/np.cos, series, divided differences) of the blended parameters."""
+    A = aff3.matrices_from_params(blended)
+    M = np.stack([motions[0], motions[1], motions[2]], axis=-1)  # out[c, v] is column c of M_v
+    m_scale = np.linalg.norm(A[:, :3, :3], axis=(1, 2))
+    err_m = np.linalg.norm(M - A[:, :3, :3], axis=(1, 2)) / m_scale
+    err_t = np.linalg.norm(motions[3] - A[:, :3, 3], axis=1) / (m_scale + np.linalg.norm(A[:, :3, 3], axis=1))
+    return err_m, err_t
+
+
+def assert_motions_match_reference(
+    blended: np.ndarray, motions: np.ndarray, tol: float | np.ndarray = 3e-15
+) -> None:
+    """Both errors of `motion_errors` within tol (a number, or one per vertex)."""
+    err_m, err_t = motion_errors(blended, motions)
+    for name, err in (("M", err_m), ("t", err_t)):
+        worst = int(np.argmax(err / tol))
+        assert np.all(err <= tol), f"{name} of vertex {worst}: {err[worst]:.3e}"
+
+
+def apply_motions(motions: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """φ(p_v) v = v₀ out[0, v] + v₁ out[1, v] + v₂ out[2, v] + out[3, v]."""
+    return (
+        points[:, 0:1] * motions[0] + points[:, 1:2] * motions[1] + points[:, 2:3] * motions[2] + motions[3]
+    )
+
+
+def identity_motions(n: int) -> np.ndarray:
+    ident = np.zeros((4, n, 3))
+    ident[0, :, 0] = ident[1, :, 1] = ident[2, :, 2] = 1.0
+    return ident
+
+
+def test_motions_match_aff3_on_adversarial_parameters() -> None:
+    P = adversarial_params()
+    idx = np.arange(P.shape[0], dtype=np.int32)[:, None]
+    got = deform.vertex_motions(P, idx, np.ones((P.shape[0], 1)))
+    assert got.shape == (4, P.shape[0], 3) and got.dtype == np.float64
+    assert all(got[c].flags.c_contiguous for c in range(4))
+    assert_motions_match_reference(P, got)
+
+
+def test_motions_match_aff3_on_random_blends(cloud: np.ndarray) -> None:
+    rng = np.random.default_rng(41)
+    params = aff3.params_from_matrices(random_affine(rng, 8, log_scale=1.0, t_scale=5.0))
+    idx, val = top_k_dense(rng.random((cloud.shape[0], 8)) ** 3, 4)
+    kernel = deform.DeformKernel(threads=1)
+    first = kernel.motions(params, idx, val)  # weights blended per chunk
+    assert_motions_match_reference(deform.blend_params(params, idx, val), first)
+    assert np.array_equal(kernel.motions(params, idx, val), first)  # cached dense weights: same bits
+
+
+@pytest.mark.parametrize("m", [8, 60])  # dense-blend and gather paths
+def test_motions_applied_to_points_equal_deform_points_params(cloud: np.ndarray, m: int) -> None:
+    rng = np.random.default_rng(42)
+    params = aff3.params_from_matrices(random_affine(rng, m, log_scale=1.0, t_scale=5.0))
+    idx, val = top_k_dense(rng.random((cloud.shape[0], m)) ** 3, 4)
+    moved = deform.deform_points_params(cloud, params, idx, val)
+    got = apply_motions(deform.vertex_motions(params, idx, val), cloud)
+    err = np.linalg.norm(got - moved, axis=1) / vertex_scale(cloud, deform.blend_params(params, idx, val))
+    assert err.max() <= 1e-14, f"worst vertex {int(err.argmax())}: {err.max():.3e}"
+    # and on the adversarial set (translations up to 1e3, anisotropy 1e3:1e-3, lifted angles)
+    P = adversarial_params()
+    pts = rng.uniform(-10.0, 10.0, size=(P.shape[0], 3))
+    idx1 = np.arange(P.shape[0], dtype=np.int32)[:, None]
+    one = np.ones((P.shape[0], 1))
+    got = apply_motions(deform.vertex_motions(P, idx1, one), pts)
+    err = np.linalg.norm(got - deform.deform_points_params(pts, P, idx1, one), axis=1) / vertex_scale(pts, P)
+    assert err.max() <= 1e-14, f"worst adversarial row {int(err.argmax())}: {err.max():.3e}"
+
+
+def lifted_sweep() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(params, θ, tolerance): 64 rotations from 1.7π to 14π with stretch and translation. |ω| itself
+    carries a rounding of ε θ, so R(ω) (and aff3's reference) are only that well defined: the
+    tolerance is 3e-15 · max(1, θ/2π)."""
+    rng = np.random.default_rng(43)
+    theta = np.linspace(1.7 * np.pi, 14.0 * np.pi, 64)
+    axis = rng.normal(size=(64, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    params = np.concatenate(
+        [theta[:, None] * axis, rng.normal(size=(64, 3)), 0.3 * rng.normal(size=(64, 6))], axis=1
+    )
+    return params, theta, 3e-15 * np.maximum(1.0, theta / (2.0 * np.pi))
+
+
+def test_motions_of_lifted_rotations(monkeypatch: pytest.MonkeyPatch) -> None:
+    """θ past 1.8π (lifted rotations, up to 14π): the exact fallback applies to the motion too, and
+    the polynomial path leaves no NaN warnings on the way."""
+    import warnings
+
+    params, theta, tol = lifted_sweep()
+    idx = np.arange(64, dtype=np.int32)[:, None]
+    one = np.ones((64, 1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = deform.vertex_motions(params, idx, one)
+    assert_motions_match_reference(params, got, tol)
+    # without the fallback the quarter-angle polynomial is far off there: the fallback did the work
+    monkeypatch.setattr(deform, "_exact_rotation_coeffs", lambda *args: None)
+    with np.errstate(invalid="ignore"):
+        err_m, _ = motion_errors(params, deform.vertex_motions(params, idx, one))
+    assert np.nanmax(err_m[theta > 1.8 * np.pi + 0.1]) > 1e-6
+
+
+@pytest.mark.parametrize("m", [8, 60])  # dense-blend and gather paths
+def test_motion_rows_are_bit_identical_to_the_full_call(m: int) -> None:
+    """The Blender layer recomputes the motions of the vertices a moved control influences and keeps
+    the others: each written row must equal the full call's bit for bit (any thread count, chunk
+    size, row subset, cached or scattered weights), and no other row may be touched."""
+    rng = np.random.default_rng(44)
+    n = 3 * deform.DEFAULT_CHUNK + 77
+    params = aff3.params_from_matrices(random_affine(rng, m))
+    params[1] = 0.0  # a control at rest
+    params[2, :3] *= 5.9 / np.linalg.norm(params[2, :3])  # and one past 1.8π (the exact fallback)
+    idx, val = top_k_dense(rng.random((n, m)) ** 3, 4)
+    full = deform.DeformKernel(threads=1).motions(params, idx, val)
+    for chunk, threads in ((deform.DEFAULT_CHUNK, 3), (1000, 2), (333, 1)):
+        kernel = deform.DeformKernel(chunk_size=chunk, threads=threads)
+        assert np.array_equal(kernel.motions(params, idx, val), full), (chunk, threads)  # scattered
+        assert np.array_equal(kernel.motions(params, idx, val), full), (chunk, threads)  # dense, cached
+        for fraction in (1e-4, 0.03, 0.5, 0.97):
+            rows = np.flatnonzero(rng.random(n) < fraction)
+            for key in (None, "bind-1", "bind-1"):  # the second keyed call finds the gathered rows
+                out = np.full((4, n, 3), 7.0)
+                assert kernel.motions(params, idx, val, out, rows=rows, key=key) is out
+                assert np.array_equal(out[:, rows], full[:, rows]), (chunk, threads, fraction, key)
+                assert np.all(np.delete(out, rows, axis=1) == 7.0)
+        assert len(kernel._row_sets) <= deform.ROW_SETS_KEPT
+    # reversed, repeated and int32 rows
+    rows = np.r_[np.arange(n)[::-1], [5, 5]].astype(np.int32)
+    out = np.zeros((4, n, 3))
+    deform.vertex_motions(params, idx, val, out, rows=rows)
+    assert np.array_equal(out, full)
+    with pytest.raises(ValueError, match=r"rows must lie in \[0, "):
+        deform.vertex_motions(params, idx, val, out, rows=np.array([n]))
+
+
+def test_keyed_motion_row_sets_are_shared_with_deform_rows() -> None:
+    """A row set gathered by `motions` (no points) and found by `deform_rows` with the same key gets
+    its points then; one gathered by `deform_rows` serves `motions`. Both stay exact."""
+    rng = np.random.default_rng(45)
+    n = 2 * deform.DEFAULT_CHUNK + 11
+    pts = rng.normal(scale=2.0, size=(n, 3))
+    params = aff3.params_from_matrices(random_affine(rng, 6))
+    idx, val = top_k_dense(rng.random((n, 6)) ** 3, 3)
+    rows = np.flatnonzero(rng.random(n) < 0.2)
+    full_m = deform.DeformKernel(threads=1).motions(params, idx, val)
+    full_p = deform.DeformKernel(threads=1).deform(pts, params, idx, val)
+    for order in ("motions first", "points first"):
+        kernel = deform.DeformKernel(threads=2)
+        for what in (("m", "p") if order == "motions first" else ("p", "m")) * 2:
+            if what == "m":
+                out = np.zeros((4, n, 3))
+                kernel.motions(params, idx, val, out, rows=rows, key=order)
+                assert np.array_equal(out[:, rows], full_m[:, rows]), order
+            else:
+                out = np.zeros((n, 3))
+                kernel.deform_rows(pts, params, idx, val, rows, out, key=order)
+                assert np.array_equal(out[rows], full_p[rows]), order
+        assert len(kernel._row_sets) == 1
+
+
+def test_motions_float32_out_is_the_rounded_float64() -> None:
+    rng = np.random.default_rng(46)
+    n = deform.DEFAULT_CHUNK + 9
+    params = aff3.params_from_matrices(random_affine(rng, 5, log_scale=1.5, t_scale=50.0))
+    params[0, 3:6] = [1e300, -1e40, 3.4e38]  # translations beyond float32's range: ±inf, as astype
+    idx, val = top_k_dense(rng.random((n, 5)) ** 3, 3)
+    full = deform.vertex_motions(params, idx, val)
+    with np.errstate(over="ignore"):
+        want = full.astype(np.float32)
+    assert np.isinf(want).any()
+    out32 = np.full((4, n, 3), -3.25, dtype=np.float32)
+    assert deform.vertex_motions(params, idx, val, out32) is out32
+    assert np.array_equal(out32.view(np.uint32), want.view(np.uint32))
+    rows = np.flatnonzero(rng.random(n) < 0.3)
+    out32 = np.full((4, n, 3), -3.25, dtype=np.float32)
+    deform.vertex_motions(params, idx, val, out32, rows=rows)
+    assert np.array_equal(out32[:, rows].view(np.uint32), want[:, rows].view(np.uint32))
+    assert np.all(np.delete(out32, rows, axis=1) == np.float32(-3.25))
+
+
+def test_zero_params_give_the_identity_motion_bit_for_bit() -> None:
+    n = 50
+    idx = np.zeros((n, 3), dtype=np.int32)
+    val = np.random.default_rng(47).random((n, 3))
+    ident = identity_motions(n)
+    got = deform.vertex_motions(np.zeros((4, 12)), idx, val)
+    assert got.tobytes() == ident.tobytes()  # no −0.0 anywhere
+    out32 = np.full((4, n, 3), 9.0, dtype=np.float32)
+    deform.vertex_motions(np.zeros((4, 12)), idx, val, out32)
+    assert out32.tobytes() == ident.astype(np.float32).tobytes()
+    rows = np.array([3, 1, 40])
+    out = np.full((4, n, 3), 9.0)
+    deform.vertex_motions(np.zeros((4, 12)), idx, val, out, rows=rows)
+    assert out[:, rows].tobytes() == ident[:, rows].tobytes()
+    assert np.all(np.delete(out, rows, axis=1) == 9.0)
+    # no controls at all, and zero weights on moving controls (the general path: equal, signs aside)
+    empty = deform.vertex_motions(np.zeros((0, 12)), np.zeros((n, 0), np.int32), np.zeros((n, 0)))
+    assert empty.tobytes() == ident.tobytes()
+    params = aff3.params_from_matrices(random_affine(np.random.default_rng(48), 4))
+    assert np.array_equal(deform.vertex_motions(params, idx, np.zeros((n, 3))), ident)
+
+
+def test_motions_out_argument_and_layouts() -> None:
+    rng = np.random.default_rng(49)
+    n = 3000
+    params = aff3.params_from_matrices(random_affine(rng, 4))
+    idx, val = top_k_dense(rng.random((n, 4)), 2)
+    want = deform.vertex_motions(params, idx, val)
+    strided = np.zeros((4, n, 6))[:, :, ::2]
+    assert deform.vertex_motions(params, idx.astype(np.int64), np.asfortranarray(val), strided) is strided
+    assert np.array_equal(strided, want)
+    assert deform.vertex_motions(params, idx, val, rows=np.arange(n)).shape == (4, n, 3)
+    empty = deform.vertex_motions(np.ones((2, 12)), np.zeros((0, 2), np.int32), np.zeros((0, 2)))
+    assert empty.shape == (4, 0, 3)
+
+
+_MOTION_OUT_MESSAGE = r"out must be a float64 or float32 array of shape \(4, 4, 3\)"
+#: Arguments `vertex_motions` must refuse (its own and those of deform_points_params without points).
+MOTION_BAD_ARGUMENTS = [
+    *[(kw, msg) for kw, msg in BAD_ARGUMENTS if "points" not in kw and "(4, K)" not in msg.replace("\\", "")],
+    ({"indices": np.zeros(4, dtype=np.int32)}, r"indices must have shape \(N, K\)"),
+    ({"out": np.zeros((4, 4, 3), dtype=np.float16)}, _MOTION_OUT_MESSAGE),
+    ({"out": np.zeros((4, 3))}, _MOTION_OUT_MESSAGE),
+    ({"out": np.zeros((3, 4, 3))}, _MOTION_OUT_MESSAGE),
+    ({"out": [[[0.0] * 3] * 4] * 4}, _MOTION_OUT_MESSAGE),
+    ({"rows": np.array([4])}, r"rows must lie in \[0, 4\)"),
+    ({"rows": np.array([-1])}, r"rows must lie in \[0, 4\)"),
+    ({"rows": np.zeros((1, 1), dtype=np.int64)}, "rows must be a 1-D integer array"),
+    ({"rows": np.array([0.0])}, "rows must be a 1-D integer array"),
+]
+
+
+def motion_bad_call(fn: Callable[..., np.ndarray], kwargs: dict) -> None:
+    """fn (core's or accel's vertex_motions) with valid arguments but for `kwargs`."""
+    args = {
+        "params": np.ones((3, 12)) * 0.1,
+        "indices": np.zeros((4, 2), dtype=np.int32),
+        "values": np.ones((4, 2)),
+        "out": None,
+        "rows": None,
+    }
+    args.update(kwargs)
+    fn(args["params"], args["indices"], args["values"], args["out"], rows=args["rows"])
+
+
+@pytest.mark.parametrize(("kwargs", "message"), MOTION_BAD_ARGUMENTS)
+def test_motions_bad_arguments_raise_value_error(kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        motion_bad_call(deform.vertex_motions, kwargs)
