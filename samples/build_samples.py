@@ -859,11 +859,77 @@ def build_comparison() -> SampleInfo:
     return SampleInfo(key_frames=[1, 24, 48, 72], todo=todo)
 
 
+def build_stack() -> SampleInfo:
+    """The deformer in a production stack: shape key → Armature → Affine probes → Subdivision. A bar
+    bulges (shape key, frame 24), its right half twists 90° (Armature with Preserve Volume, frame 48),
+    and our probes bend the bulged, twisted bar into a U (frame 72); Subdivision smooths it in renders."""
+    import bpy
+
+    todo: list[str] = []
+    scene = new_scene("stack", frame_end=72)
+    half_length = 3.0
+    bar = add_mesh_object(
+        "Bar",
+        mesh_from_bmesh("Bar", box_bmesh(size=(2 * half_length, 0.7, 0.7), cuts=(48, 4, 4))),
+        checker_material("Bar", (0.15, 0.45, 0.6), (0.93, 0.9, 0.84), scale=(3.0, 3.0, 3.0)),
+    )
+    # 1. A shape key: the middle bulges.
+    bar.shape_key_add(name="Basis", from_mix=False)
+    bulge = bar.shape_key_add(name="Bulge", from_mix=False)
+    co = np.empty(len(bar.data.vertices) * 3, dtype=np.float32)
+    bar.data.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    grow = 1.0 + 0.8 * np.exp(-((co[:, 0] / 1.1) ** 2))
+    bulge.data.foreach_set("co", (co * np.stack([np.ones_like(grow), grow, grow], 1)).ravel())
+    for frame, value in ((1, 0.0), (24, 1.0)):
+        bulge.value = value
+        bulge.keyframe_insert("value", frame=frame)
+    # 2. An Armature twists the right half (bones along +X, turned about their own Y axis).
+    armature = bpy.data.armatures.new("Stack")
+    rig = link(bpy.data.objects.new("Stack.Rig", armature))
+    bpy.context.view_layer.objects.active = rig
+    bpy.ops.object.mode_set(mode="EDIT")
+    for name, head, tail in (("Left", -half_length, 0.0), ("Right", 0.0, half_length)):
+        bone = armature.edit_bones.new(name)
+        bone.head, bone.tail, bone.roll = (head, 0.0, 0.0), (tail, 0.0, 0.0), 0.0
+    bpy.ops.object.mode_set(mode="OBJECT")
+    armature.display_type = "STICK"
+    rig.hide_render = True
+    add_twist_groups(bar, "Left", "Right", half_length)
+    right_bone = rig.pose.bones["Right"]
+    right_bone.rotation_mode = "XYZ"
+    key_transforms(right_bone, {1: {"rotation_euler": (0, 0, 0)}, 24: {"rotation_euler": (0, 0, 0)},
+                                48: {"rotation_euler": (0, 90, 0)}})
+    skin = bar.modifiers.new("Armature", "ARMATURE")
+    skin.object = rig
+    skin.use_deform_preserve_volume = True
+    # 3. Our probes bend the result into a U.
+    left = add_probe("Probe.Left", (-half_length, 0.0, 0.0))
+    middle = add_probe("Probe.Middle", (0.0, 0.0, 0.0), marker_axis="Z")
+    right = add_probe("Probe.Right", (half_length, 0.0, 0.0))
+    for probe, sign in ((left, -1.0), (right, 1.0)):
+        rest = {"location": (sign * half_length, 0.0, 0.0), "rotation_euler": (0, 0, 0)}
+        key_transforms(probe, {1: rest, 48: rest,
+                               72: {"location": (sign * (half_length - 0.5), 0.0, 1.8),
+                                    "rotation_euler": (0, -sign * 55, 0)}})
+    scene.frame_set(1)
+    add_deformer("probe", bar, [left, middle, right], {}, todo)
+    mark_target(bar, "AFFINE_LOG")
+    # 4. Subdivision after ours, in renders (the viewport shows the cage of the stack).
+    smooth = bar.modifiers.new("Subdivision", "SUBSURF")
+    smooth.levels, smooth.render_levels = 0, 1
+    add_ground(-2.2)
+    add_camera((0.0, -11.5, 2.4), (0.0, 0.0, 0.3), lens=40.0)
+    add_lights()
+    return SampleInfo(key_frames=[1, 24, 48, 72], todo=todo)
+
+
 SAMPLES: dict[str, Callable[[], SampleInfo]] = {
     "probe_bend": build_probe_bend,
     "probe_vortex": build_probe_vortex,
     "cage_deform": build_cage_deform,
     "comparison": build_comparison,
+    "stack": build_stack,
 }
 
 

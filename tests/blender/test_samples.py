@@ -26,7 +26,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES_DIR = ROOT / "samples"
-SAMPLE_NAMES = ("probe_bend", "probe_vortex", "cage_deform", "comparison")
+SAMPLE_NAMES = ("probe_bend", "probe_vortex", "cage_deform", "comparison", "stack")
 TIMEOUT = 600
 
 # The vortex probe passes 180° between frames 39 and 40 (450° over frames 1..97).

@@ -272,9 +272,12 @@ def test_two_deformers_compose_in_stack_order(bl):
 # ------------------------------------------------------------------------------------ topology changes
 
 
-def test_subdivision_before_the_deformer_carries_the_motions(bl):
+@pytest.mark.parametrize("kind", ["SUBSURF", "MIRROR", "ARRAY", "SOLIDIFY"])
+def test_modifiers_that_add_vertices_before_the_deformer_carry_the_motions(bl, kind):
     target = bl.grid_cube(cuts=4)
-    target.modifiers.new("Subdivision", "SUBSURF").levels = 1
+    added = target.modifiers.new(kind.title(), kind)
+    if kind == "SUBSURF":
+        added.levels = 1
     probes = _probes(bl)
     deformer = bl.add_probe_deformer(target, probes, normalize="SUM")
     subdivided = _input_of(bl, target, deformer)
