@@ -486,14 +486,16 @@ def _write_motions(mesh: bpy.types.Mesh, uid: str, result: np.ndarray, rows: np.
 
 def _finite_motions(result: np.ndarray, rows: np.ndarray | None) -> bool:
     """Whether the motions (4, N, 3) are all finite, given that only `rows` changed (see `_finite`)."""
+    # A float32 dot product (BLAS): it also overflows to inf for entries beyond ~1e19, which a float32
+    # position could not use either.
     if rows is not None:
         if len(rows) == 0:
             return True
         if 4 * len(rows) < result.shape[1]:
-            changed = np.take(result, rows, axis=1).reshape(-1).astype(np.float64)
+            changed = np.take(result, rows, axis=1).reshape(-1)
             return bool(np.isfinite(np.dot(changed, changed)))
     flat = result.reshape(-1)
-    return bool(np.isfinite(np.dot(flat, flat.astype(np.float64))))
+    return bool(np.isfinite(np.dot(flat, flat)))
 
 
 #: Modifier types that rebuild the mesh from scratch and drop its point attributes: a deformer after

@@ -214,6 +214,32 @@ def test_a_non_common_motion_after_an_armature_deforms_the_bent_shape(installed,
     assert np.abs(got - _expected_contract(installed, target, deformer, probes, bent, bl)).max() < 1e-5
 
 
+@pytest.mark.parametrize("blend_mode", ["LINEAR", "AFFINE_LOG"])
+def test_blend_mode_and_strength_after_an_armature(installed, bl, blend_mode):
+    """The linear comparison blend and a strength below 1 on the motion path: v' = (Σ w_i A_i +
+    (1 − Σ w_i) I) v, and φ(s Σ w_i ψ(A_i)) v, on the bent input."""
+    target = bl.grid_cube(cuts=6)
+    _bending_armature(target, angle=0.7)
+    probes = _probes(bl)
+    deformer = bl.add_probe_deformer(target, probes, weight_mode="FALLOFF", radius=2.5, blend_mode=blend_mode,
+                                     strength=0.6)
+    probes[0].rotation_euler.y += 0.8
+    probes[2].scale.x = 1.4
+    bpy.context.view_layer.update()
+    bent = _input_of(bl, target, deformer).astype(np.float64)
+    got = bl.evaluated_positions(target)
+    W = 0.6 * bl.dense_weights(target, deformer)
+    transforms = np.stack([bl.local_motion(target, p, item.rest_matrix)
+                           for p, item in zip(probes, deformer.probes, strict=True)])
+    if blend_mode == "LINEAR":
+        expected = bent + np.einsum("vm,mij,vj->vi", W, transforms[:, :3, :3] - np.eye(3), bent)
+        expected += W @ transforms[:, :3, 3]
+    else:
+        expected = installed.deform.deform_points(bent, transforms, W)
+    assert np.abs(got - expected).max() < 1e-5
+    assert np.abs(got - bent).max() > 0.05
+
+
 def test_stack_position_changes_the_result_as_a_hooks_does(bl):
     """Ours (every probe moved by G) and a Hook (its empty moved by G, all vertices, no falloff) on two
     identical bent meshes: the same result above the Armature and below it, and the two differ."""
