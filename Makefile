@@ -2,8 +2,10 @@
 PYTHON ?= python3
 VENV := .venv
 VENV_LTS := .venv42
+VENV_LTS45 := .venv45
 PY := $(VENV)/bin/python
 PY_LTS := $(VENV_LTS)/bin/python
+PY_LTS45 := $(VENV_LTS45)/bin/python
 DIST := dist
 
 .PHONY: all demo test test-core test-blender bench build release lint venv venv-lts samples clean
@@ -20,9 +22,14 @@ $(VENV_LTS)/.installed: tools/requirements-lts.txt
 	$(PY_LTS) -m pip install --disable-pip-version-check -q -r tools/requirements-lts.txt
 	touch $@
 
+$(VENV_LTS45)/.installed: tools/requirements-lts45.txt
+	$(PYTHON) -m venv $(VENV_LTS45)
+	$(PY_LTS45) -m pip install --disable-pip-version-check -q -r tools/requirements-lts45.txt
+	touch $@
+
 venv: $(VENV)/.installed
 
-venv-lts: $(VENV_LTS)/.installed
+venv-lts: $(VENV_LTS)/.installed $(VENV_LTS45)/.installed
 
 # Validate the manifest and build the extension .zip with the CLI that ships inside the bpy wheel:
 # this machine's platform, with its compiled-kernel wheels (downloaded once into wheels/).
@@ -44,6 +51,8 @@ samples: build venv-lts
 test: build venv-lts
 	$(PY) -m ruff check .
 	AFFINE_LTS_PYTHON=$(abspath $(PY_LTS)) $(PY) -m pytest tests
+	@echo "--- the Blender suite again on Blender 4.5 LTS ---"
+	$(PY_LTS45) -m pytest tests/blender -q -p no:cacheprovider
 	@echo "--- the Blender suite again on Blender 4.2 LTS ---"
 	$(PY_LTS) -m pytest tests/blender -q -p no:cacheprovider
 

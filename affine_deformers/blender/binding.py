@@ -42,7 +42,9 @@ def target_problem(obj: bpy.types.Object | None) -> str:
     if obj is None:
         return "No active object: make the mesh to deform the active object"
     if obj.type != "MESH":
-        return f"'{obj.name}' is a {obj.type.lower()}, not a mesh: the target must be a mesh"
+        kind = obj.type.replace("_", " ").lower()
+        article = "an" if kind[:1] in "aeiou" else "a"
+        return f"'{obj.name}' is {article} {kind}, not a mesh: the target must be a mesh"
     if obj.library is not None or obj.data.library is not None:
         return f"'{obj.name}' is linked from a library and cannot be edited"
     if obj.mode == "EDIT":

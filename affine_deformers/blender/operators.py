@@ -17,11 +17,38 @@ UNDOABLE = {"REGISTER", "UNDO"}
 
 
 class DeformerIndexed:
-    """Mixin for operators that address one deformer of the active object by `index`; undoable."""
+    """Mixin for operators that address one deformer of the active object by `index`; undoable.
+
+    The index has no hard minimum: Blender clamps an out-of-range value to the minimum, so index=-1
+    would silently address deformer #0; instead every index outside the stack is refused by name.
+    Greyed out (poll, with the reason as tooltip) while the active object has no deformers."""
 
     bl_options = UNDOABLE
 
-    index: IntProperty(name="Index", default=0, min=0, description="Deformer index on the active object")
+    index: IntProperty(name="Index", default=0, soft_min=0, description="Deformer index on the active object")
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        obj = active_target(context)
+        if obj is None:
+            cls.poll_message_set("No active object")
+            return False
+        if not len(getattr(obj, "affine_deformers", ())):
+            cls.poll_message_set(f"'{obj.name}' has no affine deformers")
+            return False
+        return True
+
+
+class TargetPolled:
+    """Mixin for the add operators: greyed out (with the reason) unless the active object can carry a
+    deformer (binding.target_problem)."""
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        problem = binding.target_problem(active_target(context))
+        if problem:
+            cls.poll_message_set(problem)
+        return not problem
 
 
 def active_target(context: bpy.types.Context) -> bpy.types.Object | None:
@@ -89,7 +116,7 @@ def _refresh(context: bpy.types.Context, obj: bpy.types.Object) -> None:
     evaluate.evaluate_object(obj, context.evaluated_depsgraph_get())
 
 
-class AFFINE_OT_probe_deformer_add(bpy.types.Operator):
+class AFFINE_OT_probe_deformer_add(TargetPolled, bpy.types.Operator):
     """Add a probe deformer to the active mesh; the selected Empties become its probes (none selected:
     one new Empty at the mesh's origin). Their current poses become the rest pose"""
 
@@ -121,7 +148,7 @@ class AFFINE_OT_probe_deformer_add(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class AFFINE_OT_cage_deformer_add(bpy.types.Operator):
+class AFFINE_OT_cage_deformer_add(TargetPolled, bpy.types.Operator):
     """Add a cage deformer to the active mesh; the other selected mesh is the cage (closed, normals
     outward). Its current shape becomes the rest shape"""
 
@@ -274,7 +301,7 @@ class AFFINE_OT_deformer_probe_remove(DeformerIndexed, bpy.types.Operator):
     bl_idname = "object.affine_deformer_probe_remove"
     bl_label = "Remove Probe"
 
-    probe_index: IntProperty(name="Probe", default=0, min=0, description="Probe index in the deformer")
+    probe_index: IntProperty(name="Probe", default=0, soft_min=0, description="Probe index in the deformer")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj, deformer = _deformer(self, context)

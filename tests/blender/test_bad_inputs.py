@@ -111,6 +111,37 @@ def test_bad_deformer_index(bl, rig):
         bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=3)
 
 
+def test_negative_indices_are_refused_not_clamped(bl, rig):
+    """Blender clamps an IntProperty to its minimum: index=-1 must not address deformer #0."""
+    target, *_ = rig
+    second = bl.add_probe_deformer(target, [bl.empty("Q", (0.0, 0.0, 2.0))])
+    names = [d.name for d in target.affine_deformers]
+    assert len(names) == 2
+    for op in (bpy.ops.object.affine_deformer_remove, bpy.ops.object.affine_deformer_bind,
+               bpy.ops.object.affine_deformer_apply):
+        with pytest.raises(RuntimeError, match="#-1"):
+            bl.run_op(op, target, index=-1)
+    with pytest.raises(RuntimeError, match="no probe #-1"):
+        bl.run_op(bpy.ops.object.affine_deformer_probe_remove, target, index=1, probe_index=-1)
+    assert [d.name for d in target.affine_deformers] == names and len(second.probes) == 1
+
+
+def test_operators_are_greyed_out_with_the_reason(bl):
+    """poll() refuses with the reason as the message (the tooltip of a greyed-out button)."""
+    cube = bl.grid_cube(cuts=1)
+    e = bl.empty("E")
+    with (bpy.context.temp_override(active_object=e, object=e, selected_objects=[e]),
+          pytest.raises(RuntimeError, match="'E' is an empty, not a mesh")):
+        bpy.ops.object.affine_probe_deformer_add()
+    for op in (bpy.ops.object.affine_deformer_remove, bpy.ops.object.affine_deformer_bake,
+               bpy.ops.object.affine_deformer_probe_add):
+        with pytest.raises(RuntimeError, match="'Cube' has no affine deformers"):
+            bl.run_op(op, cube)
+    with bpy.context.temp_override(active_object=cube, object=cube, selected_objects=[cube]):
+        assert bpy.ops.object.affine_probe_deformer_add.poll()
+        assert not bpy.ops.object.affine_deformer_bind.poll()
+
+
 def test_binding_a_zero_scaled_probe_is_refused_and_rolled_back(bl):
     target = bl.uv_sphere()
     probe = bl.empty("Flat")
