@@ -141,6 +141,7 @@ def reweight(obj: bpy.types.Object, deformer) -> None:
     storage.write_weights(mesh, deformer.uid, indices, values)
     relations.sync(obj, deformer)  # e.g. a probe was removed
     deformer.bound_vertex_count = len(rest)
+    deformer.bound_topology = storage.topology_signature(mesh, rest)
     deformer.bound_flag = True
     deformer.bind_warning = warning
     deformer.bind_generation += 1

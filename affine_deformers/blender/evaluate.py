@@ -137,6 +137,7 @@ def _bind_data(obj: bpy.types.Object, deformer, n_controls: int) -> _Bound:
     if bound is not None and bound.key == key and np.array_equal(bound.rest32, rest):
         return bound
     _bound.pop(cache_key, None)
+    _check_vertices(mesh, deformer, rest)
     indices, values = storage.read_weights(mesh, deformer.uid, n_controls)
     bound = _Bound(key, next(_serial), rest, rest.astype(np.float64), indices, values)
     _bound[cache_key] = bound
@@ -255,6 +256,29 @@ def _precheck(obj: bpy.types.Object, deformer) -> str:
         return (f"The mesh has {n} vertices but was bound with {deformer.bound_vertex_count}: "
                 "the topology changed, rebind the deformer")
     return ""
+
+
+def _check_vertices(mesh: bpy.types.Mesh, deformer, rest32: np.ndarray) -> None:
+    """Raise StorageError when the mesh's vertices are no longer the ones the weights were bound to.
+
+    Compared with the signature stored at bind (storage.topology_signature): a change of the shape
+    alone (Edit / Sculpt Mode moves) or of the connectivity alone (faces added or deleted, vertices in
+    place) keeps the vertices and is accepted — the stored signature follows it; both at once, as
+    deleting one vertex and adding another gives, means the indices were renumbered. Called only
+    when the rest positions differ from the cached ones (or on the first read), so updates pay nothing.
+    """
+    stored = deformer.bound_topology
+    if not stored:  # bound by 0.1.0
+        return
+    now = storage.topology_signature(mesh, rest32)
+    if now == stored:
+        return
+    connectivity, shape = stored.split(":")
+    connectivity_now, shape_now = now.split(":")
+    if connectivity != connectivity_now and shape != shape_now:
+        raise storage.StorageError("The mesh's vertices changed since bind (deleted and added?): the "
+                                   "topology changed, rebind the deformer")
+    deformer.bound_topology = now
 
 
 #: (object session uid, deformer uid) → name of the modifier `nodes.find_modifier` found last time.

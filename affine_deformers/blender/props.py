@@ -234,6 +234,10 @@ class AffineDeformer(bpy.types.PropertyGroup):
     status: StringProperty(name="Status", description="Last error or warning ('' when fine)")
     bind_warning: StringProperty(options={"HIDDEN"}, description="Warning left by the last (re)weighting")
     bound_vertex_count: IntProperty(name="Bound Vertices", default=0, min=0)
+    bound_topology: StringProperty(
+        options={"HIDDEN"},
+        description="Edge, corner and face counts and a checksum of the connectivity at bind (weights "
+                    "belong to vertex indices; empty in files bound before it was stored)")
     bind_generation: IntProperty(
         options={"HIDDEN"}, default=0, description="Bumped at every (re)weighting: evaluation cache key")
 

@@ -15,6 +15,7 @@ All reads and writes go through foreach_get/foreach_set on numpy buffers (no loo
 from __future__ import annotations
 
 import re
+import zlib
 
 import bpy
 import numpy as np
@@ -82,6 +83,22 @@ def write_positions(mesh: bpy.types.Mesh, positions: np.ndarray) -> None:
     else:
         mesh.vertices.foreach_set("co", flat)
     mesh.update()
+
+
+def topology_signature(mesh: bpy.types.Mesh, positions: np.ndarray) -> str:
+    """'<connectivity crc>:<positions crc>' — CRC-32s of the edges' and corners' vertex indices (with
+    the counts) and of the rest positions (N, 3) float32. Bind weights belong to vertex indices:
+    deleting one vertex and adding another keeps the vertex count but renumbers the vertices, which
+    changes both; an edit of the shape alone, or of the faces alone, changes one (see
+    evaluate._check_vertices)."""
+    edges = np.empty(len(mesh.edges) * 2, dtype=np.int32)
+    corners = np.empty(len(mesh.loops), dtype=np.int32)
+    mesh.edges.foreach_get("vertices", edges)
+    mesh.loops.foreach_get("vertex_index", corners)
+    counts = np.array([len(mesh.edges), len(mesh.loops), len(mesh.polygons)], dtype=np.int64)
+    connectivity = zlib.crc32(corners.tobytes(), zlib.crc32(edges.tobytes(), zlib.crc32(counts.tobytes())))
+    shape = zlib.crc32(np.ascontiguousarray(positions, dtype=np.float32).tobytes())
+    return f"{connectivity:08x}:{shape:08x}"
 
 
 def _point_attribute(mesh: bpy.types.Mesh, name: str, data_type: str) -> bpy.types.Attribute:

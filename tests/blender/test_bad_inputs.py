@@ -82,6 +82,55 @@ def test_topology_changed_after_bind(bl, rig):
     assert deformer.status == "" and deformer.bound_vertex_count == len(changed_rest)
 
 
+def test_renumbered_vertices_with_the_same_count_are_detected(bl, rig):
+    """One vertex deleted and one loose vertex added: the count is the same, the vertices are not."""
+    import bmesh
+
+    target, _probes, deformer, _rest = rig
+    n = len(target.data.vertices)
+    bm = bmesh.new()
+    bm.from_mesh(target.data)
+    bm.verts.ensure_lookup_table()
+    bmesh.ops.delete(bm, geom=[bm.verts[5]], context="VERTS")
+    bm.verts.new((0.1, 0.2, 0.3))
+    bm.to_mesh(target.data)
+    bm.free()
+    target.data.update()
+    assert len(target.data.vertices) == n
+    changed_rest = bl.rest_positions(target).copy()
+    _assert_intact(bl, target, changed_rest)
+    assert "topology changed" in deformer.status and "rebind" in deformer.status
+    assert bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=0) == {"FINISHED"}
+    assert deformer.status == ""
+
+
+def test_shape_or_face_edits_alone_keep_the_binding(bl, rig, tmp_path):
+    """Moving vertices (a rest-shape edit), or deleting a face with its vertices left in place, keeps
+    the vertex indices: no rebind is asked for, also after saving and reopening."""
+    import bmesh
+
+    target, probes, deformer, _rest = rig
+    probes[0].location.x += 0.3
+    co = bl.rest_positions(target)
+    co[:, 2] *= 1.2
+    target.data.vertices.foreach_set("co", co.ravel())
+    target.data.update()
+    bl.evaluated_positions(target)
+    assert deformer.status == ""
+    bm = bmesh.new()
+    bm.from_mesh(target.data)
+    bm.faces.ensure_lookup_table()
+    bmesh.ops.delete(bm, geom=[bm.faces[0]], context="FACES_ONLY")
+    bm.to_mesh(target.data)
+    bm.free()
+    target.data.update()
+    bl.evaluated_positions(target)
+    assert deformer.status == ""
+    path = tmp_path / "edited.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    assert str(bl.reopened_positions(path, target.name, (1,), tmp_path / "p.npz")["status"]) == ""
+
+
 def test_non_mesh_target(bl):
     bpy.ops.curve.primitive_bezier_curve_add()
     curve = bpy.context.active_object
