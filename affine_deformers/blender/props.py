@@ -236,8 +236,8 @@ class AffineDeformer(bpy.types.PropertyGroup):
     bound_vertex_count: IntProperty(name="Bound Vertices", default=0, min=0)
     bound_topology: StringProperty(
         options={"HIDDEN"},
-        description="Edge, corner and face counts and a checksum of the connectivity at bind (weights "
-                    "belong to vertex indices; empty in files bound before it was stored)")
+        description="CRCs of the connectivity and of the rest positions at bind (weights belong to "
+                    "vertex indices; empty in files bound before it was stored)")
     bind_generation: IntProperty(
         options={"HIDDEN"}, default=0, description="Bumped at every (re)weighting: evaluation cache key")
 
