@@ -735,13 +735,26 @@ def _run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None) -> None:
         return
     _busy = True
     try:
+        shown = _shown_elsewhere(scene, depsgraph)
         for obj in scene.objects:
-            if len(obj.affine_deformers):
+            if len(obj.affine_deformers) and not shown(obj):
                 evaluate_object(obj, depsgraph)
     except Exception:
         traceback.print_exc()
     finally:
         _busy = False
+
+
+def _shown_elsewhere(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph):
+    """A test for objects whose viewport update from `scene` is skipped: those the context's scene
+    shows too, when `scene` is another one. A deformer's output lives on the mesh, which holds one
+    shape at a time, so two scenes at different frames would rewrite it on every alternate update;
+    the scene the artist is in wins. Renders are never skipped."""
+    active = getattr(bpy.context, "scene", None)
+    if depsgraph.mode == "RENDER" or active is None or active == scene:
+        return lambda _obj: False
+    objects = active.objects
+    return lambda obj: objects.get(obj.name) == obj
 
 
 @persistent

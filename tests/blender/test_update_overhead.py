@@ -245,3 +245,37 @@ def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, install
     assert np.abs(fresh).max() > 0.05
     assert np.array_equal(attribute.view(np.uint32), fresh.view(np.uint32))
     assert np.array_equal(cached.view(np.uint32), fresh.view(np.uint32))
+
+
+def test_two_scenes_at_different_frames_do_not_fight_over_the_mesh(bl, installed, monkeypatch):
+    """An object shown by two scenes at different frames: updates of the other scene's viewport leave
+    the mesh to the scene the artist is in (one write, not one per alternate update); a render of the
+    other scene still evaluates it there, and a scene that alone shows the object deforms it."""
+    storage, evaluate = installed.storage, installed.evaluate
+    target, probes, deformer = _rig(bl)
+    scene_a = bpy.context.scene
+    probes[0].keyframe_insert("location", frame=1)
+    probes[0].location.x += 0.8
+    probes[0].keyframe_insert("location", frame=10)
+    scene_b = bpy.data.scenes.new("B")
+    for obj in (target, *probes):
+        scene_b.collection.objects.link(obj)
+    scene_a.frame_set(1)
+    scene_b.frame_set(10)
+    writes = []
+    real_write = storage.write_offsets_unchecked
+    monkeypatch.setattr(storage, "write_offsets_unchecked", lambda *a: writes.append(a) or real_write(*a))
+    graph_a = scene_a.view_layers[0].depsgraph
+    graph_b = scene_b.view_layers[0].depsgraph
+    graph_b.update()
+    at_frame_1 = bl.evaluated_positions(target).copy()
+    for _ in range(10):
+        evaluate.on_depsgraph_update_post(scene_b, graph_b)
+        evaluate.on_depsgraph_update_post(scene_a, graph_a)
+    assert len(writes) <= 1
+    assert np.array_equal(bl.evaluated_positions(target), at_frame_1)
+    assert deformer.status == ""
+    # A scene that alone shows the object (the artist's scene does not) deforms it as usual.
+    scene_a.collection.objects.unlink(target)
+    evaluate.on_depsgraph_update_post(scene_b, graph_b)
+    assert len(writes) >= 1
