@@ -1,6 +1,6 @@
 """The numerical core (numpy only, never bpy): the Aff+(3) maps, weights, cages and the deformer kernel.
 
-Script contract (ARCHITECTURE.md): `phi(X, Y)`, `psi(A)` and `deform_points(points, transforms, weights)`
+Script contract (docs/DEVELOPING.md): `phi(X, Y)`, `psi(A)` and `deform_points(points, transforms, weights)`
 are importable from here; `deform_points_params` / `blend_linear_sparse` are the sparse hot paths.
 """
 

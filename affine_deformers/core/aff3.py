@@ -17,7 +17,7 @@ Closed forms used (θ-coefficients have series near θ = 0, see `_so3_coeffs`):
 
 Functions of a symmetric 3×3 matrix (exp, log, √) are evaluated without eigenvectors: the eigenvalues
 come from the trigonometric solution of the characteristic cubic, and f(Y) is the quadratic that
-interpolates f at them, written in Newton form centred on the middle eigenvalue e₁ (ERRATA 2–4):
+interpolates f at them, written in Newton form centred on the middle eigenvalue e₁ (MATH.md §2–4):
 
     f(Y) = f(e₁) I + (f[e₁, e₀] − x f[e₁, e₀, e₂]) Z + f[e₁, e₀, e₂] Z²,   Z = Y − e₁ I,
 
@@ -227,7 +227,7 @@ def so3_log(R: ArrayLike) -> FloatArray:
     θ = atan2(|s|, (tr R − 1)/2) with s = vee(R) = sin θ · n, accurate over [0, π]. For θ ≤ π/2,
     ω = (θ / sin θ) s (ratio → 1 at θ = 0). For θ > π/2 the skew part vanishes as θ → π, so the axis
     is read from the symmetric part (R + Rᵀ)/2 − cos θ I = (1 − cos θ) n nᵀ (its largest column) and
-    its sign from s (ERRATA 6). At θ = π exactly both signs are valid; the one returned is arbitrary.
+    its sign from s (MATH.md §6). At θ = π exactly both signs are valid; the one returned is arbitrary.
     """
     R = _float_array(R, (3, 3), "R")
     flat = R.reshape(*R.shape[:-2], 9)
@@ -284,7 +284,7 @@ def left_jacobian_inv(w: ArrayLike) -> FloatArray:
 
 
 def se3_exp(w: ArrayLike, u: ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """exp([[ω̂, u], [0, 0]]) = [[R, t], [0, 1]] with R = exp(ω̂), t = V(ω) u (ERRATA 5).
+    """exp([[ω̂, u], [0, 0]]) = [[R, t], [0, 1]] with R = exp(ω̂), t = V(ω) u (MATH.md §5).
 
     t = u + ((1 − cos θ)/θ²) ω × u + ((θ − sin θ)/θ³) ω × (ω × u), so ω = 0 gives t = u exactly.
     """
@@ -299,7 +299,7 @@ def se3_exp(w: ArrayLike, u: ArrayLike) -> tuple[FloatArray, FloatArray]:
 
 
 def se3_log(R: ArrayLike, t: ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """log([[R, t], [0, 1]]) = [[ω̂, u], [0, 0]] with ω = so3_log(R), u = V(ω)⁻¹ t (ERRATA 6).
+    """log([[R, t], [0, 1]]) = [[ω̂, u], [0, 0]] with ω = so3_log(R), u = V(ω)⁻¹ t (MATH.md §6).
 
     u = t − ½ ω × t + d(θ) ω × (ω × t); a pure translation (R = I) gives u = t exactly.
     """

@@ -1,4 +1,4 @@
-"""The per-vertex kernel: v ↦ φ(Σ_k w_k P_idx(k)) v, vectorised over vertices (ERRATA 1), and the
+"""The per-vertex kernel: v ↦ φ(Σ_k w_k P_idx(k)) v, vectorised over vertices (MATH.md §1), and the
 motion map p_v ↦ φ(p_v) itself (`vertex_motions`: the columns of M = R(ω) exp(Y) and t = V(ω) u).
 
 Parameters follow docs/DEVELOPING.md: P = (ω, u, Y₆) ∈ R¹²; for a point v

@@ -1,4 +1,4 @@
-"""Continuous choice of the rotation-log branch (ERRATA 8).
+"""Continuous choice of the rotation-log branch (MATH.md §8).
 
 The principal logarithm returns a rotation vector w with |w| = θ ∈ [0, π]. Every rotation vector of
 the same rotation lies on the line through w: w + 2πk·ŵ (k ∈ ℤ; k = -1 is the axis flip w - 2πŵ). A

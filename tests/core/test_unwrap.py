@@ -1,4 +1,4 @@
-"""Rotation-branch unwrapping (core/unwrap.py, ERRATA 8): lifting, lifted se(3) logs, channels."""
+"""Rotation-branch unwrapping (core/unwrap.py, MATH.md §8): lifting, lifted se(3) logs, channels."""
 
 from __future__ import annotations
 
