@@ -318,6 +318,13 @@ def redistribute(indices: np.ndarray, values: np.ndarray, valid: np.ndarray) -> 
     return kept * scale[:, None]
 
 
+def _values(deformer, motions: Motions, bound: _Bound) -> np.ndarray:
+    """The bound weights at the deformer's strength, with skipped controls' weight redistributed."""
+    if motions.valid is not None and not np.all(motions.valid):
+        return redistribute(bound.indices, bound.values, motions.valid) * deformer.strength
+    return bound.scaled_values(deformer.strength)
+
+
 def _outer(motions: Motions, deformer) -> np.ndarray | None:
     """The motion applied after the blend, at strength s: φ(s·ψ(G)) (exactly G at s = 1).
 
@@ -355,11 +362,7 @@ def _offsets(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarray, np.
         return _offsets_affine(deformer, motions, bound)
     else:
         bound.forget_result()
-        indices, values = bound.indices, bound.values
-        if motions.valid is not None and not np.all(motions.valid):
-            values = redistribute(indices, values, motions.valid) * deformer.strength
-        else:
-            values = bound.scaled_values(deformer.strength)
+        indices, values = bound.indices, _values(deformer, motions, bound)
         if deformer.blend_mode == "LINEAR":
             deformed = deform.blend_linear_sparse(points, motions.matrices, indices, values)
         else:
@@ -419,11 +422,7 @@ def _motions(deformer, motions: Motions, bound: _Bound) -> tuple[np.ndarray, np.
     if deformer.strength == 0.0 or len(motions.matrices) == 0 or np.all(motions.at_rest):
         result = _identity_motions(n)
     else:
-        indices, values = bound.indices, bound.values
-        if motions.valid is not None and not np.all(motions.valid):
-            values = redistribute(indices, values, motions.valid) * deformer.strength
-        else:
-            values = bound.scaled_values(deformer.strength)
+        indices, values = bound.indices, _values(deformer, motions, bound)
         if deformer.blend_mode == "LINEAR":
             result = _linear_motions(motions.matrices, indices, values)
         else:
