@@ -15,6 +15,7 @@ to its rest matrix is recognised as "at rest" and contributes exactly the identi
 
 from __future__ import annotations
 
+import hashlib
 import math
 import struct
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ import bpy
 import mathutils
 import numpy as np
 
-from ..core import aff3, unwrap, weights
+from ..core import aff3, surface, unwrap, weights
 from . import nodes
 
 
@@ -259,7 +260,7 @@ class ProbeKind:
         rests = rest_matrices(deformer).astype(np.float64)
         scales = np.array([item.weight_scale for item in deformer.probes], dtype=np.float64)
         warning = ""
-        dense = None
+        dense = solved = None
         if deformer.weight_mode == "VERTEX_GROUPS":
             names = [probe_label(item) for item in deformer.probes]
             missing = [n for n in names if obj.vertex_groups.get(n) is None]
@@ -267,10 +268,14 @@ class ProbeKind:
                 warning = ("No vertex group named " + ", ".join(f"'{n}'" for n in missing)
                            + ": paint one per probe, named after it (those probes have no influence)")
             dense = nodes.vertex_group_weights(obj, names)
+        elif deformer.weight_mode == "SURFACE":
+            result = harmonic_surface_weights(obj.data, rest_points, rests[:, :3, 3])
+            dense, solved = result.weights, result.solved
+            warning = surface_warning(result, [probe_label(item) for item in deformer.probes])
         indices, values = weights.probe_weights(
             rest_points, rests[:, :3, 3], mode=deformer.weight_mode, radius=deformer.radius,
             exponent=deformer.exponent, normalize=deformer.normalize, k=deformer.max_influences,
-            scales=scales, dense=dense)
+            scales=scales, dense=dense, solved=solved)
         return indices, values, warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
@@ -323,6 +328,60 @@ class ProbeKind:
                        np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
 
 
+def mesh_triangles(mesh: bpy.types.Mesh) -> np.ndarray:
+    """The mesh's tessellation (T, 3) int32 vertex indices (Blender's loop triangles: every face,
+    n-gons included), read with one foreach_get."""
+    if hasattr(mesh, "calc_loop_triangles"):
+        mesh.calc_loop_triangles()
+    triangles = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int32)
+    if triangles.size:
+        mesh.loop_triangles.foreach_get("vertices", triangles)
+    return triangles.reshape(-1, 3)
+
+
+#: Recent harmonic solves keyed on their exact inputs (rest positions, triangles, probe rest
+#: positions): re-weighting with another exponent, normalisation, influence count or weight scale
+#: reuses the solve instead of repeating it. Bounded; recomputable.
+SURFACE_MEMO_SIZE = 4
+_surface_memo: dict[bytes, surface.HarmonicWeights] = {}
+
+
+def harmonic_surface_weights(mesh: bpy.types.Mesh, rest_points: np.ndarray,
+                             centers: np.ndarray) -> surface.HarmonicWeights:
+    """core.surface.harmonic_weights of probes at `centers` (m, 3) on the mesh's rest shape
+    `rest_points` (N, 3) and its loop triangles (memoised on the exact inputs)."""
+    triangles = mesh_triangles(mesh)
+    points = np.ascontiguousarray(rest_points, dtype=np.float64)
+    centers = np.ascontiguousarray(centers, dtype=np.float64)
+    digest = hashlib.blake2b(digest_size=16)
+    for array in (points, triangles, centers):
+        digest.update(str(array.shape).encode())
+        digest.update(array.tobytes())
+    key = digest.digest()
+    result = _surface_memo.get(key)
+    if result is None:
+        result = surface.harmonic_weights(points, triangles, centers)
+        if len(_surface_memo) >= SURFACE_MEMO_SIZE:
+            _surface_memo.pop(next(iter(_surface_memo)))
+        _surface_memo[key] = result
+    return result
+
+
+def surface_warning(result: surface.HarmonicWeights, names: list[str]) -> str:
+    """The status note of a 'SURFACE' weighting: loose parts that fell back to inverse distance, and
+    probes that own no surface ('' when neither)."""
+    notes = []
+    if result.loose_parts:
+        parts = "1 loose part" if result.loose_parts == 1 else f"{result.loose_parts} loose parts"
+        notes.append(f"Surface weights: {parts} ({result.loose_vertices} vertices) without a probe near "
+                     "them use inverse-distance weights")
+    if result.unanchored:
+        listed = ", ".join(f"'{names[i]}'" for i in result.unanchored)
+        notes.append(f"Surface weights: {listed} share the nearest surface with another probe and have "
+                     "no surface influence")
+    return "; ".join(notes)
+
+
 def in_a_scene(obj: bpy.types.Object) -> bool:
     """`bool(obj.users_scene)` without its cost in the common case: users_scene lists every object of
     every scene (O(objects) per call); a lookup by name finds the object directly, and only a miss
@@ -360,8 +419,9 @@ _rows: dict[tuple, _ProbeRow] = {}
 
 
 def forget() -> None:
-    """Drop the per-probe memo (it only holds recomputable values)."""
+    """Drop the per-probe and surface-weight memos (they only hold recomputable values)."""
     _rows.clear()
+    _surface_memo.clear()
 
 
 def _bits(values: tuple[float, ...]) -> bytes:

@@ -14,6 +14,8 @@ from . import binding, cage_kind, evaluate, relations
 from .kinds import BindError
 
 UNDOABLE = {"REGISTER", "UNDO"}
+#: Max Influences of a new probe deformer (the property's default, 4, stays for files of 0.1.0).
+DEFAULT_PROBE_INFLUENCES = 6
 
 
 class DeformerIndexed:
@@ -136,6 +138,10 @@ class AFFINE_OT_probe_deformer_add(TargetPolled, bpy.types.Operator):
             created = _new_probe(context, target)
             probes = [created]
         deformer = binding.create(target, "PROBE", "Probe Deformer")
+        with binding.quiet():  # bound below in one go
+            # 6 influences: with 4, steps near points where the 5 strongest probes nearly tie reach
+            # 5× the untruncated field's inside clouds of 8 probes (tests/core/test_probe_seams.py).
+            deformer.max_influences = DEFAULT_PROBE_INFLUENCES
         for probe in probes:
             deformer.probes.add().object = probe
         if not _bind_new(self, context, target, deformer, created):

@@ -80,16 +80,20 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         col.use_property_split = True
         if deformer.kind == "CAGE":
             col.prop(deformer, "cage")
-            col.prop(deformer, "exponent")
-            col.prop(deformer, "half_space")
+            col.prop(deformer, "cage_weights")
+            if deformer.cage_weights == "INVERSE_DISTANCE":
+                col.prop(deformer, "exponent")
+                col.prop(deformer, "half_space")
         else:
             col.prop(deformer, "weight_mode")
-            if deformer.weight_mode != "VERTEX_GROUPS":
+            # Surface weights have no length scale (radius): their exponent sharpens them
+            if deformer.weight_mode in ("INVERSE_DISTANCE", "FALLOFF"):
                 col.prop(deformer, "radius")
-            if deformer.weight_mode == "INVERSE_DISTANCE":
+            if deformer.weight_mode in ("INVERSE_DISTANCE", "SURFACE"):
                 col.prop(deformer, "exponent")
             col.prop(deformer, "normalize")
-        col.prop(deformer, "max_influences")
+        if deformer.kind != "CAGE" or deformer.cage_weights == "INVERSE_DISTANCE":
+            col.prop(deformer, "max_influences")  # harmonic cage weights: always 8 grid nodes
         col.prop(deformer, "mask_group", icon="GROUP_VERTEX")
         col.prop(deformer, "strength")
         col.prop(deformer, "blend_mode")

@@ -11,8 +11,9 @@ Kernels (d = distance to a control's rest position):
 * inverse distance  w = (r / max(d, d_min))^p — finite and dominant on top of a control;
 * smooth falloff    w = (1 − (d/R)²)^q for d < R, exactly 0 for d ≥ R (C^{q−1} at R, smooth at 0).
 
-Truncation to K is continuous (`truncate`: the (K+1)-th weight is subtracted from the kept K), so a
-control leaving a vertex's K strongest fades out instead of jumping to zero.
+Truncation to K is continuous (`truncate`: the kept K are lowered so that each reaches 0 where it
+meets the (K+1)-th weight), so a control leaving a vertex's K strongest fades out instead of jumping
+to zero.
 
 Normalisation of the kept K weights of a row: 'NONE' (as is), 'SUM' (divide by the row sum; all-zero
 rows stay zero), 'SOFTMAX' (exp(w − max w) over the row's positive entries, summing to 1; zero
@@ -44,7 +45,7 @@ __all__ = [
 ]
 
 NORMALIZE_MODES = ("NONE", "SUM", "SOFTMAX")
-WEIGHT_MODES = ("INVERSE_DISTANCE", "FALLOFF", "VERTEX_GROUPS")
+WEIGHT_MODES = ("INVERSE_DISTANCE", "FALLOFF", "VERTEX_GROUPS", "SURFACE")
 
 #: Dense block size (chunk · m entries) processed at a time by `sparse_from_blocks`.
 BLOCK_ELEMENTS = 1 << 18
@@ -132,15 +133,27 @@ def top_k(W: ArrayLike, k: int) -> tuple[IntArray, FloatArray]:
     return idx, np.take_along_axis(vals, order, axis=1)
 
 
-def truncate(W: ArrayLike, k: int) -> tuple[IntArray, FloatArray]:
-    """Continuous top-K: the k largest entries of each row of W (n, m) minus the row's (k+1)-th largest
-    (0 when m ≤ k) -> (indices (n, K) int32, values (n, K) ≥ 0), K = min(k, m), ordered as `top_k`.
+def truncate(W: ArrayLike, k: int, raw: bool = False) -> tuple[IntArray, FloatArray]:
+    """Continuous top-K: the k largest entries w_1 ≥ … ≥ w_K of each row of W (n, m), each lowered so
+    that it reaches 0 where it meets the row's (k+1)-th largest w_{K+1} -> (indices (n, K) int32,
+    values (n, K) ≥ 0), K = min(k, m), ordered as `top_k`; nothing changes when m ≤ k.
 
-    Plain top-K with renormalisation jumps where the K-th and (K+1)-th controls swap: the one leaving
-    drops from w_K to 0. Subtracting the (K+1)-th value w_{K+1} (an order statistic, so a continuous
-    function of W) makes the leaving control's weight w_K − w_{K+1} = 0 at the swap, so the truncated
-    weights, and after 'SUM' normalisation the blend, are continuous wherever the kept sum
-    Σ_{j ≤ K} (w_j − w_{K+1}) is positive (it is zero only where the K+1 strongest weights tie).
+    Plain top-K jumps where the K-th and (K+1)-th controls swap: the one leaving drops from w_K to 0.
+    Here the kept values are functions of (w_j, w_{K+1}) that vanish at w_j = w_{K+1}, and w_{K+1}
+    is an order statistic, a continuous function of W, so a control fades out as it leaves:
+
+    * raw=False (for normalised weights): v_j = w_j − w_{K+1}. After 'SUM' normalisation
+      u_j = v_j / S, S = Σ_{i≤K} v_i, is continuous wherever S > 0, with ∂u_K/∂w_K = 1/S at a swap.
+      That steepness is inherent, not a choice of rule: near a point where the K+1 strongest nearly
+      tie, any K-sparse rule with weights summing to 1 must hand O(1) of weight from one control to
+      another while the weights change by O(S). Where they tie exactly (S = 0, e.g. the centre of 8
+      probes at the corners of a cube for K = 4) no such rule is continuous (which K to keep is a
+      choice); these rows get the plain top-K values (one of the one-sided limits) rather than all
+      zeros, which would leave the vertex at rest.
+    * raw=True (for weights used as they are, normalisation 'NONE'): v_j = min(w_j, 2 (w_j − w_{K+1})):
+      a weight at least twice the first dropped one is kept exactly (a vertex on a probe still follows
+      it fully), smaller ones ramp linearly to 0; never above w_j, slope at most 2: continuous
+      everywhere (ties included: all values are then 0).
     """
     W = np.asarray(W, dtype=np.float64)
     if W.ndim != 2:
@@ -150,7 +163,14 @@ def truncate(W: ArrayLike, k: int) -> tuple[IntArray, FloatArray]:
     if W.shape[1] <= k:
         return top_k(W, k)
     idx, vals = top_k(W, k + 1)
-    return idx[:, :k].copy(), np.maximum(vals[:, :k] - vals[:, k:], 0.0)
+    kept, first_dropped = vals[:, :k], vals[:, k:]
+    excess = np.maximum(kept - first_dropped, 0.0)
+    if raw:
+        values = np.minimum(kept, 2.0 * excess)
+    else:
+        tie = (excess.sum(axis=1) == 0.0)[:, None]
+        values = np.where(tie, kept, excess)
+    return idx[:, :k].copy(), values
 
 
 def sparse_from_blocks(
@@ -165,9 +185,10 @@ def sparse_from_blocks(
 ) -> tuple[IntArray, FloatArray]:
     """Build sparse top-K weights from `block(lo, hi)` -> dense non-negative (hi − lo, n_controls).
 
-    Each chunk's block is reduced to its K = min(k, n_controls) largest entries minus the (K+1)-th
-    (`truncate`: continuous where controls swap ranks; with continuous=False the K largest as they
-    are, for painted weights whose values the artist chose), which are then normalised ('SUM'
+    Each chunk's block is reduced to its K = min(k, n_controls) largest entries, lowered to reach 0 at
+    the (K+1)-th (`truncate`, raw for normalize_mode 'NONE': continuous where controls swap ranks; with
+    continuous=False the K largest as they are, for painted weights whose values the artist chose),
+    which are then normalised ('SUM'
     renormalises over the kept K, so rows still sum to 1). Peak memory is
     O(n_points · K + chunk · n_controls); the result does not depend on chunk_size.
     ValueError if a block has the wrong shape, negative or non-finite entries.
@@ -195,7 +216,7 @@ def sparse_from_blocks(
             raise ValueError(f"weights for rows {lo}:{hi} contain non-finite values")
         if np.any(W < 0.0):
             raise ValueError(f"weights for rows {lo}:{hi} contain negative values")
-        idx, val = truncate(W, K) if continuous else top_k(W, K)
+        idx, val = truncate(W, K, raw=normalize_mode == "NONE") if continuous else top_k(W, K)
         indices[lo:hi] = idx
         values[lo:hi] = normalize(val, normalize_mode, temperature)
     return indices, values
@@ -224,6 +245,7 @@ def probe_weights(
     k: int = 4,
     scales: ArrayLike | None = None,
     dense: ArrayLike | None = None,
+    solved: ArrayLike | None = None,
     chunk_size: int | None = None,
 ) -> tuple[IntArray, FloatArray]:
     """Sparse probe weights for points (N, 3) and probe rest positions centers (m, 3).
@@ -233,9 +255,14 @@ def probe_weights(
     than once (up to 1e12 times on top of it) — so vertices within `radius` follow the probe fully
     and farther ones less. 'FALLOFF': smooth_falloff(d, radius) (exactly 0 at and beyond radius);
     'VERTEX_GROUPS': the dense painted weights `dense` (N, m) (negative paint is clamped to 0).
-    `scales` (m,) multiplies each probe's weight before the top-K selection. Distance weights are
-    truncated continuously (`truncate`), painted ones keep their K largest values as painted.
-    Returns (indices (N, K) int32, values (N, K)).
+    'SURFACE': on the rows where `solved` (N,) is True, the harmonic weights h = `dense` (N, m)
+    (core.surface) sharpened by the exponent, h_i^p / Σ_j h_j^p (still a partition of unity; p = 1
+    keeps them harmonic, larger p localises like the inverse-distance power: a probe's share where
+    another dominates drops faster); inverse-distance weights as above on the other rows (loose
+    parts without a probe).
+    `scales` (m,) multiplies each probe's weight before the top-K selection. Distance and surface
+    weights are truncated continuously (`truncate`), painted ones keep their K largest values as
+    painted. Returns (indices (N, K) int32, values (N, K)).
     """
     pts = np.asarray(points, dtype=np.float64)
     ctr = np.asarray(centers, dtype=np.float64)
@@ -262,12 +289,22 @@ def probe_weights(
         def block(lo: int, hi: int) -> FloatArray:
             return np.maximum(D[lo:hi], 0.0) * scale
 
-    elif mode in ("INVERSE_DISTANCE", "FALLOFF"):
+    elif mode in ("INVERSE_DISTANCE", "FALLOFF", "SURFACE"):
         if not radius > 0.0:
             raise ValueError(f"radius must be positive, got {radius}")
+        if mode == "SURFACE":
+            if not exponent > 0.0:
+                raise ValueError(f"exponent must be positive, got {exponent}")
+            if dense is None or solved is None:
+                raise ValueError("mode 'SURFACE' needs the harmonic weights and the rows they hold")
+            H = np.asarray(dense, dtype=np.float64)
+            done = np.asarray(solved, dtype=bool)
+            if H.shape != (pts.shape[0], m) or done.shape != (pts.shape[0],):
+                raise ValueError(f"harmonic weights must have shape {(pts.shape[0], m)}, "
+                                 "with one flag per row")
 
-        def block(lo: int, hi: int) -> FloatArray:
-            diff = pts[lo:hi, None, :] - ctr[None, :, :]
+        def distance_block(p: FloatArray) -> FloatArray:
+            diff = p[:, None, :] - ctr[None, :, :]
             d = np.sqrt(np.einsum("nmi,nmi->nm", diff, diff))
             if mode == "FALLOFF":
                 return smooth_falloff(d, radius) * scale
@@ -275,6 +312,17 @@ def probe_weights(
             if normalize == "NONE":
                 np.minimum(w, 1.0, out=w)
             return w * scale
+
+        def block(lo: int, hi: int) -> FloatArray:
+            if mode != "SURFACE":
+                return distance_block(pts[lo:hi])
+            loose = ~done[lo:hi]
+            sharp = np.maximum(H[lo:hi], 0.0) ** exponent
+            total = sharp.sum(axis=1, keepdims=True)
+            out = np.where(total > 0.0, sharp / np.where(total > 0.0, total, 1.0), 0.0) * scale
+            if loose.any():
+                out[loose] = distance_block(pts[lo:hi][loose])
+            return out
 
     else:
         raise ValueError(f"weight mode must be one of {WEIGHT_MODES}, got {mode!r}")

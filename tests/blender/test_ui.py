@@ -91,11 +91,11 @@ def test_panel_draws_in_every_state(bl, panels):
     ]
     probes = [bl.empty("A"), bl.empty("B", (0, 0, 1))]
     deformer = bl.add_probe_deformer(target, probes)
-    for mode in ("INVERSE_DISTANCE", "FALLOFF", "VERTEX_GROUPS"):
+    for mode in ("INVERSE_DISTANCE", "FALLOFF", "VERTEX_GROUPS", "SURFACE"):
         deformer.weight_mode = mode
         log = _draw_panel(panels, target)
-        assert (("prop", "radius") in log) == (mode != "VERTEX_GROUPS")
-        assert (("prop", "exponent") in log) == (mode == "INVERSE_DISTANCE")
+        assert (("prop", "radius") in log) == (mode in ("INVERSE_DISTANCE", "FALLOFF"))
+        assert (("prop", "exponent") in log) == (mode in ("INVERSE_DISTANCE", "SURFACE"))
         assert ("operator", "object.affine_deformer_apply") in log
     probes[0].scale = (0, 0, 0)
     bpy.context.evaluated_depsgraph_get()

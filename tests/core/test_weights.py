@@ -92,6 +92,40 @@ def test_truncation_is_continuous_where_controls_swap_ranks() -> None:
     assert np.array_equal(wt.truncate(W, 6)[1], wt.top_k(W, 6)[1]), "nothing dropped: nothing subtracted"
 
 
+def test_truncation_at_an_exact_tie_keeps_the_plain_top_k() -> None:
+    """Where the K+1 strongest tie the subtracted values are all 0: such a row gets the plain top-K
+    values (one of the one-sided limits) instead of zeros, which would leave the vertex at rest."""
+    W = np.array([[2.0, 2.0, 2.0, 1.0], [3.0, 2.0, 2.0, 2.0], [1.0, 1.0, 1.0, 1.0]])
+    idx, val = wt.truncate(W, 2)
+    assert idx[0].tolist() == [0, 1] and val[0].tolist() == [2.0, 2.0]
+    assert val[1].tolist() == [1.0, 0.0]
+    assert val[2].tolist() == [1.0, 1.0]
+    octahedron = np.concatenate([np.eye(3), -np.eye(3)])
+    idx, val = wt.probe_weights(np.zeros((1, 3)), octahedron, k=4)
+    assert val.sum() == pytest.approx(1.0), "a vertex equidistant from all probes still moves"
+
+
+def test_raw_truncation_keeps_dominant_weights_and_never_raises_one() -> None:
+    """normalize 'NONE': v = min(w, 2 (w − w_{K+1})): a weight at least twice the first dropped one
+    stays as it is (a vertex on a probe follows it fully), smaller ones ramp to 0 at the swap, and
+    every value is continuous in W (slope at most 2)."""
+    W = np.array([[1.0, 0.3, 0.25, 0.2], [0.5, 0.45, 0.4, 0.4]])
+    idx, val = wt.truncate(W, 3, raw=True)
+    np.testing.assert_allclose(val[0], [1.0, 0.2, 0.1], rtol=1e-15)
+    np.testing.assert_allclose(val[1], [0.2, 0.1, 0.0], atol=1e-15)
+    t = np.linspace(0.0, 1.0, 2001)[:, None]
+    path = np.hstack([np.full_like(t, 1.0), 0.2 + 0.2 * t, 0.4 - 0.2 * t, np.full_like(t, 0.1)])
+    idx, val = wt.truncate(path, 2, raw=True)
+    dense = np.zeros_like(path)
+    np.put_along_axis(dense, idx.astype(np.intp), val, 1)
+    # slope ≤ 2 (|dw| + |dw_{K+1}|) = 2 · (0.2 + 0.2) per unit t
+    assert np.abs(np.diff(dense, axis=0)).max() <= 0.8 * (t[1, 0] - t[0, 0]) + 1e-12
+    assert np.all(dense <= path + 1e-15)
+    ids, raw = wt.probe_weights(np.array([[0.0, 0.0, 0.0]]), np.array([[0.0, 0, 0], [3, 0, 0], [0, 3, 0],
+                                                                      [0, 0, 3]]), normalize="NONE", k=2)
+    assert ids[0, 0] == 0 and raw[0, 0] == 1.0, "on a probe: its full motion"
+
+
 def test_top_k_renormalises_to_one() -> None:
     rng = np.random.default_rng(1)
     W = rng.random((500, 9))
