@@ -1,8 +1,9 @@
 """Property groups: the deformer stack stored on each Object as `Object.affine_deformers`.
 
-Weight options (mode, radius, exponent, normalisation, influences, per-probe scale) re-weight the bound
-deformer immediately from its stored rest data: the artist sees the change live and the rest pose is
-kept (re-weighting never makes the current probe poses the new rest; only Bind does that).
+Weight options (mode, radius, exponent, normalisation, influences, per-probe scale, cage weights)
+re-weight the bound deformer immediately from its stored rest data: the artist sees the change live
+and the rest pose is kept (re-weighting never makes the current probe poses the new rest; only Bind
+does that).
 Strength and blend mode act per frame and need no re-weighting.
 """
 
@@ -45,6 +46,19 @@ def _on_cage_object(self: AffineDeformer, _context: bpy.types.Context) -> None:
         binding.rebind_safely(obj, self, "the new cage")
     else:
         relations.sync(obj, self)  # a cleared cage is no longer evaluated for this deformer
+
+
+def _get_cage_weights(self: AffineDeformer) -> int:
+    # Unset: 'HARMONIC' (0), except for a deformer bound before the option existed, whose stored
+    # weights are inverse-distance ones (no grid nodes): it keeps them until switched or rebound.
+    value = self.get("cage_weights_mode")
+    if value is None:
+        return 1 if self.bound_flag and self.kind == "CAGE" and "cage_node_points" not in self else 0
+    return int(value)
+
+
+def _set_cage_weights(self: AffineDeformer, value: int) -> None:
+    self["cage_weights_mode"] = int(value)
 
 
 def _poll_cage(self: AffineDeformer, candidate: bpy.types.Object) -> bool:
@@ -176,6 +190,15 @@ class AffineDeformer(bpy.types.PropertyGroup):
         name="Half-Space Rule", default=True, update=_on_weight_option,
         description="A cage face has no influence on vertices outside it (in its outer half-space): "
                     "keeps opposite sides of a thin part apart")
+    cage_weights: EnumProperty(
+        name="Cage Weights", get=_get_cage_weights, set=_set_cage_weights, update=_on_weight_option,
+        items=[("HARMONIC", "Harmonic",
+                "Smooth, local weights solved inside the cage on a grid (like Mesh Deform): a local "
+                "edit of the cage moves the mesh near it smoothly", 0),
+               ("INVERSE_DISTANCE", "Inverse Distance",
+                "Inverse distance to each face with the half-space rule, Exponent and Max Influences "
+                "(the weights of version 0.1)", 1)],
+        description="How the cage's faces are weighted on the target (changing it re-weights)")
     weight_mode: EnumProperty(
         name="Weights", default="INVERSE_DISTANCE", update=_on_weight_option,
         items=[("INVERSE_DISTANCE", "Inverse Distance",
@@ -183,6 +206,11 @@ class AffineDeformer(bpy.types.PropertyGroup):
                ("FALLOFF", "Falloff", "Smooth falloff reaching zero at Radius from each probe at rest"),
                ("VERTEX_GROUPS", "Vertex Groups",
                 "Painted weights from the vertex groups named after the probes"),
+               ("SURFACE", "Surface (Harmonic)",
+                "Harmonic weights along the mesh surface (cotangent Laplacian): each probe fully moves "
+                "the surface clearly closest to it and influence spreads only along the surface, so it "
+                "does not jump across gaps (fingers, lips). Exponent sharpens them. Loose parts without "
+                "a probe use inverse distance (the status says so)"),
                ])
     radius: FloatProperty(
         name="Radius", default=1.0, min=1e-6, soft_max=100.0, subtype="DISTANCE", unit="LENGTH",
@@ -190,7 +218,8 @@ class AffineDeformer(bpy.types.PropertyGroup):
         description="Falloff: where a probe's weight reaches zero. Inverse distance: where it is 1")
     exponent: FloatProperty(
         name="Exponent", default=2.0, min=0.01, soft_max=8.0, update=_on_weight_option,
-        description="Inverse distance power: larger values localise each probe's influence")
+        description="Inverse distance power, and the power Surface weights are raised to: larger "
+                    "values localise each probe's influence")
     normalize: EnumProperty(
         name="Normalize", default="SUM", update=_on_weight_option,
         items=[("NONE", "None", "Use raw weights (where they are small the mesh stays put)"),
