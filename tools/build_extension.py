@@ -4,11 +4,14 @@ The bpy wheel carries Blender's own `blender_ext.py` and the list of valid exten
 (`_bpy_internal/extensions/tags.py`); using both means the .zip is exactly what Blender's
 "Install from Disk" and the extensions platform accept.
 
-The compiled kernel (affine_deformers/accel, numba) is bundled as wheels, which are platform specific:
-`blender_manifest.toml` lists every platform's wheels, and each package holds one platform's
-(`dist/affine_deformers-<version>-<platform>.zip`, ~35–50 MB). Missing wheels are downloaded from PyPI
-into `wheels/` (not in git) by exactly the file names the manifest lists. `--platform none` builds the
-small all-platform package without wheels (the numpy kernel only).
+The compiled kernel (affine_deformers/accel, numba) is bundled as wheels, which are platform and Python
+specific: `blender_manifest.toml` lists every platform's wheels for every Python Blender uses (3.11:
+Blender 4.2–5.0, 3.13: 5.1+), and each package holds one platform's, for both Pythons
+(`dist/affine_deformers-<version>-<platform>.zip`, see README "Blender versions" for the sizes); Blender
+installs the ones matching the running Python. Missing wheels are downloaded from PyPI into `wheels/`
+(not in git) once, by exactly the file names the manifest lists (their tags tell pip the Python and
+platform); later builds work offline. `--platform none` builds the small all-platform package without
+wheels (the numpy kernel only).
 
     python tools/build_extension.py                      # this machine's platform (make build)
     python tools/build_extension.py --platform all       # every platform in the manifest (a release)
@@ -33,14 +36,10 @@ MANIFEST = ROOT / "blender_manifest.toml"
 #: What goes into a package (the manifest's exclude patterns keep everything else out of it too).
 PACKAGE_FILES = ("__init__.py", "blender_manifest.toml", "README.md")
 PACKAGE_DIRS = ("affine_deformers",)
-#: Wheel platform tag (as pip downloads it) of each Blender platform.
-PIP_PLATFORM = {
-    "linux-x64": "manylinux2014_x86_64",
-    "windows-x64": "win_amd64",
-    "macos-arm64": "macosx_11_0_arm64",
-    "macos-x64": "macosx_10_9_x86_64",
-}
-_WHEEL_NAME = re.compile(r"^(?P<name>[A-Za-z0-9_]+)-(?P<version>[^-]+)-cp(?P<py>\d+)-")
+#: `{name}-{version}-cp{py}-{abi}-{platform tags}.whl` (no build tag: the manifest names release wheels).
+_WHEEL_NAME = re.compile(
+    r"^(?P<name>[A-Za-z0-9_]+)-(?P<version>[^-]+)-cp(?P<py>\d+)-(?P<abi>[^-]+)-(?P<platform>[^-]+)\.whl$"
+)
 
 
 def bpy_scripts_dir() -> Path:
@@ -94,10 +93,13 @@ def fetch_wheels(paths: list[str]) -> None:
             raise SystemExit(f"not a CPython wheel name: {target.name}")
         spec = f"{match['name']}=={match['version']}"
         py = match["py"]
+        # The file's own tags: pip then picks exactly that file (a compressed platform tag such as
+        # `manylinux2014_x86_64.manylinux_2_17_x86_64` is one --platform per part).
+        platforms = [arg for tag in match["platform"].split(".") for arg in ("--platform", tag)]
         with tempfile.TemporaryDirectory() as tmp:
             subprocess.run(
                 [sys.executable, "-m", "pip", "download", "--disable-pip-version-check", "-q", "--no-deps",
-                 "--only-binary=:all:", "--platform", PIP_PLATFORM[wheel_platform(rel)],
+                 "--only-binary=:all:", *platforms, "--implementation", "cp", "--abi", match["abi"],
                  "--python-version", f"{py[0]}.{py[1:]}", "-d", tmp, spec],
                 check=True,
             )
@@ -122,9 +124,14 @@ def manifest_for(text: str, target: str | None, wheels: list[str]) -> str:
     return head.rstrip("\n") + "\n" + extra + sep + tail
 
 
+def package_wheels(manifest: dict, target: str | None) -> list[str]:
+    """The manifest wheels that go into `target`'s package (all its Python versions; None: none)."""
+    return [w for w in manifest.get("wheels", []) if target is not None and wheel_platform(w) == target]
+
+
 def build_one(manifest: dict, text: str, target: str | None, out: Path) -> Path:
     """Stage the package files (and `target`'s wheels) and build one .zip from them."""
-    wheels = [w for w in manifest.get("wheels", []) if target is not None and wheel_platform(w) == target]
+    wheels = package_wheels(manifest, target)
     suffix = "" if target is None else "-" + target.replace("-", "_")
     zip_path = out / f"{manifest['id']}-{manifest['version']}{suffix}.zip"
     with tempfile.TemporaryDirectory(prefix="affdef_stage_") as tmp:
