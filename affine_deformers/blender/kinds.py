@@ -288,8 +288,9 @@ class ProbeKind:
             probes.foreach_get("rest_rotation", flat)
         rest_rotations = flat.reshape(-1, 4).astype(np.float64)
         target_world = world_matrix(obj, depsgraph)
-        if not np.all(np.isfinite(target_world)):
-            return Motions.invalid(m, f"'{obj.name}' has a non-finite transform")
+        if not finite_transform(target_world):
+            return Motions.invalid(m, f"'{obj.name}' has a non-finite transform (NaN or infinity): the mesh "
+                                   "shows its rest shape")
         # Everything the probes share in one bytes object, which caches its hash: each probe's key
         # holds it plus its index, instead of hashing its own copies of the rest data per update.
         shared = b"".join((target_world.tobytes(), rests.tobytes(), flat.tobytes(),
@@ -303,6 +304,9 @@ class ProbeKind:
             if not in_a_scene(probe):
                 return Motions.invalid(m, f"Probe '{probe.name}' is not in any scene (deleted?): "
                                        "remove it from the deformer or link it back")
+            if probe == obj:  # kept here too: a message set when it was picked must not be wiped
+                return Motions.invalid(m, f"'{obj.name}' cannot be a probe of itself: pick another object "
+                                       f"for probe {i + 1}")
             evaluated = probe.evaluated_get(depsgraph)
             world = np.array(evaluated.matrix_world, dtype=np.float64)
             mode = evaluated.rotation_mode
@@ -424,6 +428,16 @@ def forget() -> None:
     _surface_memo.clear()
 
 
+#: Blender clamps an infinite location or scale to ±3.4e38 (the float32 maximum): entries beyond this
+#: are treated as not finite, instead of sending the mesh there.
+MAX_COORDINATE = 1e30
+
+
+def finite_transform(matrix: np.ndarray) -> bool:
+    """Whether every entry of `matrix` is finite and below MAX_COORDINATE in magnitude (NaN fails too)."""
+    return bool(np.all(np.abs(matrix) < MAX_COORDINATE))
+
+
 def _bits(values: tuple[float, ...]) -> bytes:
     """The exact float64 bits of a short tuple of numbers (−0.0 and NaN payloads included)."""
     return struct.pack(f"{len(values)}d", *values)
@@ -436,6 +450,10 @@ def _probe_row(target_world: np.ndarray, world: np.ndarray, channels: tuple[floa
     (*scale, *delta_scale), and its rest matrix (float32) and channels."""
     identity = np.eye(4)
     rotation = tuple(float(c) for c in channels) + (0.0,) * (4 - len(channels))
+    if not finite_transform(world):
+        return _ProbeRow(identity, False, mode, rotation, np.eye(3), np.zeros(3),
+                         "Probe '{probe}' has a non-finite transform (NaN or infinity): the mesh shows its "
+                         "rest shape")
     try:
         current, solved = _local_solve(target_world, world)
     except np.linalg.LinAlgError:

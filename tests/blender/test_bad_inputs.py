@@ -64,6 +64,32 @@ def test_nan_in_a_probe_matrix(bl, rig):
     assert "Probe 'Alpha'" in deformer.status and "non-finite" in deformer.status
 
 
+@pytest.mark.parametrize("which", ["probe", "target"])
+def test_an_infinite_location_is_refused_not_followed(bl, rig, which):
+    """Blender clamps location = inf to 3.4e38: the mesh must not be sent there."""
+    target, probes, deformer, rest = rig
+    obj = probes[0] if which == "probe" else target
+    obj.location.x = float("inf")
+    bpy.context.view_layer.update()
+    assert "non-finite" in deformer.status, deformer.status
+    if which == "probe":
+        _assert_intact(bl, target, rest)
+    else:  # the target itself is far away; its mesh keeps the rest shape
+        assert np.array_equal(bl.evaluated_positions(target), rest)
+
+
+def test_a_probe_pointed_at_its_own_target_keeps_its_message(bl, rig):
+    target, probes, deformer, rest = rig
+    deformer.probes[0].object = target
+    for frame in (2, 3):
+        bpy.context.scene.frame_set(frame)
+        assert "cannot be a probe of itself" in deformer.status
+    assert np.array_equal(bl.rest_positions(target), rest)
+    deformer.probes[0].object = probes[0]
+    bpy.context.scene.frame_set(4)
+    assert deformer.status == ""
+
+
 def test_topology_changed_after_bind(bl, rig):
     import bmesh
 
