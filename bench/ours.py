@@ -48,6 +48,8 @@ STAGE_POINTS = (
     ("core.aff3", "matrices_from_params", "psi"),
     ("core.cage", "affected_faces", "psi"),  # cage: which faces moved, then their tetrahedra → params
     ("core.cage", "face_motions", "psi"),
+    ("core.cage_harmonic", "node_params", "psi"),  # harmonic cage weights: the nodes' blended faces
+    ("core.cage_harmonic", "node_matrices_linear", "psi"),
     ("core.deform", "deform_points_params", "kernel"),
     ("core.deform", "deform_points_params_rows", "kernel"),
     ("core.deform", "blend_linear_sparse", "kernel"),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 import traceback
 from dataclasses import dataclass, field, replace
@@ -293,6 +294,49 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
     report.tables.append(t)
 
 
+def _ours_cage(plan: Plan, target, cage, label: str, report: Report, weights: str = "HARMONIC",
+               vertex: int = 0) -> tuple[Samples | None, float]:
+    """(update samples, bind seconds) of our cage deformer with `weights` ('HARMONIC', the default:
+    bind = the add operator; 'INVERSE_DISTANCE': bind = switching the option, which re-weights);
+    the update moves cage vertex `vertex`."""
+    try:
+        ours.forget_caches()
+        rig = ours.cage_rig(target, cage)
+        rig.move = native.move_cage_vertex(cage, vertex)
+        bind = rig.bind_seconds
+        deformer = target.affine_deformers[rig.deformer_index]
+        if weights != "HARMONIC":
+            t0 = time.perf_counter()
+            deformer.cage_weights = weights
+            bind = time.perf_counter() - t0
+            common.settle()
+        with ours.Instrument() as inst:
+            samples = measure(rig, plan, label, report, inst)
+        if deformer.status:
+            report.notes.append(f"{label}: the deformer reported “{deformer.status}”")
+        return samples, bind
+    except Exception as exc:
+        traceback.print_exc()
+        report.problems.append(f"{label}: {type(exc).__name__}: {exc}")
+        return None, math.nan
+
+
+def _cage_table(title: str, rows: list[tuple[str, Samples | None, float]], md: Samples, md_bind: float,
+                precision: int) -> Table:
+    t = Table(title, ["method", "update", "IQR", "ours ÷ native", "bind", "bind ours ÷ native", "check"])
+    for name, samples, bind in rows:
+        if samples is not None:
+            t.add(name, fmt_ms(samples.median), _iqr(samples), fmt_ratio(samples.median, md.median),
+                  fmt_ms(bind), fmt_ratio(bind, md_bind), validity(samples))
+    t.add(f"Mesh Deform, precision {precision}", fmt_ms(md.median), _iqr(md), "1.00×", fmt_ms(md_bind),
+          "1.00×", validity(md))
+    t.notes.append("the control moved is one cage vertex (the UV-sphere cage: vertex 0, its pole; "
+                   "Suzanne's: the middle of the front side); bind = one run (ours: the add operator; "
+                   "inverse-distance row: switching the Cage Weights option, which re-weights)")
+    t.notes.append("ratio columns: ours ÷ Mesh Deform (below 1: ours is faster)")
+    return t
+
+
 def part_b(plan: Plan, have_ours: bool, report: Report) -> None:
     seg, rings = plan.cage_grid
     n = n_vertices(plan.b_verts)
@@ -306,22 +350,15 @@ def part_b(plan: Plan, have_ours: bool, report: Report) -> None:
     target, cage = build()
     faces = len(cage.data.polygons)
     print(f"(b) cage of {faces} faces around {n:,} vertices", flush=True)
-    mine = rig_ours = None
+    rows: list[tuple[str, Samples | None, float]] = []
     if have_ours and ours.operator_exists(ours.CAGE_OP):
-        try:
-            ours.forget_caches()
-            rig_ours = ours.cage_rig(target, cage)
-            with ours.Instrument() as inst:
-                mine = measure(rig_ours, plan, "ours: cage", report, inst)
-            status = getattr(target.affine_deformers[rig_ours.deformer_index], "status", "")
-            if status:
-                report.notes.append(f"ours: cage: the deformer reported “{status}”")
-            report.split_rows.append((f"(b) cage of {faces} faces, {n:,} verts", mine))
-        except Exception as exc:
-            traceback.print_exc()
-            report.problems.append(f"ours: cage: {type(exc).__name__}: {exc}")
-        common.clear_scene()
-        target, cage = build()
+        for weights, name in (("HARMONIC", "harmonic weights"), ("INVERSE_DISTANCE", "inverse distance")):
+            samples, bind = _ours_cage(plan, target, cage, f"ours: cage, {name}", report, weights)
+            rows.append((f"Affine cage (ours), {name}", samples, bind))
+            if samples is not None:
+                report.split_rows.append((f"(b) cage of {faces} faces, {name}, {n:,} verts", samples))
+            common.clear_scene()
+            target, cage = build()
     else:
         report.notes.append(f"(b) `{ours.CAGE_OP}` is not registered yet: our cage side was skipped")
         print(f"  ours: {ours.CAGE_OP} is not registered yet — skipped", flush=True)
@@ -329,33 +366,54 @@ def part_b(plan: Plan, have_ours: bool, report: Report) -> None:
     print(f"  Mesh Deform bind, precision {plan.precision}: {fmt_ms(rig_md.bind_seconds)}", flush=True)
     md = measure(rig_md, plan, f"Mesh Deform, precision {plan.precision}", report)
     common.clear_scene()
-
-    t = Table(
-        f"(b) cage of {faces} faces around {n:,} vertices",
-        ["method", "update", "IQR", "ours ÷ native", "bind", "bind ours ÷ native", "check"],
-    )
-    ours_bind = rig_ours.bind_seconds if (rig_ours is not None and mine is not None) else math.nan
-    if mine is not None:
-        t.add("Affine cage (ours)", fmt_ms(mine.median), _iqr(mine), "1.00×", fmt_ms(ours_bind), "1.00×",
-              validity(mine))
-    t.add(
-        f"Mesh Deform, precision {plan.precision}",
-        fmt_ms(md.median),
-        _iqr(md),
-        fmt_ratio(_median(mine), md.median),
-        fmt_ms(rig_md.bind_seconds),
-        fmt_ratio(ours_bind, rig_md.bind_seconds),
-        validity(md),
-    )
-    t.notes.append("the control moved is one cage vertex; bind = one run (ours: the add operator)")
-    if mine is not None:
-        md_bind = rig_md.bind_seconds
+    report.tables.append(_cage_table(f"(b) cage of {faces} faces around {n:,} vertices", rows, md,
+                                     rig_md.bind_seconds, plan.precision))
+    if rows and rows[0][1] is not None:
+        mine, bind = rows[0][1], rows[0][2]
         report.summary.append(
-            f"(b) cage of {faces} faces around {n:,} vertices: ours {fmt_ms(mine.median)} per update vs "
-            f"Mesh Deform {fmt_ms(md.median)} ({fmt_ratio(mine.median, md.median)}); bind ours "
-            f"{fmt_ms(ours_bind)} vs {fmt_ms(md_bind)} ({fmt_ratio(ours_bind, md_bind)})."
+            f"(b) cage of {faces} faces around {n:,} vertices, harmonic weights: ours "
+            f"{fmt_ms(mine.median)} per update vs Mesh Deform {fmt_ms(md.median)} "
+            f"({fmt_ratio(mine.median, md.median)}); bind ours {fmt_ms(bind)} vs "
+            f"{fmt_ms(rig_md.bind_seconds)} ({fmt_ratio(bind, rig_md.bind_seconds)})."
         )
-    report.tables.append(t)
+    _part_b_suzanne(plan, have_ours, report)
+
+
+def _part_b_suzanne(plan: Plan, have_ours: bool, report: Report) -> None:
+    """The field-quality scene (tests/blender/test_field_quality.py): Suzanne subdivided twice in a
+    384-quad box cage, ours (both weight options) and Mesh Deform bound on the same meshes."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "blender"))
+    import cage_field
+
+    scene = cage_field.build_scene("SUZANNE")
+    scene.target_mesh.use_fake_user = scene.cage_mesh.use_fake_user = True  # kept by clear_scene
+    n, faces = len(scene.target_mesh.vertices), len(scene.cage_mesh.polygons)
+    title = f"(b) Suzanne ({n:,} vertices) in a box cage of {faces} quads"
+    print(title, flush=True)
+    rows: list[tuple[str, Samples | None, float]] = []
+    vertex, _ = cage_field.pull_target("SUZANNE", scene.cage_rest)  # in front of the nose
+    if have_ours and ours.operator_exists(ours.CAGE_OP):
+        for weights, name in (("HARMONIC", "harmonic weights"), ("INVERSE_DISTANCE", "inverse distance")):
+            target, cage = cage_field.add_pair(scene, "Ours")
+            samples, bind = _ours_cage(plan, target, cage, f"ours: Suzanne, {name}", report, weights,
+                                       vertex)
+            rows.append((f"Affine cage (ours), {name}", samples, bind))
+            common.clear_scene()
+    target, cage = cage_field.add_pair(scene, "MD")
+    rig_md = native.mesh_deform(target, cage, plan.precision)
+    rig_md.move = native.move_cage_vertex(cage, vertex)
+    print(f"  Mesh Deform bind, precision {plan.precision}: {fmt_ms(rig_md.bind_seconds)}", flush=True)
+    md = measure(rig_md, plan, f"Mesh Deform, precision {plan.precision}", report)
+    scene.target_mesh.use_fake_user = scene.cage_mesh.use_fake_user = False
+    common.clear_scene()
+    report.tables.append(_cage_table(title, rows, md, rig_md.bind_seconds, plan.precision))
+    if rows and rows[0][1] is not None:
+        mine, bind = rows[0][1], rows[0][2]
+        report.summary.append(
+            f"{title}, harmonic weights: ours {fmt_ms(mine.median)} per update vs Mesh Deform "
+            f"{fmt_ms(md.median)} ({fmt_ratio(mine.median, md.median)}); bind ours {fmt_ms(bind)} vs "
+            f"{fmt_ms(rig_md.bind_seconds)} ({fmt_ratio(bind, rig_md.bind_seconds)})."
+        )
 
 
 def part_c(plan: Plan, have_ours: bool, report: Report) -> None:

@@ -1,4 +1,4 @@
-"""The cage kind: a closed mesh whose faces drive the target (course notes 8.3.2, ERRATA 9, 10).
+"""The cage kind: a closed mesh whose faces drive the target (course notes 8.3.2, MATH.md §9, §10).
 
 Everything is expressed in the target's local space. With C = target_world⁻¹ · cage_world (rounded
 to float32 like the probes' matrices) and q the cage's vertex positions in its own object space:
@@ -31,7 +31,22 @@ The cage is read only when the depsgraph evaluates it: the deformer's modifier n
 viewports or renders.
 
 A face that collapses in the current pose (zero area or non-finite) is skipped: its weight goes to
-the vertex's other faces (evaluate.redistribute) and the status names how many faces are skipped.
+the vertex's other faces (evaluate.redistribute, or the node's other faces) and the status names how
+many faces are skipped.
+
+Weights (`cage_weights` option, `weight_mode`):
+
+* 'HARMONIC' (default): harmonic face weights solved on a grid over the rest cage
+  (core.cage_harmonic). The controls the target blends are then the grid nodes around it, not the
+  faces: bind stores the used nodes' positions (`cage_node_points`, float64, G·3) and their face
+  weights (`cage_node_weights`, float32, G·F) on the deformer item, and each vertex's 8 trilinear
+  node weights as the usual weight attributes (K = 8). Per frame the faces' motions become node
+  parameters (core.cage_harmonic.node_params, blended about each node), only for nodes with weight
+  on a face that moved; the others are exactly at rest. For the 'LINEAR' blend the nodes' matrices
+  are the linear blend of the face matrices, I + Σ_f W_cf (A_f − I).
+* 'INVERSE_DISTANCE' (the weights of 0.1): inverse distance to each face, the half-space rule (a
+  continuous ramp), Max Influences faces per vertex (continuous truncation): the faces are the
+  controls. Files bound before the option existed keep these weights until rebound or switched.
 """
 
 from __future__ import annotations
@@ -44,6 +59,7 @@ import numpy as np
 
 from ..core import aff3
 from ..core.cage import CageTopology, affected_faces, cage_weights, check_cage, face_motions
+from ..core.cage_harmonic import harmonic_weights, node_matrices_linear, node_params
 from . import relations, storage
 from .kinds import (
     BindError,
@@ -61,19 +77,57 @@ LOOP_VERTICES = "cage_loop_vertices"
 LOOP_START = "cage_loop_start"
 LOOP_TOTAL = "cage_loop_total"
 BIND_KEYS = (REST_POINTS, LOOP_VERTICES, LOOP_START, LOOP_TOTAL)
+NODE_POINTS = "cage_node_points"
+NODE_WEIGHTS = "cage_node_weights"
+NODE_KEYS = (NODE_POINTS, NODE_WEIGHTS)
 
 _COLLAPSE_NOTE = "their weight goes to the neighbouring faces"
 
 # (target session_uid, deformer uid) -> (inputs, Motions) of the last evaluation: a cache, not bind data.
 _last_motions: dict[tuple[int, str], tuple[tuple, Motions]] = {}
 
+# (target session_uid, deformer uid) -> (bind generation, node points (G, 3), node weights (G, F)
+# float64 with rows summing to 1): the 'HARMONIC' bind data as the blend uses them.
+_node_data: dict[tuple[int, str], tuple[int, np.ndarray, np.ndarray]] = {}
+
 
 def forget(key: tuple[int, str] | None = None) -> None:
-    """Drop the cached motions of one deformer ((target session_uid, uid)) or of all."""
+    """Drop the cached motions and node data of one deformer ((target session_uid, uid)) or of all."""
     if key is None:
         _last_motions.clear()
+        _node_data.clear()
     else:
         _last_motions.pop(key, None)
+        _node_data.pop(key, None)
+
+
+def weight_mode(deformer) -> str:
+    """The deformer's cage weight mode (`props.AffineDeformer.cage_weights`)."""
+    return deformer.cage_weights
+
+
+def bound_with_nodes(deformer) -> bool:
+    """Whether the stored weights are 'HARMONIC' ones (grid nodes are the controls)."""
+    return all(key in deformer for key in NODE_KEYS)
+
+
+def node_data(obj: bpy.types.Object, deformer, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """(node points (G, 3), node weights (G, F) float64, rows renormalised to 1 in float64) of a
+    'HARMONIC' bind, cached per bind generation; BindError when the stored arrays are damaged."""
+    key = (obj.session_uid, deformer.uid)
+    cached = _node_data.get(key)
+    if cached is not None and cached[0] == deformer.bind_generation and cached[2].shape[1] == n_faces:
+        return cached[1], cached[2]
+    points = np.asarray(deformer[NODE_POINTS], dtype=np.float64)
+    weights = np.asarray(deformer[NODE_WEIGHTS], dtype=np.float64)
+    if points.ndim != 1 or points.size % 3 or weights.size != (points.size // 3) * n_faces:
+        raise BindError("The cage bind data is damaged: rebind the deformer")
+    points = points.reshape(-1, 3)
+    weights = weights.reshape(len(points), n_faces)
+    total = weights.sum(axis=1, keepdims=True)
+    weights = np.where(total > 0.0, weights / np.where(total > 0.0, total, 1.0), 0.0)
+    _node_data[key] = (deformer.bind_generation, points, weights)
+    return points, weights
 
 
 class CageUnavailableError(Exception):
@@ -241,11 +295,22 @@ class CageKind:
 
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
-        """Inverse distance^exponent to each face polygon, half-space rule, top-K, rows summing to 1
-        (core.cage.cage_weights), from the stored rest cage only."""
+        """From the stored rest cage only. 'HARMONIC': each vertex's 8 trilinear grid-node weights
+        (core.cage_harmonic.harmonic_weights), the nodes' face weights stored on the deformer;
+        'INVERSE_DISTANCE': inverse distance^exponent to each face polygon, half-space ramp,
+        continuous top-K, rows summing to 1 (core.cage.cage_weights)."""
         points, topology, *_ = rest_cage(deformer)
+        _node_data.pop((obj.session_uid, deformer.uid), None)
+        if weight_mode(deformer) == "HARMONIC":
+            weights = harmonic_weights(rest_points, points, topology)
+            store_array(deformer, NODE_POINTS, weights.node_points.ravel())
+            store_array(deformer, NODE_WEIGHTS, weights.node_weights.ravel())
+            return weights.indices, weights.values, ""
         indices, values = cage_weights(rest_points, points, topology, exponent=deformer.exponent,
                                        half_space=deformer.half_space, k=deformer.max_influences)
+        for key in NODE_KEYS:  # the weights now index faces
+            if key in deformer:
+                del deformer[key]
         return indices, values, ""
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
@@ -290,16 +355,25 @@ class CageKind:
         except ValueError as exc:
             return Motions.invalid(F, f"The motion of cage '{cage.name}' cannot be blended ({exc}): the "
                                       "mesh shows its rest shape")
-        # Every depsgraph update re-evaluates; the face motions are a pure function of these inputs.
+        nodes = None
+        if bound_with_nodes(deformer):
+            try:
+                nodes = node_data(obj, deformer, F)
+            except BindError as exc:
+                return Motions.invalid(F, str(exc))
+        # Every depsgraph update re-evaluates; the motions are a pure function of these inputs.
+        linear = nodes is not None and deformer.blend_mode == "LINEAR"
         key = (rest.tobytes(), loops.tobytes(), start.tobytes(), total.tobytes(), stored.tobytes(),
-               state.points.tobytes())
+               state.points.tobytes(), None if nodes is None else deformer.bind_generation, linear)
         cached = _last_motions.get((obj.session_uid, deformer.uid))
         if cached is not None and cached[0] == key:
-            faces = cached[1]
+            controls = cached[1]
         else:
-            faces = _face_motions(rest, to_target(stored, state.points), topology)
-            _last_motions[(obj.session_uid, deformer.uid)] = (key, faces)
-        return dataclasses.replace(faces, outer=outer, outer_reference=reference, outer_pivot=pivot)
+            controls = _face_motions(rest, to_target(stored, state.points), topology)
+            if nodes is not None:
+                controls = _node_motions(controls, *nodes, linear=linear)
+            _last_motions[(obj.session_uid, deformer.uid)] = (key, controls)
+        return dataclasses.replace(controls, outer=outer, outer_reference=reference, outer_pivot=pivot)
 
 
 def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph, target_world: np.ndarray,
@@ -338,7 +412,7 @@ def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology)
     valid = np.ones(F, dtype=bool)
     warning = ""
     if np.any(face_moved):
-        motion = face_motions(rest, current, topology)
+        motion = face_motions(rest, current, topology, faces=face_moved)
         params[face_moved] = motion.params[face_moved]
         valid = motion.valid | at_rest
         if motion.messages:
@@ -347,3 +421,30 @@ def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology)
     if np.any(face_moved):
         matrices[face_moved] = aff3.matrices_from_params(params[face_moved])
     return Motions(matrices, at_rest, "", params=params, valid=valid, warning=warning)
+
+
+def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndarray, *,
+                  linear: bool = False) -> Motions:
+    """The faces' motions as the grid nodes' ('HARMONIC' weights): node c's parameters are the
+    pivoted blend of its faces' (core.cage_harmonic.node_params), computed for the nodes with weight
+    on a face that moved; the others are exactly at rest (parameters 0). Collapsed faces are left
+    out of each node's blend (their weight goes to the node's other faces), so every node is valid.
+    matrices: with `linear` the nodes' linear blend of the face matrices (what the 'LINEAR' blend
+    uses); otherwise the identity (the affine blend reads the parameters only)."""
+    G = len(node_points)
+    moved = np.flatnonzero(~faces.at_rest)
+    valid = None if faces.valid is None or np.all(faces.valid) else faces.valid
+    touched = np.zeros(node_weights.shape[1])
+    touched[moved] = 1.0
+    rows = np.flatnonzero(node_weights @ touched > 0.0)
+    params = np.zeros((G, 12))
+    matrices = np.broadcast_to(np.eye(4), (G, 4, 4)).copy()
+    if rows.size:
+        params[rows] = node_params(node_points[rows], node_weights[rows], faces.params, faces=moved,
+                                   valid=valid)
+        if linear:
+            matrices[rows] = node_matrices_linear(node_weights[rows], faces.matrices, faces=moved,
+                                                  valid=valid)
+    at_rest = np.ones(G, dtype=bool)
+    at_rest[rows] = False
+    return Motions(matrices, at_rest, "", params=params, warning=faces.warning)

@@ -3,7 +3,7 @@
 Topology comes as Blender's flat polygon arrays (`foreach_get` of loops.vertex_index,
 polygons.loop_start, polygons.loop_total), wrapped in `CageTopology`.
 
-Per-face motion (course notes 8.3.2 with ERRATA 9): every consecutive vertex triple (p0, p1, p2) of a
+Per-face motion (course notes 8.3.2 with MATH.md §9): every consecutive vertex triple (p0, p1, p2) of a
 face (n triples for an n-gon, n ≥ 4; one for a triangle) is a corner with the rest frame
 
     E = [e1, e2, h],   e1 = p1 − p0,  e2 = p2 − p0,  h = n/√|n|,  n = e1 × e2,
@@ -49,9 +49,10 @@ current plane (the cage folds through itself) and keeps the tetrahedron from fli
 there. A cage folded far through itself can still turn a corner more than a half turn from its rest,
 where the principal rotation log changes branch, as a face turned over does with either apex.
 
-Weights (ERRATA 10): inverse distance to the face polygon (exact point–triangle distance, minimum over
-the polygon's fan triangles), zero for faces whose outer half-space holds the vertex, top-K, rows
-normalised to 1; computed in chunks of vertices.
+Weights (`cage_weights`, the 'INVERSE_DISTANCE' option; MATH.md §10, §12): inverse distance to the
+face polygon (exact point–triangle distance, minimum over the polygon's fan triangles), faded to zero
+over a band above each face's plane (the half-space rule as a C¹ ramp), continuous top-K, rows
+normalised to 1; computed in chunks of vertices. The default harmonic weights: core/cage_harmonic.py.
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ import numpy as np
 from .aff3 import params_from_matrices
 from .deform import default_threads
 from .unwrap import lift_params
-from .weights import normalize, top_k
+from .weights import normalize, truncate
 
 # A rest corner (consecutive triple) of an n-gon whose triangle area is below this fraction of the
 # face's largest corner triangle is skipped: a straight or nearly straight corner (e.g. a T-junction
@@ -83,6 +84,10 @@ COLLAPSED_SIN = 1e-10
 # Points this close to a face plane (relative to the cage size) are not "outside" it, so a target
 # vertex lying on the cage surface keeps the face it lies on.
 HALF_SPACE_TOL = 1e-9
+
+# Half-space ramp (cage_weights): a face's weight fades from full at its plane to 0 where the point
+# is this far above the plane relative to its distance to the face (sin of the elevation angle).
+HALF_SPACE_BAND = 0.5
 
 # Distances are floored at this fraction of the cage size so a vertex on the cage gets a finite,
 # dominant weight from the faces it touches instead of 1/0.
@@ -594,13 +599,18 @@ def face_motions(
     w_ref: np.ndarray | None = None,
     pivot: np.ndarray | None = None,
     apex: str = "NEIGHBOURS",
+    faces: np.ndarray | None = None,
 ) -> FaceMotions:
     """P_f = Σ_t (1/n_f) ψ_params(A_t) over the face's corner tetrahedra (see module docstring).
+
+    faces: optional (F,) bool, the only faces whose motions are computed; the others get params 0
+    and count as valid, as if at rest (for callers that know which faces can have moved,
+    `affected_faces`: the computed faces' results do not depend on this).
 
     apex: 'NEIGHBOURS' (default) fits each corner's current apex to its rest-cage stencil
     (`apex_stencils`, cached per rest cage), so any common affine motion of the cage — shear and
     non-uniform scale included — gives every face exactly that motion; 'NORMAL' uses the current
-    normal (ERRATA 9), exact for similarities only. A face's motion then depends on its own vertices
+    normal (MATH.md §9), exact for similarities only. A face's motion then depends on its own vertices
     and on its corners' stencil vertices (`affected_faces`).
 
     Corners are weighted 1/n, except that collapsed or nearly straight rest corners of n-gons are
@@ -617,13 +627,22 @@ def face_motions(
     triples, face, _ = topology.corner_triples()
     usable, weight = _usable_rest_triples(rest, topology)
     stencil = apex_stencils(rest, topology) if apex == "NEIGHBOURS" else None
-    A, ok = corner_matrices(rest, cur, triples, stencil=stencil)
+    chosen = np.ones(triples.shape[0], dtype=bool)
+    if faces is None:
+        A, ok = corner_matrices(rest, cur, triples, stencil=stencil)
+    else:
+        chosen = np.asarray(faces, dtype=bool)[face]
+        A = np.broadcast_to(np.eye(4), (triples.shape[0], 4, 4)).copy()
+        ok = np.ones(triples.shape[0], dtype=bool)
+        sub = None if stencil is None else ApexStencil(stencil.vertices[chosen], stencil.alpha[chosen],
+                                                       stencil.beta[chosen], stencil.gamma[chosen])
+        A[chosen], ok[chosen] = corner_matrices(rest, cur, triples[chosen], stencil=sub)
 
     broken = np.zeros(F, dtype=bool)
     np.logical_or.at(broken, face, usable & ~ok)
     has_corner = np.bincount(face, usable.astype(np.float64), F) > 0
     valid = has_corner & ~broken
-    use = usable & valid[face]
+    use = usable & chosen & valid[face]
 
     params_t = np.zeros((triples.shape[0], 12))
     if np.any(use):
@@ -932,6 +951,53 @@ def polygon_distance_sq(points: np.ndarray, cage_points: np.ndarray, topology: C
     return np.minimum.reduceat(d2, starts, axis=1)
 
 
+def nearest_faces(
+    points: np.ndarray, cage_points: np.ndarray, topology: CageTopology, width: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every face whose polygon is within `width` of each point's nearest face:
+    (point (P,), face (P,), distance (P,)), grouped by point, faces increasing within a point, so
+    d_f(p) ≤ min_g d_g(p) + width for every pair and every such face is listed.
+
+    Exact distances are taken only for faces that bounding spheres cannot rule out: with s_f the
+    vertex mean, ρ_f the largest |p_j − s_f| over the face's vertices and δ_f = d_f(s_f),
+    |p − s_f| − ρ_f ≤ d_f(p) ≤ |p − s_f| + δ_f, so with U(p) = min_f (|p − s_f| + δ_f) a face
+    whose lower bound exceeds U(p) + width is not within width of the nearest. Memory is
+    O(BATCH_ELEMENTS) per chunk of points.
+    """
+    cage = _check_points(cage_points, topology, "cage_points")
+    fields = _CageFields.build(cage, topology)
+    local = np.asarray(points, dtype=np.float64).reshape(-1, 3) - fields.origin
+    vertex, owner = topology.corners()
+    radius = np.zeros(topology.n_faces)
+    np.maximum.at(radius, owner, _norm(fields.centers[owner] - (cage[vertex] - fields.origin)))
+    F = topology.n_faces
+    slack = BOUND_SLACK * fields.size
+    centre_sq = np.einsum("fi,fi->f", fields.centers, fields.centers)
+    out_p, out_f, out_d = [], [], []
+    step = max(1, BATCH_ELEMENTS // F)
+    for lo in range(0, local.shape[0], step):
+        p = local[lo : lo + step]
+        dist_sq = np.einsum("ci,ci->c", p, p)[:, None] - 2.0 * (p @ fields.centers.T) + centre_sq
+        centre = np.sqrt(np.maximum(dist_sq, 0.0))
+        bound = (centre + fields.reach).min(axis=1, keepdims=True) + (width + slack)
+        c, f = np.nonzero(centre - radius <= bound)
+        count = fields.fan_count[f]
+        first = np.cumsum(count) - count
+        pair_of_tri = np.repeat(np.arange(f.size), count)
+        tri = fields.fan_start[f][pair_of_tri] + (np.arange(pair_of_tri.size) - first[pair_of_tri])
+        d2 = _pair_distance_sq(p[c[pair_of_tri]], fields.table[:, tri])
+        d = np.sqrt(np.minimum.reduceat(d2, first)) if d2.size else d2
+        nearest = np.full(p.shape[0], np.inf)
+        np.minimum.at(nearest, c, d)
+        close = d <= nearest[c] + width
+        out_p.append(c[close] + lo)
+        out_f.append(f[close])
+        out_d.append(d[close])
+    if not out_p:
+        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp), np.zeros(0)
+    return np.concatenate(out_p), np.concatenate(out_f), np.concatenate(out_d)
+
+
 def _dot3(x: Sequence[np.ndarray], y: Sequence[np.ndarray]) -> np.ndarray:
     return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
@@ -961,6 +1027,13 @@ def _chunk_candidates(
     return lower <= tau[:, None] + BOUND_SLACK * fields.size
 
 
+def half_space_ramp(elevation: np.ndarray) -> np.ndarray:
+    """r(s) = 1 for s ≤ 0, 1 − 3t² + 2t³ (t = s/HALF_SPACE_BAND) up to s = HALF_SPACE_BAND, 0 above:
+    C¹ and decreasing; s = (height above the face plane) / (distance to the face) ∈ [−1, 1]."""
+    t = np.clip(np.asarray(elevation, dtype=np.float64) / HALF_SPACE_BAND, 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
+
+
 def _batch_weights(
     local: np.ndarray,
     rows: np.ndarray,
@@ -973,10 +1046,11 @@ def _batch_weights(
     """Weights of a batch of chunks: rows (B, C) point indices (−1 = padding), slots (B, M) candidate
     faces in increasing order (−1 = padding). Returns (points (R,), face indices (R, k), values (R, k)).
 
-    Per point, the k-th smallest upper bound over its allowed candidates, τ_p, bounds its k-th
-    nearest allowed distance, so only candidates with dist(p, box_f) ≤ τ_p get exact distances.
-    Kept pairs are listed point by point in increasing face order, so `top_k` breaks ties by face
-    index as over all faces."""
+    The k + 1 largest weights are needed (continuous truncation subtracts the (k+1)-th). Per point,
+    the (k+1)-th smallest upper bound over its candidates with full weight (ramp 1: in the face's inner
+    half-space), τ_p, bounds its (k+1)-th nearest such distance; no weight is above d^(−p) (the ramp is
+    ≤ 1), so only candidates with dist(p, box_f) ≤ τ_p get exact distances. Kept pairs are listed point
+    by point in increasing face order, so ties break by face index as over all faces."""
     size = fields.size
     real_slot = slots >= 0
     f = np.where(real_slot, slots, 0)
@@ -995,13 +1069,17 @@ def _batch_weights(
     diff = [pc[i] - centre[:, None, :, i] for i in range(3)]
     upper = np.sqrt(_dot3(diff, diff)) + fields.reach[f][:, None, :]
     eligible = np.broadcast_to(real_slot[:, None, :], upper.shape)
+    height = coords[2] - fields.plane_offsets[f][:, None, :] - HALF_SPACE_TOL * size
+    full = eligible
+    plain = np.zeros(upper.shape[:2], dtype=bool)
     if half_space:
-        allowed = coords[2] - fields.plane_offsets[f][:, None, :] <= HALF_SPACE_TOL * size
-        allowed &= eligible
+        full = (height <= 0.0) & eligible
         # A vertex outside every face's half-space (only possible outside an open or broken cage,
         # where every face is a candidate) keeps plain inverse-distance weights over all faces.
-        eligible = allowed | (eligible & ~allowed.any(axis=2, keepdims=True))
-    tau = np.partition(np.where(eligible, upper, np.inf), k - 1, axis=2)[:, :, k - 1]
+        plain = ~full.any(axis=2)
+        full = full | (eligible & plain[:, :, None])
+    measured = min(k + 1, int(real_slot.sum(axis=1).max(initial=0)) or 1)
+    tau = np.partition(np.where(full, upper, np.inf), measured - 1, axis=2)[:, :, measured - 1]
     floor = DISTANCE_FLOOR * size
     tau = np.maximum(tau, floor) + BOUND_SLACK * size
     keep = eligible & (box_sq <= (tau * tau)[:, :, None]) & (rows >= 0)[:, :, None]
@@ -1021,18 +1099,21 @@ def _batch_weights(
         d2 = np.minimum.reduceat(d2, first) if d2.size else d2
     d2 = np.maximum(d2, floor * floor)
     w = 1.0 / d2 if exponent == 2.0 else d2 ** (-0.5 * exponent)
+    if half_space:
+        ramped = ~plain[b, c]
+        w[ramped] *= half_space_ramp(np.maximum(height[b, c, m][ramped], 0.0) / np.sqrt(d2[ramped]))
 
     # one row per point (kept pairs are grouped by point), padded with zero weights
     per_row = keep.sum(axis=2).ravel()
     row_start = np.cumsum(per_row) - per_row
     row_of_pair = b * rows.shape[1] + c
     column = np.arange(pair_face.size) - row_start[row_of_pair]
-    width = max(int(per_row.max()) if per_row.size else 0, k)
+    width = max(int(per_row.max()) if per_row.size else 0, k + 1)
     W = np.zeros((per_row.size, width))
     faces = np.zeros((per_row.size, width), dtype=np.int32)
     W[row_of_pair, column] = w
     faces[row_of_pair, column] = pair_face
-    cols, vals = top_k(W, k)
+    cols, vals = truncate(W, k)
     idx = np.take_along_axis(faces, cols, axis=1)
     idx = np.where(vals > 0.0, idx, idx[:, :1])  # zero-weight slots point at the row's best face
     real = rows.ravel() >= 0
@@ -1045,7 +1126,8 @@ def _group_weights(
     """(points, indices, values) of the chunks rows (B, C) (−1 = padding), batch by batch: chunks
     with similar candidate counts are measured together, so little of a batch is padding."""
     C = rows.shape[1]
-    candidates = _chunk_candidates(fields, *_chunk_spheres(local, rows), k, half_space)
+    measured = min(k + 1, fields.centers.shape[0])  # continuous truncation needs the (k+1)-th weight
+    candidates = _chunk_candidates(fields, *_chunk_spheres(local, rows), measured, half_space)
     count = candidates.sum(axis=1)
     order = np.argsort(count, kind="stable")
     start = 0
@@ -1060,7 +1142,7 @@ def _group_weights(
             total += width
             stop += 1
         batch = order[start:stop]
-        width = max(int(count[batch[-1]]), k)  # k ≤ count unless rounding defeats the slack
+        width = max(int(count[batch[-1]]), measured)  # ≤ count unless rounding defeats the slack
         r, f = np.nonzero(candidates[batch])
         slots = np.full((batch.size, width), -1, dtype=np.intp)
         slots[r, np.arange(r.size) - (np.cumsum(count[batch]) - count[batch])[r]] = f
@@ -1089,11 +1171,15 @@ def cage_weights(
     """Sparse cage weights: (indices (N, K) int32, values (N, K) float64), K = min(k, F), rows sum to 1.
 
     w_f(v) = d_f(v)^(−exponent), d_f the exact distance from v to face f's polygon (minimum over its
-    fan triangles), floored at DISTANCE_FLOOR × cage size. With half_space (ERRATA 10), w_f = 0 where
-    v is in the outer half-space of f: N̂_f·(v − c_f) > HALF_SPACE_TOL × cage size (N_f the Newell
-    normal, c_f the face centroid). A vertex cut off from every face (outside an open or broken
-    cage) falls back to plain inverse distance, so no row is zero. The K largest weights per vertex
-    are kept (weights.top_k; zero-weight slots repeat the row's first index) and renormalised.
+    fan triangles), floored at DISTANCE_FLOOR × cage size. With half_space (MATH.md §10, made
+    continuous) the weight fades to 0 in the outer half-space of f: w_f is multiplied by
+    `half_space_ramp`(z_f/d_f), z_f = N̂_f·(v − c_f) − HALF_SPACE_TOL × cage size (N_f the Newell
+    normal, c_f the face centroid), so it is full up to f's plane and 0 from HALF_SPACE_BAND above
+    it (a hard cut would jump where the plane of a face of a non-convex cage crosses its inside).
+    A vertex cut off from every face (outside an open or broken cage) falls back to plain inverse
+    distance, so no row is zero. Truncation to the K largest is continuous (weights.truncate: the
+    (K+1)-th weight, measured exactly, is subtracted; zero-weight slots repeat the row's first
+    index) and rows are renormalised, so no weight jumps where faces swap ranks.
 
     Only distances that can matter are measured exactly: vertices are grouped in spatially sorted
     chunks of chunk_size, each chunk keeps the faces its bounding sphere can reach

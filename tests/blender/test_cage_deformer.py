@@ -23,6 +23,11 @@ def core_cage(installed):
     return importlib.import_module(f"{installed.package}.core.cage")
 
 
+@pytest.fixture
+def core_harmonic(installed):
+    return importlib.import_module(f"{installed.package}.core.cage_harmonic")
+
+
 # ---------------------------------------------------------------------------------------------- helpers
 
 
@@ -129,20 +134,55 @@ def fitted_jacobian(rest: np.ndarray, moved: np.ndarray) -> tuple[np.ndarray, fl
     return fit[:3].T, float(np.abs(homogeneous @ fit - moved).max())
 
 
-def dense_weights(obj, deformer) -> np.ndarray:
-    """(N, faces) weights rebuilt from the stored `.affdef_<uid>_idx<k>` / `_w<k>` attributes."""
-    n, m = len(obj.data.vertices), len(deformer["cage_loop_total"])
-    dense = np.zeros((n, m))
+def stored_weights(obj, deformer) -> tuple[np.ndarray, np.ndarray]:
+    """(indices (N, K), values (N, K)) as stored in the `.affdef_<uid>_idx<k>` / `_w<k>` attributes."""
+    n = len(obj.data.vertices)
+    columns = []
     k = 0
     while (a_i := obj.data.attributes.get(f".affdef_{deformer.uid}_idx{k}")) is not None:
         idx = np.empty(n, dtype=np.int32)
         w = np.empty(n, dtype=np.float32)
         a_i.data.foreach_get("value", idx)
         obj.data.attributes[f".affdef_{deformer.uid}_w{k}"].data.foreach_get("value", w)
-        np.add.at(dense, (np.arange(n), idx), w)
+        columns.append((idx, w.astype(np.float64)))
         k += 1
     assert k > 0, "no stored weights"
+    return np.stack([c[0] for c in columns], axis=1), np.stack([c[1] for c in columns], axis=1)
+
+
+def node_weights(deformer) -> tuple[np.ndarray, np.ndarray] | None:
+    """(node points (G, 3), node face weights (G, faces)) of a 'HARMONIC' bind, None otherwise."""
+    if "cage_node_points" not in deformer:
+        return None
+    m = len(deformer["cage_loop_total"])
+    return (np.asarray(deformer["cage_node_points"]).reshape(-1, 3),
+            np.asarray(deformer["cage_node_weights"], dtype=np.float64).reshape(-1, m))
+
+
+def dense_weights(obj, deformer) -> np.ndarray:
+    """(N, faces) face weights rebuilt from the stored attributes (and, for 'HARMONIC' weights, the
+    grid nodes' face weights: a vertex's face weights are its trilinear blend of its nodes')."""
+    n, m = len(obj.data.vertices), len(deformer["cage_loop_total"])
+    idx, val = stored_weights(obj, deformer)
+    nodes = node_weights(deformer)
+    if nodes is not None:
+        return np.einsum("nk,nkf->nf", val, nodes[1][idx])
+    dense = np.zeros((n, m))
+    np.add.at(dense, (np.arange(n)[:, None], idx), val)
     return dense
+
+
+def harmonic_expected(installed, core_harmonic, rest, rest_cage, topo, current_cage, face_motions):
+    """The core's 'HARMONIC' result for `rest` in the cage: weights from the rest cage, node
+    parameters from the faces' motions (rest_cage → current_cage), the kernel (independent of the
+    add-on's Blender layer)."""
+    hw = core_harmonic.harmonic_weights(rest, rest_cage, topo)
+    motion = face_motions(rest_cage, current_cage, topo)
+    W = hw.node_weights.astype(np.float64)
+    W /= W.sum(axis=1, keepdims=True)
+    params = core_harmonic.node_params(hw.node_points, W, motion.params,
+                                       valid=None if motion.valid.all() else motion.valid)
+    return installed.deform.deform_points_params(rest, params, hw.indices, hw.values)
 
 
 def affdef_attributes(obj) -> list[str]:
@@ -164,7 +204,7 @@ def shear_matrix() -> np.ndarray:
 # ---------------------------------------------------------------------------------------------- at rest
 
 
-def test_cage_at_rest_leaves_the_mesh_bit_for_bit(bl, core_cage):
+def test_cage_at_rest_leaves_the_mesh_bit_for_bit(bl, core_cage, core_harmonic):
     target = bl.grid_cube(cuts=8, size=2.0)
     target.matrix_world = Matrix.Translation((0.3, -0.2, 0.1)) @ Matrix.Rotation(0.3, 4, "Z")
     cage = box_cage(half=(1.6, 1.4, 1.5), cuts=1)
@@ -172,20 +212,23 @@ def test_cage_at_rest_leaves_the_mesh_bit_for_bit(bl, core_cage):
     before = bl.rest_positions(target).copy()
     deformer = add_cage_deformer(target, cage)
     assert deformer.kind == "CAGE" and deformer.is_bound and deformer.status == ""
+    assert deformer.cage_weights == "HARMONIC"
     assert deformer.max_influences == 8 and deformer.exponent == 2.0 and deformer.half_space
     assert np.array_equal(bl.rest_positions(target), before), "binding must not touch the mesh data"
     assert np.array_equal(bl.evaluated_positions(target), before)
 
-    # the bind data: rest cage in the target's local space, and normalised top-8 weights from the core
+    # the bind data: rest cage in the target's local space; 8 trilinear grid-node weights per vertex
+    # and the nodes' harmonic face weights, as the core computes them from the stored rest cage
     stored = np.asarray(deformer["cage_rest_points"]).reshape(-1, 3)
     rest_cage = in_target_space(target, cage, cage_points(cage))
     assert np.abs(stored - rest_cage).max() < 1e-5
+    idx, val = stored_weights(target, deformer)
+    hw = core_harmonic.harmonic_weights(before, stored, topology(core_cage, cage))
+    assert np.array_equal(idx, hw.indices) and np.abs(val - hw.values).max() < 1e-6
+    points, W = node_weights(deformer)
+    assert np.array_equal(points, hw.node_points) and np.array_equal(W, hw.node_weights)
     weights = dense_weights(target, deformer)
-    assert np.allclose(weights.sum(axis=1), 1.0, atol=1e-6)
-    idx, val = core_cage.cage_weights(before, stored, topology(core_cage, cage), k=8)
-    expected = np.zeros_like(weights)
-    np.add.at(expected, (np.arange(len(before))[:, None], idx), val)
-    assert np.abs(weights - expected).max() < 1e-6
+    assert np.allclose(weights.sum(axis=1), 1.0, atol=1e-5) and weights.min() >= 0.0
 
     points = cage_points(cage)
     moved = points.copy()
@@ -398,8 +441,10 @@ def _animated_cage_scene(bl):
     return target, cage, deformer
 
 
-def test_animated_cage_matches_the_core_at_every_frame(bl, installed, core_cage):
+@pytest.mark.parametrize("weights", ["HARMONIC", "INVERSE_DISTANCE"])
+def test_animated_cage_matches_the_core_at_every_frame(bl, installed, core_cage, core_harmonic, weights):
     target, cage, deformer = _animated_cage_scene(bl)
+    deformer.cage_weights = weights
     topo = topology(core_cage, cage)
     rest = bl.rest_positions(target).astype(np.float64)
     rest_cage = in_target_space(target, cage, evaluated_cage_points(cage))  # bound at frame 1
@@ -407,6 +452,9 @@ def test_animated_cage_matches_the_core_at_every_frame(bl, installed, core_cage)
 
     def expected_at(_frame: int) -> np.ndarray:
         current = in_target_space(target, cage, evaluated_cage_points(cage))
+        if weights == "HARMONIC":
+            return harmonic_expected(installed, core_harmonic, rest, rest_cage, topo, current,
+                                     core_cage.face_motions)
         motion = core_cage.face_motions(rest_cage, current, topo)
         return installed.deform.deform_points_params(rest, motion.params, idx, val)
 
@@ -472,12 +520,14 @@ def test_cage_selection_errors(bl):
     assert len(target.affine_deformers) == 0 and len(target.modifiers) == 0
 
 
-def test_collapsed_face_is_skipped_and_reported(bl, installed, core_cage):
+@pytest.mark.parametrize("weights", ["HARMONIC", "INVERSE_DISTANCE"])
+def test_collapsed_face_is_skipped_and_reported(bl, installed, core_cage, core_harmonic, weights):
     """An octahedron cage; moving its top vertex onto the midpoint of the +x/+y edge makes face 0
-    collinear. Face 0's weight goes to each vertex's other faces (evaluate.redistribute)."""
+    collinear. Face 0's weight goes to each vertex's other faces (evaluate.redistribute), or with
+    harmonic weights to each grid node's other faces."""
     target = bl.grid_cube(cuts=5, size=1.2)
     cage = cage_from_polygons("Octa", *OCTAHEDRON)
-    deformer = add_cage_deformer(target, cage)
+    deformer = add_cage_deformer(target, cage, cage_weights=weights)
     rest = bl.rest_positions(target).copy()
     points = cage_points(cage)
     collapsed = points.copy()
@@ -492,9 +542,13 @@ def test_collapsed_face_is_skipped_and_reported(bl, installed, core_cage):
     idx, val = core_cage.cage_weights(rest, points, topo, k=8)
     motion = core_cage.face_motions(points, cage_points(cage), topo)  # as stored: float32
     assert motion.valid.tolist() == [False] + [True] * 7
-    kept = np.where(idx == 0, 0.0, val)
-    kept /= kept.sum(axis=1, keepdims=True)
-    expected = installed.deform.deform_points_params(rest, motion.params, idx, kept)
+    if weights == "HARMONIC":
+        expected = harmonic_expected(installed, core_harmonic, rest.astype(np.float64), points, topo,
+                                     cage_points(cage), core_cage.face_motions)
+    else:
+        kept = np.where(idx == 0, 0.0, val)
+        kept /= kept.sum(axis=1, keepdims=True)
+        expected = installed.deform.deform_points_params(rest, motion.params, idx, kept)
     assert np.abs(got - expected).max() < 1e-5
 
     set_cage_points(cage, points)  # fixed: no message, bit-for-bit rest again
@@ -854,15 +908,18 @@ def test_sample_files_open_with_a_current_group_naming_every_control(bl, nodes, 
 # ---------------------------------------------------------------------------------------------- options
 
 
-def test_weight_options_reweight_live_from_the_stored_rest(bl, core_cage):
+def test_weight_options_reweight_live_from_the_stored_rest(bl, core_cage, core_harmonic):
     target = bl.grid_cube(cuts=6, size=3.6)  # sticks out of the cage on every side
     cage = box_cage(half=(1.5, 1.5, 1.5), cuts=1)
     deformer = add_cage_deformer(target, cage)
     rest = bl.rest_positions(target).astype(np.float64)
     stored_rest = np.asarray(deformer["cage_rest_points"]).reshape(-1, 3).copy()
     topo = topology(core_cage, cage)
+    harmonic = dense_weights(target, deformer)
     # not a new rest: the weights keep using the stored one
     set_cage_points(cage, cage_points(cage) + np.array([0.5, 0.0, 0.0]))
+    deformer.cage_weights = "INVERSE_DISTANCE"
+    assert node_weights(deformer) is None, "the grid nodes go with the harmonic weights"
     for options in ({"half_space": False}, {"exponent": 4.0}, {"max_influences": 3}):
         for key, value in options.items():
             setattr(deformer, key, value)
@@ -878,6 +935,16 @@ def test_weight_options_reweight_live_from_the_stored_rest(bl, core_cage):
     idx_on, _ = core_cage.cage_weights(rest, stored_rest, topo, half_space=True)
     idx_off, _ = core_cage.cage_weights(rest, stored_rest, topo, half_space=False)
     assert not np.array_equal(idx_on, idx_off), "the half-space rule matters for this target"
+
+    deformer.cage_weights = "HARMONIC"  # back: the same harmonic weights, from the stored rest cage
+    assert np.abs(dense_weights(target, deformer) - harmonic).max() < 1e-6
+    columns = [a for a in affdef_attributes(target) if a.startswith(f".affdef_{deformer.uid}_idx")]
+    assert len(columns) == 8, "the 8 corners of each vertex's grid cell"
+    deformer.max_influences = 5  # not an option of harmonic weights: nothing changes
+    assert np.abs(dense_weights(target, deformer) - harmonic).max() < 1e-6
+    outside = np.abs(rest).max(axis=1) > 1.5
+    assert outside.sum() > 50 and np.allclose(harmonic[outside].sum(axis=1), 1.0, atol=1e-5), \
+        "vertices outside the cage get weights from the exterior harmonic field"
 
 
 def test_mask_group_and_strength(bl):
@@ -1034,9 +1101,14 @@ def test_panel_and_menu_show_the_cage_options(bl, installed):
     context = type("Context", (), {"object": target, "active_object": target})()
     panels.AFFINE_PT_deformers.draw(type("Panel", (), {"layout": Layout()})(), context)
     props = {name for kind, name in log if kind == "prop"}
-    assert {"cage", "exponent", "half_space", "max_influences", "mask_group", "strength"} <= props
-    assert not {"weight_mode", "radius", "normalize"} & props
+    assert {"cage", "cage_weights", "mask_group", "strength"} <= props
+    assert not {"weight_mode", "radius", "normalize", "exponent", "half_space", "max_influences"} & props
     assert ("list", "probes") not in log
+    log.clear()
+    deformer.cage_weights = "INVERSE_DISTANCE"
+    panels.AFFINE_PT_deformers.draw(type("Panel", (), {"layout": Layout()})(), context)
+    props = {name for kind, name in log if kind == "prop"}
+    assert {"cage", "cage_weights", "exponent", "half_space", "max_influences"} <= props
     log.clear()
     panels.AFFINE_MT_object.draw(type("Menu", (), {"layout": Layout()})(), None)
     assert ("operator", "object.affine_cage_deformer_add") in log
