@@ -58,13 +58,21 @@ import bpy
 import numpy as np
 
 from ..core import aff3
-from ..core.cage import CageTopology, affected_faces, cage_weights, check_cage, face_motions
+from ..core.cage import (
+    CageTopology,
+    affected_faces,
+    cage_weights,
+    check_cage,
+    face_motions,
+    signed_volume,
+)
 from ..core.cage_harmonic import harmonic_weights, node_matrices_linear, node_params
 from . import relations, storage
 from .kinds import (
     BindError,
     Motions,
     channel_frame,
+    finite_transform,
     local_matrix,
     reference_rotvecs,
     relative_motion,
@@ -335,8 +343,9 @@ class CageKind:
                    f"vertices, {F} → {len(state.loop_total)} faces): the mesh shows its rest shape; rebind")
         try:
             target_world = world_matrix(obj, depsgraph)
-            if not np.all(np.isfinite(target_world)):
-                return Motions.invalid(F, f"'{obj.name}' has a non-finite transform")
+            if not finite_transform(target_world):
+                return Motions.invalid(F, f"'{obj.name}' has a non-finite transform (NaN or infinity): the "
+                                          "mesh shows its rest shape")
             matrix = local_matrix(target_world, state.matrix_world)
         except np.linalg.LinAlgError:
             return Motions.invalid(F, f"'{obj.name}' is scaled to zero: the mesh shows its rest shape")
@@ -369,9 +378,17 @@ class CageKind:
         if cached is not None and cached[0] == key:
             controls = cached[1]
         else:
-            controls = _face_motions(rest, to_target(stored, state.points), topology)
-            if nodes is not None:
-                controls = _node_motions(controls, *nodes, linear=linear)
+            current = to_target(stored, state.points)
+            if not signed_volume(current, topology) > 0.0:
+                # Mirrored vertices (an animated inside-out cage) or a collapse to a plane or point:
+                # every face motion would be mirrored or singular, so nothing of it is blended.
+                controls = Motions.invalid(F, f"Cage '{cage.name}' is turned inside out or collapsed in its "
+                                              "current shape (its volume is not positive): the mesh shows "
+                                              "its rest shape")
+            else:
+                controls = _face_motions(rest, current, topology)
+                if nodes is not None:
+                    controls = _node_motions(controls, *nodes, linear=linear)
             _last_motions[(obj.session_uid, deformer.uid)] = (key, controls)
         return dataclasses.replace(controls, outer=outer, outer_reference=reference, outer_pivot=pivot)
 

@@ -42,7 +42,9 @@ def _on_cage_object(self: AffineDeformer, _context: bpy.types.Context) -> None:
     obj = self.id_data
     if binding.updates_suspended() or not isinstance(obj, bpy.types.Object) or self.kind != "CAGE":
         return
-    if self.is_bound and self.cage is not None:
+    # A deformer bound before (even if the last pick failed to bind, e.g. a curve) binds the new cage,
+    # so the status speaks of it, not of the object picked before.
+    if self.cage is not None and (self.is_bound or self.bind_generation > 0):
         binding.rebind_safely(obj, self, "the new cage")
     else:
         relations.sync(obj, self)  # a cleared cage is no longer evaluated for this deformer

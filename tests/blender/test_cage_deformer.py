@@ -1206,3 +1206,35 @@ def test_cage_deformer_on_blender_4_2_lts(extension_zip, tmp_path):
                           timeout=300, env=env)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "LTS CAGE OK 4.2" in proc.stdout
+
+
+@pytest.mark.parametrize("how", ["mirrored", "collapsed"])
+def test_a_cage_turned_inside_out_or_collapsed_while_animated_is_refused(bl, how):
+    """Mirrored vertices (an inside-out cage) or every vertex at one point: a clear status, the mesh
+    at rest — not a distorted target, nor the partial-collapse note that other faces take the weight."""
+    target = bl.grid_cube(cuts=4)
+    cage = box_cage()
+    deformer = add_cage_deformer(target, cage)
+    rest = bl.rest_positions(target).copy()
+    points = cage_points(cage)
+    set_cage_points(cage, points * np.array([-1.0, 1.0, 1.0]) if how == "mirrored" else points * 0.0)
+    assert np.array_equal(bl.evaluated_positions(target), rest)
+    assert "inside out or collapsed" in deformer.status, deformer.status
+    assert "neighbouring faces" not in deformer.status
+    set_cage_points(cage, points)
+    assert np.array_equal(bl.evaluated_positions(target), rest) and deformer.status == ""
+
+
+def test_picking_a_valid_cage_after_a_bad_one_speaks_of_the_new_one(bl):
+    target = bl.grid_cube(cuts=4)
+    cage = box_cage()
+    deformer = add_cage_deformer(target, cage)
+    curve = bpy.data.objects.new("Curve", bpy.data.curves.new("Curve", "CURVE"))
+    bpy.context.scene.collection.objects.link(curve)
+    deformer.cage = curve  # a script can assign what the field's filter would not offer
+    assert "Curve" in deformer.status
+    deformer.cage = cage
+    bl.evaluated_positions(target)
+    assert deformer.is_bound and deformer.status == "", deformer.status
+    cage.location.x += 0.3
+    assert np.abs(bl.evaluated_positions(target) - bl.rest_positions(target)).max() > 0.1
