@@ -4,8 +4,9 @@
 argument checks (same messages) of `affine_deformers.core.deform`; they run the numba kernel of
 `compiled.py` when it is available and the numpy kernel otherwise. The results agree to ~1e-15
 relative (the compiled kernel uses polynomial transcendentals, see compiled.py), and within one
-backend every row is bit-identical whichever entry point, thread count or row subset computes it
-(for the compiled point entries with two known exceptions, see compiled.py's "Bit-identity").
+backend every row is bit-identical whichever call, thread count or row subset computes it, and for
+the compiled one whether its entry was compiled in this session or loaded from numba's cache
+(compiled.py's "Bit-identity": one compiled entry for points, one for motions).
 
 The compiled path is skipped when
 
@@ -18,8 +19,11 @@ The compiled path is skipped when
 numba is imported on first use, not when this package is imported (it takes ~0.1–0.5 s and the first
 call compiles the kernel, ~5–8 s, or loads it from numba's cache next to compiled.py in well under 1 s;
 `warm_up` does that ahead of the first update).
-Calls into the compiled kernel are serialised by a lock: numba's workqueue threading layer aborts the
-process on concurrent parallel launches, and Blender may evaluate from more than one thread.
+Threads: the compiled entries release the GIL; `_run` runs one on the calling thread and on helper
+threads of this module, which claim chunks from a shared counter (numba's own threading layer is not
+used: a prange entry would make cached and session-compiled code differ, see compiled.py).
+Calls into the compiled kernel are serialised by a lock (Blender may evaluate from more than one
+thread; a call already uses every thread it is given).
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from __future__ import annotations
 import os
 import threading
 import warnings
-from collections.abc import Hashable
+from collections.abc import Callable, Hashable
 from types import ModuleType
 
 import numpy as np
@@ -71,7 +75,7 @@ class _State:
     def __init__(self) -> None:
         self.module: ModuleType | None = None
         self.failure: str | None = None
-        self.compiled: set[str] = set()  # entry points that have run once (compiled or cache-loaded)
+        self.compiled: set[str] = set()  # compiled entries that have run once (compiled or cache-loaded)
         self.lock = threading.RLock()
         self.checked_key: Hashable | None = None  # names checked points, indices and values
         self.checked_weights_key: Hashable | None = None  # names checked indices and values only
@@ -109,9 +113,11 @@ def _usable() -> ModuleType | None:
 
 
 def warm_up() -> str:
-    """Compile (or load from numba's cache) every entry point on a tiny input, so the first real
-    update does not pay for it; returns `backend()`. Safe to call from a helper thread: calls into
-    the compiled module are serialised by a lock, and a failure only switches the process to numpy."""
+    """Compile (or load from numba's cache) both compiled entries (compiled.ENTRIES) on a tiny input,
+    so the first real update does not pay for it; returns `backend()`. Each has one specialisation
+    for all its calls (full or rows, float32 copy or not), so one call apiece is all it takes. Safe
+    to call from a helper thread: calls into the compiled module are serialised by a lock, and a
+    failure only switches the process to numpy."""
     pts = np.zeros((2, 3))
     params = np.zeros((1, 12))
     params[0, 6] = 1e-3  # not all zero: the all-at-rest shortcut would skip the kernel
@@ -119,10 +125,8 @@ def warm_up() -> str:
     val = np.ones((2, 1))
     _state.warming = threading.current_thread()
     try:
-        deform_points_params(pts, params, idx, val)
-        deform_points_params_rows(pts, params, idx, val, np.array([1], dtype=np.intp), np.zeros((2, 3)),
-                                  out32=np.zeros((2, 3), dtype=np.float32))
-        vertex_motions(params, idx, val)  # one specialisation serves both output types
+        deform_points_params(pts, params, idx, val)  # deform_points_entry
+        vertex_motions(params, idx, val)  # motion_params
     finally:
         _state.warming = None
     return backend()
@@ -155,8 +159,75 @@ def _fail(reason: str, warn: bool = True) -> None:
         warnings.warn(f"affine_deformers: compiled kernel disabled ({reason}); using numpy", stacklevel=3)
 
 
+class _Helper:
+    """A thread that runs one job at a time for `_run_chunks`: `start` hands it over, `join` waits
+    for it and re-raises its exception. Two locks used as binary semaphores, so the hand-over is one
+    lock release each way (a thread pool's futures cost ~0.1 ms more per call here). Daemon: it only
+    ever waits for a job or runs one the caller waits for."""
+
+    def __init__(self) -> None:
+        self._go = threading.Lock()
+        self._go.acquire()
+        self._done = threading.Lock()
+        self._done.acquire()
+        self._job: tuple[Callable[..., None], tuple] | None = None
+        self._error: BaseException | None = None
+        threading.Thread(target=self._loop, name="affine_deformers accel", daemon=True).start()
+
+    def _loop(self) -> None:
+        while True:
+            self._go.acquire()
+            fn, args = self._job  # type: ignore[misc]
+            try:
+                fn(*args)
+            except BaseException as exc:  # handed to the caller by join()
+                self._error = exc
+            finally:
+                self._job = None
+                self._done.release()
+
+    def start(self, fn: Callable[..., None], args: tuple) -> None:
+        self._job = (fn, args)
+        self._go.release()
+
+    def join(self) -> None:
+        self._done.acquire()
+        error, self._error = self._error, None
+        if error is not None:
+            raise error
+
+
+_helpers: list[_Helper] = []  # grown on demand; used under _state.lock only
+
+
+def _run_chunks(entry: Callable[..., None], args: tuple, n_chunks: int, threads: int) -> None:
+    """entry(*args, counter) on min(threads, n_chunks) threads sharing one chunk counter: this one
+    and `_Helper` threads (the entries release the GIL). Each thread claims the next chunk until none
+    is left, so a helper that starts late (thread wake-up, a busy core) takes fewer chunks instead of
+    delaying the call. A row's value does not depend on the thread. Call under _state.lock."""
+    counter = np.zeros(1, dtype=np.int64)
+    n_helpers = max(0, min(threads, n_chunks) - 1)
+    while len(_helpers) < n_helpers:
+        _helpers.append(_Helper())
+    started: list[_Helper] = []
+    try:
+        for helper in _helpers[:n_helpers]:
+            helper.start(entry, (*args, counter))
+            started.append(helper)
+        entry(*args, counter)
+    finally:
+        errors = []
+        for helper in started:  # they write into the caller's arrays: never return before they are done
+            try:
+                helper.join()
+            except Exception as exc:
+                errors.append(exc)
+    if errors:
+        raise errors[0]
+
+
 def _threads(numba: ModuleType) -> int:
-    """default_threads(), bounded by the size of numba's thread pool."""
+    """default_threads(), bounded by numba's NUMBA_NUM_THREADS (which thus still caps the kernel)."""
     return max(1, min(default_threads(), int(numba.config.NUMBA_NUM_THREADS)))
 
 
@@ -175,18 +246,21 @@ def backend() -> str:
     return f"numba {numba.__version__}, {n} thread{'s' if n != 1 else ''}"
 
 
-def _run(name: str, *args: object) -> bool:
-    """Call compiled.<name>(*args) on numba's pool; False if the backend is (or just became)
-    unavailable, in which case the caller recomputes with numpy."""
+def _run(name: str, n: int, *args: object) -> bool:
+    """compiled.<name>(*args, counter) for an n-row work list (⌈n/CHUNK⌉ chunks) on `_threads`
+    threads (`_run_chunks`; the first call, which compiles or loads the entry, on this thread
+    alone); False if the backend is (or just became) unavailable, in which case the caller
+    recomputes with numpy."""
     module = _load()
     if module is None:
         return False
     import numba  # already in sys.modules (_load)
 
+    entry = getattr(module, name)
+    n_chunks = -(-n // module.CHUNK)
     with _state.lock:
         try:
-            numba.set_num_threads(_threads(numba))
-            getattr(module, name)(*args)
+            _run_chunks(entry, args, n_chunks, _threads(numba) if name in _state.compiled else 1)
         except Exception as exc:
             if name in _state.compiled:
                 # It ran before with these argument types: not a compile/platform problem.
@@ -288,7 +362,9 @@ def deform_points_params(
         dst.__array_interface__["data"][0] == p.__array_interface__["data"][0] and dst.strides == p.strides
     ):
         p = p.copy()
-    if not _run("deform_params", p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), dst):
+    args = (p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), _NO_ROWS, False, False, dst,
+            _NO_OUT32, False)
+    if not _run("deform_points_entry", p.shape[0], *args):
         return _np_kernel.deform_points_params(points, params, indices, values, out, key=key)
     if dst is not out:
         np.copyto(out, dst)
@@ -334,11 +410,12 @@ def deform_points_params_rows(
     # Repeated rows in different chunks would read written results.
     if np.may_share_memory(dst, p) or (out32 is not None and np.may_share_memory(out32, p)):
         p = p.copy()
-    # Without out32 an empty float32 array still goes in: one compiled specialisation, not two.
+    # Without out32 an empty float32 array still goes in: the one compiled specialisation of the full
+    # call serves every rows call too.
     dst32 = _NO_OUT32 if out32 is None else out32
-    args = (p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), sel, dst, bool(offsets),
+    args = (p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), sel, True, bool(offsets), dst,
             dst32, out32 is not None)
-    if not _run("deform_rows", *args):
+    if not _run("deform_points_entry", sel.shape[0], *args):
         return _numpy_rows(points, params, indices, values, rows, out, offsets, key, out32)
     if dst is not out:
         out[sel] = dst[sel]
@@ -397,8 +474,8 @@ def vertex_motions(
     dst = out if out.flags.c_contiguous else np.ascontiguousarray(out)
     use32 = dst.dtype == np.float32
     args = (_c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), _NO_ROWS if sel is None else sel,
-            sel is not None, _NO_MOTIONS if use32 else dst, dst if use32 else _NO_MOTIONS32, use32)
-    if not _run("motion_params", *args):
+            sel is not None, _NO_MOTIONS if use32 else dst, dst if use32 else _NO_MOTIONS32, bool(use32))
+    if not _run("motion_params", n if sel is None else sel.shape[0], *args):
         return _np_kernel.vertex_motions(params, indices, values, out, rows=rows, key=key)
     if dst is not out:
         if sel is None:

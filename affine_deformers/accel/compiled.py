@@ -16,7 +16,7 @@ Z), `_stretch` (exp(Y) v) or `_exp_sym_matrix` (exp(Y) itself), `_rotation_coeff
 `_rotation_coeffs_libm` (A, B, C, cos θ) and `_rigid` (R e + V u; the motion calls it with u = 0 on
 the columns of exp(Y) and with e = 0 for t), as the numpy kernel's stages of the same names.
 
-Layout: vertices go in chunks of CHUNK rows (threads take whole chunks). Per chunk, `_chunk` blends
+Layout: vertices go in chunks of CHUNK rows (threads claim whole chunks). Per chunk, `_chunk` blends
 the parameters into a structure-of-arrays scratch (12 parameter rows, 3 point rows, 3 result rows)
 and then runs the map over it as one straight-line loop without calls or branches (selects only), so
 LLVM vectorises it across vertices. libm is not vectorisable, so the transcendentals are polynomials:
@@ -39,33 +39,45 @@ LLVM vectorises it across vertices. libm is not vectorisable, so the transcenden
 
 Accuracy: ≤ 3e-15 relative to ‖M‖‖v‖ + ‖t‖ against aff3 on the adversarial set of the core tests.
 
-Bit-identity: a row's result depends on that row only, not on the entry point, the chunk, the
-position in it or the thread count — the Blender layer recomputes only the rows a changed control
-influences and keeps the others. Both entry points run the same compiled `_chunk` (one blend, one
-map, one fix-up); every function carries the same fastmath flags (only 'contract': FMA formation; no
-reassociation, so no sum is reordered); and the map always runs a full chunk, so no row is computed
-by a scalar remainder loop whose FMA contraction could differ from the vector body's (see `_map`).
-The float32 copy `deform_rows` can store next to a row is one conversion of the stored float64
-(round to nearest even, overflow to ±inf), the same rounding as numpy's astype(np.float32).
-`motion_params` follows the same rules with its own chunk routine (`_motion_chunk`: blend, map,
-fix-up, store), and is a single specialisation for both output types (float64 `out` or float32
-`out32`, the other passed empty), for the first caveat below; its fix-up loop carries a barrier
-against vectorisation, for the second.
+Bit-identity: a row's result depends on that row only — not on the call (full or rows, with or
+without the float32 copy), the chunk, the position in it, the thread count, and not on whether the
+entry was compiled in this session or loaded from numba's on-disk cache: the Blender layer
+recomputes only the rows a changed control influences and keeps the others, and a frame must give
+the same bits however it was reached. The rules:
 
-Two caveats found for the point entries (`deform_params`/`deform_rows`, left as they are):
-* an entry loaded from numba's cache and one compiled in the session can differ in the last bit
-  (the cached object holds its own re-optimised copy of `_chunk`; a fresh entry calls the standalone
-  one), so the two entries agree only when both come from the cache or both were compiled in the
-  session (`warm_up` runs both, which keeps them together in practice);
-* `_fixup` (variable trip count) is vectorised by LLVM in the entry despite its libm calls, so a
-  θ > 1.8π row can get other bits in a full chunk than alone in a short one (seen with cached
-  entries); `_scalar_barrier()` at the top of its loop would fix that, changing those rows' bits.
+* One compiled entry per map, one specialisation each: `deform_points_entry` (full call and rows,
+  offsets and float32 copy are runtime flags; unused arrays are passed empty) and `motion_params`.
+* Each entry is one LLVM module: every other jitted function here is inline="always" (numba IR
+  inlining), and the entries have no prange. A call between separately compiled numba functions —
+  a plain njit callee, or the gufunc numba makes of a prange body — links a copy of the callee's
+  optimised module into the caller and optimises it again; in the session that compiled it the call
+  still goes to the callee's own code, while the object in the cache holds the re-optimised copy,
+  and a second round of optimisation can reorder operands and so change which products LLVM fuses
+  into FMAs. Measured on 204k random and adversarial rows before this layout: ~11 % of the point
+  rows and ~45 % of the motion rows (float64) differed in the last bit between a cached entry and a
+  session-compiled one (the float32 roundings agreed); now none do, and the bits are those of the
+  session-compiled entries before.
+* Threads come from the caller (`affine_deformers.accel._run_chunks`): the entries release the GIL,
+  and every thread running one call claims chunks from a shared counter (`_claim`, an atomic
+  increment), so a helper that starts late takes fewer chunks instead of delaying the call.
+* Every function carries the same fastmath flags (only 'contract': FMA formation; no reassociation,
+  so no sum is reordered), and the map always runs a full chunk, so no row is computed by a scalar
+  remainder loop whose FMA contraction could differ from the vector body's (see `_map`).
+* The fix-up loops (`_fixup`, `_fixup_motion`: variable trip count) start with `_scalar_barrier()`:
+  LLVM would vectorise them despite the libm calls, and a θ > 1.8π row would then get other bits in
+  the vector body of a full chunk than in the scalar remainder of a short one (seen with cached
+  entries: 1400 of 11737 such rows before the barrier).
+
+The float32 copy `deform_points_entry` can store next to a row is one conversion of the stored
+float64 (round to nearest even, overflow to ±inf), the same rounding as numpy's astype(np.float32);
+`motion_params` writes either float64 `out` or float32 `out32` (the other passed empty), rounded
+the same way.
 
 Memory safety: indices are clamped to the table in the blend (one min per slot), so inputs the caller
 vouched for (a `key`) but that are wrong can give wrong values but never read out of bounds.
 
 This module imports numba; `affine_deformers.accel` imports it only on first use. Nothing is compiled
-at import: the entry points compile on their first call (or load from numba's cache next to this
+at import: the two entries compile on their first call (or load from numba's cache next to this
 file; without a usable cache location they are compiled in every session).
 """
 
@@ -82,7 +94,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["CHUNK", "deform_params", "deform_rows", "motion_params"]
+__all__ = ["CHUNK", "ENTRIES", "deform_points_entry", "motion_params"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -93,6 +105,8 @@ CHUNK = 2048
 _STRIDE = CHUNK + 8
 _N_SCRATCH = 18  # 12 parameters, 3 point coordinates, 3 results
 _N_MOTION_SCRATCH = 24  # 12 parameters, 12 results (M e_x, M e_y, M e_z, t)
+#: The compiled entry points, one specialisation each (`warm_up` runs exactly these).
+ENTRIES = ("deform_points_entry", "motion_params")
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -154,6 +168,20 @@ def _scalar_barrier(typingctx):
         return context.get_dummy_value()
 
     return types.none(), codegen
+
+
+@intrinsic
+def _claim(typingctx, counter):
+    """counter[0]++ as one atomic read-modify-write; returns the old value. counter: a 1-D int64
+    array shared by the threads that run one call (each claims the next chunk)."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64 and counter.ndim == 1):
+        return None
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        return builder.atomic_rmw("add", ary.data, ir.Constant(ir.IntType(64), 1), "monotonic")
+
+    return types.int64(counter), codegen
 
 
 # ---------------------------------------------------------------------------------------------
@@ -344,7 +372,8 @@ def _rigid(
 
 
 # ---------------------------------------------------------------------------------------------
-# one chunk: blend, map, fix-up, store (shared by both entry points)
+# one chunk: blend, map, fix-up, store (`_chunk` for points, `_motion_chunk` for motions), inlined
+# into the entries
 
 
 @_inline
@@ -441,7 +470,7 @@ def _theta_sq(W: np.ndarray, j: int) -> float:
     return W[j] * W[j] + W[S + j] * W[S + j] + W[2 * S + j] * W[2 * S + j]
 
 
-@numba.njit(fastmath=FASTMATH, error_model="numpy")
+@_inline
 def _map(W: np.ndarray) -> int:
     """Result rows 15–17 = φ(rows 0–11) · rows 12–14 for every column of the flat scratch (row
     stride _STRIDE), θ-coefficients by polynomial; returns how many columns have θ > 1.8π (to be
@@ -461,13 +490,13 @@ def _map(W: np.ndarray) -> int:
     return n_big
 
 
-@numba.njit(fastmath=FASTMATH, error_model="numpy")
+@_inline
 def _fixup(W: np.ndarray, n: int) -> None:
-    """Redo the columns j < n with θ > 1.8π with libm θ-coefficients (rare: lifted rotations).
-
-    Meant as a scalar loop so its values do not depend on the position; LLVM does vectorise it in
-    the entry points, though (see the module doc's caveats; `_fixup_motion` has a barrier)."""
+    """Redo the columns j < n with θ > 1.8π with libm θ-coefficients (rare: lifted rotations). Kept
+    scalar by a barrier: without it LLVM can vectorise this loop (variable trip count) in the entry,
+    and a row then gets different bits in a full chunk than alone in a short one."""
     for j in range(n):
+        _scalar_barrier()
         s = _theta_sq(W, j)
         if s > POLY_MAX_S:
             e0, e1, e2 = _stretch_at(W, j)
@@ -503,7 +532,7 @@ def _motion_store_at(W: np.ndarray, j: int, A: float, B: float, C: float, cth: f
     W[23 * S + j] = o2
 
 
-@numba.njit(fastmath=FASTMATH, error_model="numpy")
+@_inline
 def _map_motion(W: np.ndarray) -> int:
     """Rows 12–23 = φ(rows 0–11) as (M e_x, M e_y, M e_z, t) for every column of the flat motion
     scratch (row stride _STRIDE), θ-coefficients by polynomial; returns how many columns have
@@ -517,7 +546,7 @@ def _map_motion(W: np.ndarray) -> int:
     return n_big
 
 
-@numba.njit(fastmath=FASTMATH, error_model="numpy")
+@_inline
 def _fixup_motion(W: np.ndarray, n: int) -> None:
     """Redo the columns j < n with θ > 1.8π with libm θ-coefficients. Kept scalar by a barrier:
     without it LLVM vectorises this loop (variable trip count) in the entry point, and a row then
@@ -530,15 +559,14 @@ def _fixup_motion(W: np.ndarray, n: int) -> None:
             _motion_store_at(W, j, A, B, C, cth)
 
 
-@numba.njit(fastmath=FASTMATH, error_model="numpy")
+@_inline
 def _motion_chunk(
-    table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, a: int, n: int, use_rows: bool,
-    out: np.ndarray, out32: np.ndarray, use32: bool,
+    W: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, a: int, n: int,
+    use_rows: bool, out: np.ndarray, out32: np.ndarray, use32: bool,
 ) -> None:
     """Rows a … a+n−1 of the work list (0 … N−1, or `rows` when use_rows): blend, motion map, store
     into out[:, r] (float64), or with use32 into out32[:, r] (the float64 value rounded once: IEEE
-    round to nearest, as numpy's cast)."""
-    W = np.empty(_N_MOTION_SCRATCH * _STRIDE)
+    round to nearest, as numpy's cast). W: the scratch, _N_MOTION_SCRATCH rows of _STRIDE."""
     T, I, V = table.reshape(-1), idx.reshape(-1), val.reshape(-1)
     K = idx.shape[1]
     last = np.uint64(table.shape[0] - 1)
@@ -559,15 +587,14 @@ def _motion_chunk(
                     out[c, r, t] = res
 
 
-@numba.njit(fastmath=FASTMATH, error_model="numpy")
+@_inline
 def _chunk(
-    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, a: int, n: int,
-    use_rows: bool, offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool,
+    W: np.ndarray, points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray,
+    a: int, n: int, use_rows: bool, offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool,
 ) -> None:
-    """Rows a … a+n−1 of the work list (0 … N−1, or `rows` when use_rows): blend, map, store; with
-    use32 also out32[r] = float32(out[r]) (one rounding of the stored value: IEEE round to nearest,
-    as numpy's cast)."""
-    W = np.empty(_N_SCRATCH * _STRIDE)
+    """Rows a … a+n−1 of the work list (0 … N−1, or `rows` when use_rows): blend, map, store (minus
+    the point when offsets); with use32 also out32[r] = float32(out[r]) (one rounding of the stored
+    value: IEEE round to nearest, as numpy's cast). W: the scratch, _N_SCRATCH rows of _STRIDE."""
     # Flat views once per chunk (a reshape per row would cost more than the blend).
     T, I, V, P = table.reshape(-1), idx.reshape(-1), val.reshape(-1), points.reshape(-1)
     K = idx.shape[1]
@@ -593,66 +620,67 @@ def _chunk(
 
 
 def _entry(fn: Callable) -> Callable:
-    """njit(parallel) with numba's on-disk cache when it has somewhere to write it. Without a cache
+    """njit(nogil) with numba's on-disk cache when it has somewhere to write it. Without a cache
     locator (read-only install, no user cache dir) numba raises RuntimeError at decoration; then the
-    kernel is compiled in every session instead."""
+    kernel is compiled in every session instead.
+
+    No parallel=True: a prange body is compiled as a separate gufunc library, which brings back the
+    cached-versus-session difference of the module doc. Threads come from the caller instead: the
+    entry releases the GIL, and every thread running one call claims chunks from a shared counter
+    until none are left (a helper that starts late takes fewer)."""
     try:
-        return numba.njit(parallel=True, cache=True, fastmath=FASTMATH, error_model="numpy")(fn)
+        return numba.njit(nogil=True, cache=True, fastmath=FASTMATH, error_model="numpy")(fn)
     except RuntimeError:
-        return numba.njit(parallel=True, cache=False, fastmath=FASTMATH, error_model="numpy")(fn)
+        return numba.njit(nogil=True, cache=False, fastmath=FASTMATH, error_model="numpy")(fn)
 
 
 @_entry
-def deform_params(
-    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, out: np.ndarray
-) -> np.ndarray:
-    """out[v] = φ(Σ_k val[v, k] table[idx[v, k]]) points[v] for every row v; returns out.
+def deform_points_entry(
+    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool,
+    offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool, counter: np.ndarray,
+) -> None:
+    """The point map on the chunks (CHUNK rows each) of the work list it claims from `counter` (a
+    (1,) int64 array, 0 at the start of a call; chunk c is claimed by the thread that increments it
+    from c, so a lone call with a fresh counter does every chunk): every row v (use_rows
+    False: out[v] = φ(Σ_k val[v, k] table[idx[v, k]]) points[v]) or v = rows[i] (use_rows; other rows
+    of out untouched); minus points[v] when offsets; with use32 also out32[v] = float32(out[v]) (the
+    value np.astype(np.float32) gives), otherwise out32 is not accessed.
 
-    points (N, 3) f64, table (m ≥ 1, 12) f64, idx (N, K) int32, val (N, K) f64, out (N, 3) f64; out
-    may be points itself (a chunk reads its rows before it writes them)."""
-    N = points.shape[0]
-    no_rows = np.empty(0, dtype=np.intp)
-    # Same argument types as deform_rows': both run the one compiled specialisation of _chunk.
-    no_out32 = np.empty((0, 3), dtype=np.float32)
-    for c in numba.prange((N + CHUNK - 1) // CHUNK):
+    points (N, 3) f64, table (m ≥ 1, 12) f64, idx (N, K) int32, val (N, K) f64, rows (n,) intp in
+    [0, N) (empty when not use_rows; without repeats when out shares memory with points), out (N, 3)
+    f64, out32 (N, 3) f32 (an empty (0, 3) one without use32). Full call and rows, float32 copy or
+    not, all go through this one specialisation (see the module doc). out may be points itself in a
+    full call (a chunk reads its rows before it writes them). Threads: call it on each with the same
+    counter; a row's value does not depend on which thread computes its chunk."""
+    n = rows.shape[0] if use_rows else points.shape[0]
+    n_chunks = (n + CHUNK - 1) // CHUNK
+    W = np.empty(_N_SCRATCH * _STRIDE)
+    while True:
+        c = _claim(counter)
+        if c >= n_chunks:
+            break
         a = c * CHUNK
-        _chunk(points, table, idx, val, no_rows, a, min(CHUNK, N - a), False, False, out, no_out32, False)
-    return out
-
-
-@_entry
-def deform_rows(
-    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray,
-    out: np.ndarray, offsets: bool, out32: np.ndarray, use32: bool,
-) -> np.ndarray:
-    """out[rows[i]] = φ(p) points[rows[i]] (minus points[rows[i]] when offsets), bit-identical to
-    the same row of `deform_params`; other rows of out are untouched. rows (n,) intp in [0, N),
-    without repeats when out shares memory with points. With use32, out32 ((N, 3) float32) gets
-    float32(out[rows[i]]) in the same rows (the value np.astype(np.float32) gives) and no others;
-    without, out32 is not accessed (pass an empty (0, 3) float32 array: one specialisation)."""
-    n = rows.shape[0]
-    for c in numba.prange((n + CHUNK - 1) // CHUNK):
-        a = c * CHUNK
-        _chunk(points, table, idx, val, rows, a, min(CHUNK, n - a), True, offsets, out, out32, use32)
-    return out
+        _chunk(W, points, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, offsets, out, out32, use32)
 
 
 @_entry
 def motion_params(
     table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool, out: np.ndarray,
-    out32: np.ndarray, use32: bool,
+    out32: np.ndarray, use32: bool, counter: np.ndarray,
 ) -> None:
-    """The affine map φ(p_v), p_v = Σ_k val[v, k] table[idx[v, k]], of every vertex v (use_rows
-    False) or of v = rows[i] (use_rows), as out[:, v] = (M e_x, M e_y, M e_z, t) (M = R(ω) exp(Y),
-    t = V(ω) u); other rows untouched. table (m ≥ 1, 12) f64, idx (N, K) int32, val (N, K) f64,
-    rows (n,) intp in [0, N) (empty when not use_rows), out (4, N, 3) f64; with use32 out32
-    (4, N, 3) f32 gets the float64 value rounded once instead and out is not accessed.
-
-    One compiled specialisation for both output types (pass an empty (4, 0, 3) array for the unused
-    one): a specialisation loaded from numba's cache and one compiled in the session can differ in
-    the last bit (the cached object holds its own re-optimised copy of the callees), so two would
-    break "float32 out = float64 out rounded" whenever only one of them was cached."""
+    """The affine map φ(p_v), p_v = Σ_k val[v, k] table[idx[v, k]], on the chunks of the work list it
+    claims from `counter` (as `deform_points_entry`): every vertex v (use_rows False) or v = rows[i]
+    (use_rows), as out[:, v] = (M e_x, M e_y, M e_z, t) (M = R(ω) exp(Y), t = V(ω) u); other rows
+    untouched. table (m ≥ 1, 12) f64, idx (N, K) int32, val (N, K) f64, rows (n,) intp in [0, N)
+    (empty when not use_rows), out (4, N, 3) f64; with use32 out32 (4, N, 3) f32 gets the float64
+    value rounded once instead and out is not accessed. One specialisation for both output types
+    (pass an empty (4, 0, 3) array for the unused one), full call or rows: see the module doc."""
     n = rows.shape[0] if use_rows else idx.shape[0]
-    for c in numba.prange((n + CHUNK - 1) // CHUNK):
+    n_chunks = (n + CHUNK - 1) // CHUNK
+    W = np.empty(_N_MOTION_SCRATCH * _STRIDE)
+    while True:
+        c = _claim(counter)
+        if c >= n_chunks:
+            break
         a = c * CHUNK
-        _motion_chunk(table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)
+        _motion_chunk(W, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)

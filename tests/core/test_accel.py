@@ -195,6 +195,9 @@ def test_sizes_around_the_chunk(compiled: ModuleType, n_rel: int | None) -> None
 def test_thread_counts_give_bitwise_equal_results(
     compiled: ModuleType, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """The dispatch runs the entry on the calling thread and on helper threads (it releases the GIL),
+    which claim chunks from a shared counter; neither the thread count nor which thread takes which
+    chunk changes a bit."""
     from affine_deformers.accel import compiled as kernel  # needs numba
 
     numba = compiled
@@ -204,23 +207,73 @@ def test_thread_counts_give_bitwise_equal_results(
     n = 4 * kernel.CHUNK + 3
     pts, params, idx, val = blend_case(rng, n)
     rows = np.flatnonzero(rng.random(n) < 0.5).astype(np.intp)
+    accel.deform_points_params(pts, params, idx, val)  # compiled (or loaded) before counting helpers
+    submitted = []
+    start = accel._Helper.start
+
+    def counting_start(self: accel._Helper, fn: object, args: tuple) -> None:
+        submitted.append(fn.__name__)
+        start(self, fn, args)
+
+    monkeypatch.setattr(accel._Helper, "start", counting_start)
     results = []
-    for threads in (1, 2):
-        numba.set_num_threads(threads)
-        out = np.empty((n, 3))
-        kernel.deform_params(pts, params, idx, val, out)
+    for threads in ("1", "2"):
+        monkeypatch.setenv(deform.THREADS_ENV, threads)
+        assert accel.backend().endswith(f"{threads} thread" + ("s" if threads == "2" else ""))
+        submitted.clear()
+        out = accel.deform_points_params(pts, params, idx, val)
         sub = np.zeros((n, 3))
         sub32 = np.zeros((n, 3), dtype=np.float32)
-        kernel.deform_rows(pts, params, idx, val, rows, sub, True, sub32, True)
+        accel.deform_points_params_rows(pts, params, idx, val, rows, sub, offsets=True, out32=sub32)
+        assert submitted == ([] if threads == "1" else ["deform_points_entry"] * 2)  # one helper per call
         results.append((out, sub, sub32))
     assert np.array_equal(results[0][0], results[1][0])
     assert np.array_equal(results[0][1], results[1][1])
     assert np.array_equal(results[0][2].view(np.uint32), results[1][2].view(np.uint32))
-    # and through the dispatch, which takes the thread count from AFFINE_DEFORMERS_THREADS
-    for threads in ("1", "2"):
-        monkeypatch.setenv(deform.THREADS_ENV, threads)
-        assert accel.backend().endswith(f"{threads} thread" + ("s" if threads == "2" else ""))
-        assert np.array_equal(accel.deform_points_params(pts, params, idx, val), results[0][0])
+    # called directly: a counter at c leaves chunks below c alone, a fresh one does every chunk
+    out = np.zeros((n, 3))
+    args = (pts, params, idx.astype(np.int32), val, np.empty(0, np.intp), False, False, out,
+            np.empty((0, 3), np.float32), False)
+    counter = np.array([3], dtype=np.int64)
+    kernel.deform_points_entry(*args, counter)
+    assert counter[0] == 6  # chunks 3 and 4 claimed, one failed claim
+    assert np.all(out[: 3 * kernel.CHUNK] == 0.0)
+    assert np.array_equal(out[3 * kernel.CHUNK :], results[0][0][3 * kernel.CHUNK :])
+    kernel.deform_points_entry(*args, np.zeros(1, np.int64))
+    assert np.array_equal(out, results[0][0])
+
+
+def test_helper_threads_are_joined_and_their_errors_reach_the_caller() -> None:
+    """`_run_chunks` (no numba needed): every helper shares the call's counter, the call returns only
+    after all of them, a helper's exception is raised in the caller, and the helpers stay usable."""
+    import threading
+    import time
+
+    def make_entry(fail: bool) -> tuple[list, object]:
+        seen = []
+
+        def entry(tag: str, counter: np.ndarray) -> None:
+            if threading.current_thread() is not threading.main_thread():
+                time.sleep(0.05)
+                if fail:
+                    raise RuntimeError("helper failed")
+            seen.append((tag, threading.get_ident(), id(counter)))
+
+        return seen, entry
+
+    with accel._state.lock:
+        seen, entry = make_entry(fail=False)
+        accel._run_chunks(entry, ("a",), 5, 3)
+        assert len(seen) == 3 and len({ident for _, ident, _ in seen}) == 3  # all joined before return
+        assert len({c for _, _, c in seen}) == 1  # one counter for the call
+        seen, entry = make_entry(fail=True)
+        with pytest.raises(RuntimeError, match="helper failed"):
+            accel._run_chunks(entry, ("b",), 5, 3)
+        seen, entry = make_entry(fail=False)
+        accel._run_chunks(entry, ("c",), 2, 8)  # at most one thread per chunk
+        assert len(seen) == 2
+        accel._run_chunks(entry, ("d",), 0, 8)  # no chunk: this thread only
+        assert len(seen) == 3 and seen[-1][1] == threading.get_ident()
 
 
 def test_out_argument_in_place_and_layouts(compiled: ModuleType) -> None:
@@ -500,7 +553,7 @@ def test_compile_failure_falls_back(monkeypatch: pytest.MonkeyPatch, fresh_state
     def broken(*args: object) -> None:
         raise RuntimeError("LLVM is unhappy")
 
-    fake = types.SimpleNamespace(deform_params=broken, deform_rows=broken)
+    fake = types.SimpleNamespace(deform_points_entry=broken, CHUNK=2048)
     monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
     monkeypatch.setattr(fresh_state, "module", fake)
     monkeypatch.setitem(
@@ -515,7 +568,7 @@ def test_compile_failure_falls_back(monkeypatch: pytest.MonkeyPatch, fresh_state
     with pytest.warns(UserWarning, match="LLVM is unhappy"):
         got = accel.deform_points_params(pts, params, idx, val)
     assert np.array_equal(got, deform.deform_points_params(pts, params, idx, val, cache_weights=False))
-    assert accel.backend() == "numpy (compiling deform_params failed: RuntimeError: LLVM is unhappy)"
+    assert accel.backend() == "numpy (compiling deform_points_entry failed: RuntimeError: LLVM is unhappy)"
 
 
 def test_importing_accel_does_not_import_numba() -> None:
@@ -542,7 +595,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         "from numba.core import caching\n"
         "caching.CacheImpl._locator_classes = []\n"
         "from affine_deformers.accel import compiled as c\n"
-        "print(*(type(f._cache).__name__ for f in (c.deform_params, c.deform_rows, c.motion_params)))\n"
+        "print(*(type(getattr(c, name)._cache).__name__ for name in c.ENTRIES))\n"
     )
     res = subprocess.run(
         [sys.executable, "-c", code],
@@ -552,7 +605,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache", "NullCache", "NullCache"]
+    assert res.stdout.split() == ["NullCache", "NullCache"]
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
@@ -833,7 +886,7 @@ def test_motions_fall_back_to_numpy(monkeypatch: pytest.MonkeyPatch, fresh_state
         raise RuntimeError("LLVM is unhappy")
 
     monkeypatch.delenv(accel.ACCEL_ENV)
-    monkeypatch.setattr(fresh_state, "module", types.SimpleNamespace(motion_params=broken))
+    monkeypatch.setattr(fresh_state, "module", types.SimpleNamespace(motion_params=broken, CHUNK=2048))
     monkeypatch.setitem(
         sys.modules,
         "numba",
@@ -850,15 +903,179 @@ def test_motions_fall_back_to_numpy(monkeypatch: pytest.MonkeyPatch, fresh_state
     assert accel.backend() == "numpy (compiling motion_params failed: RuntimeError: LLVM is unhappy)"
 
 
-def test_warm_up_compiles_the_motion_entry_into_the_cache(compiled: ModuleType) -> None:
-    """warm_up runs motion_params once (so the first update with motions does not compile), and the
-    compiled specialisation is one numba can keep in its cache (when it has a cache location)."""
+def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
+    compiled: ModuleType, fresh_state: accel._State
+) -> None:
+    """warm_up runs both compiled entries once (so the first update does not compile) and nothing
+    else; every other jitted function of the module is inlined into them (a separately compiled
+    callee, or a prange body, would make a cache-loaded entry differ from one compiled in the
+    session: module doc); after calls of every kind (full, rows, offsets, out32, float32 motions)
+    each entry still has one specialisation, which numba can keep in its cache."""
+    from numba.core.registry import CPUDispatcher
+
     from affine_deformers.accel import compiled as kernel  # needs numba
 
     assert accel.warm_up().startswith("numba ")
-    assert {"deform_params", "deform_rows", "motion_params"} <= accel._state.compiled
-    fn = kernel.motion_params
-    assert len(fn.signatures) == 1
-    if type(fn._cache).__name__ == "NullCache":
-        pytest.skip("numba has no cache location here")
-    assert fn._cache.load_overload(fn.signatures[0], fn.targetctx) is not None
+    assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params"}
+    jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
+    for name, f in jitted.items():
+        if name in kernel.ENTRIES:
+            assert f.targetoptions.get("nogil") and not f.targetoptions.get("parallel"), name
+        else:
+            assert f.targetoptions.get("inline") == "always", name
+    rng = np.random.default_rng(129)
+    pts, params, idx, val = blend_case(rng, 300)
+    accel.deform_points_params(pts, params, idx, val)
+    out = np.zeros((300, 3))
+    accel.deform_points_params_rows(pts, params, idx, val, [3, 1], out, offsets=True,
+                                    out32=np.zeros((300, 3), np.float32))
+    accel.deform_points_params_rows(pts, params, idx.astype(np.int64), val, np.array([2], np.int32), out)
+    accel.vertex_motions(params, idx, val, np.zeros((4, 300, 3), np.float32), rows=[5])
+    accel.vertex_motions(params, idx, val, rows=np.arange(9))
+    for name in kernel.ENTRIES:
+        fn = getattr(kernel, name)
+        assert len(fn.signatures) == 1, (name, fn.signatures)
+        if type(fn._cache).__name__ != "NullCache":
+            assert fn._cache.load_overload(fn.signatures[0], fn.targetctx) is not None, name
+
+
+def lifted_case(rng: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
+    """Random blends of ordinary and lifted controls (θ from 1.5π to 6π): ~a fifth of the vertices
+    have θ > 1.8π, at every position of a chunk; returns (points, params, idx, val, lifted rows)."""
+    pts, params, idx, val = blend_case(rng, n, m=8)
+    lifted = []
+    for angle in np.linspace(1.5 * np.pi, 6.0 * np.pi, 8):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        y6 = sym6(tuple(rng.normal(scale=0.5, size=3)), aff3.so3_exp(rng.normal(size=3)))
+        lifted.append(np.concatenate([angle * axis, rng.normal(size=3) * 3.0, y6]))
+    params = np.concatenate([params, lifted, lifted_params(rng)])
+    w = rng.random((n, params.shape[0])) ** 3
+    w[:, 8:] *= rng.random((n, 1)) < 0.3
+    idx, val = top_k_dense(w, 4)
+    theta_sq = np.einsum("ij,ij->i", *2 * [deform.blend_params(params, idx, val)[:, :3]])
+    return pts, params, idx.astype(np.int32), val, np.flatnonzero(theta_sq > (1.8 * np.pi) ** 2)
+
+
+def test_every_lifted_row_alone_equals_its_row_in_a_full_chunk(compiled: ModuleType) -> None:
+    """θ > 1.8π: each such row recomputed alone (column 0 of a one-row chunk) has the bits of the full
+    call, points (plain, offsets, float32 copy) and motions — all of them, not a sample: a vectorised
+    fix-up loop gives a row other bits in the vector body than in the scalar remainder."""
+    from affine_deformers.accel.compiled import CHUNK  # needs numba
+
+    rng = np.random.default_rng(130)
+    n = 3 * CHUNK + 17
+    pts, params, idx, val, lifted = lifted_case(rng, n)
+    assert len(lifted) >= 500 and len(np.unique(lifted % CHUNK)) >= 400
+    full = accel.deform_points_params(pts, params, idx, val)
+    motions = accel.vertex_motions(params, idx, val)
+    out = np.zeros((n, 3))
+    off = np.zeros((n, 3))
+    out32 = np.zeros((n, 3), np.float32)
+    mot = np.zeros((4, n, 3))
+    for r in lifted:
+        accel.deform_points_params_rows(pts, params, idx, val, [r], out, key="lifted")
+        accel.deform_points_params_rows(pts, params, idx, val, [r], off, offsets=True, out32=out32,
+                                        key="lifted")
+        accel.vertex_motions(params, idx, val, mot, rows=[r], key="lifted")
+    assert np.array_equal(out[lifted], full[lifted])
+    assert np.array_equal(off[lifted], full[lifted] - pts[lifted])
+    assert np.array_equal(_bits(out32[lifted]), _bits((full[lifted] - pts[lifted]).astype(np.float32)))
+    assert np.array_equal(mot[:, lifted], motions[:, lifted])
+
+
+_CACHE_CHILD = """
+import json, sys
+import numpy as np
+from affine_deformers import accel
+from affine_deformers.accel import compiled
+
+case = np.load(sys.argv[1])
+pts, params, idx, val, rows, lifted = (case[k] for k in ("pts", "params", "idx", "val", "rows", "lifted"))
+res = {}
+for step in sys.argv[3].split(","):
+    if step == "points-full":
+        res[step] = accel.deform_points_params(pts, params, idx, val)
+    elif step == "points-rows":
+        out = np.zeros_like(pts)
+        accel.deform_points_params_rows(pts, params, idx, val, rows, out)
+        res[step] = out[rows]
+    elif step == "motions-full":
+        res[step] = accel.vertex_motions(params, idx, val)
+    elif step == "motions-rows":
+        res[step] = accel.vertex_motions(params, idx, val, rows=rows)[:, rows]
+    elif step == "lifted-alone":  # every θ > 1.8π row alone
+        out = np.zeros_like(pts)
+        mot = np.zeros((4,) + pts.shape)
+        for r in lifted:
+            accel.deform_points_params_rows(pts, params, idx, val, [r], out, key="k")
+            accel.vertex_motions(params, idx, val, mot, rows=[r], key="k")
+        res["points-alone"], res["motions-alone"] = out[lifted], mot[:, lifted]
+np.savez(sys.argv[2], **res)
+stats = {name: getattr(compiled, name).stats for name in compiled.ENTRIES}
+print(json.dumps({n: [sum(s.cache_hits.values()), sum(s.cache_misses.values())] for n, s in stats.items()}))
+"""
+
+
+def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
+    compiled: ModuleType, tmp_path: Path
+) -> None:
+    """numba's on-disk cache: an entry compiled in one process and the same entry loaded from the
+    cache in another give the same bits, whichever call (full or rows) compiled or loaded it. Three
+    processes, fresh cache dirs: A compiles the point entry with a full call and the motion entry
+    with a rows call, B (at the same time) the point entry with a rows call; then C loads A's cache
+    and calls point rows first, then full, motions full first, then rows, then every θ > 1.8π row
+    alone. The layout before (a point entry for full calls, one for rows, both with a prange) failed
+    this: C's cache-loaded full call differed from A's (and from C's own rows call, compiled there)
+    in the last bit of ~1 row in 5, cache-loaded motions from compiled ones in ~2 of 5, and C's
+    θ > 1.8π rows alone from the same rows of its full call."""
+    import json
+    import os
+    import subprocess
+
+    from affine_deformers.accel.compiled import CHUNK  # needs numba
+
+    rng = np.random.default_rng(131)
+    n = 2 * CHUNK + 33
+    pts, params, idx, val, lifted = lifted_case(rng, n)
+    rows = rng.permutation(np.union1d(np.flatnonzero(rng.random(n) < 0.3), lifted)).astype(np.intp)
+    assert len(lifted) >= 300 and np.isin(lifted, rows).all()
+    case = tmp_path / "case.npz"
+    np.savez(case, pts=pts, params=params, idx=idx, val=val, rows=rows, lifted=lifted)
+    child = tmp_path / "child.py"
+    child.write_text(_CACHE_CHILD)
+    root = Path(__file__).resolve().parents[2]
+
+    def start(cache: str, name: str, steps: str) -> subprocess.Popen:
+        env = {k: v for k, v in os.environ.items() if k not in (accel.ACCEL_ENV, "NUMBA_DISABLE_JIT")}
+        env["NUMBA_CACHE_DIR"] = str(tmp_path / cache)
+        env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")])
+        return subprocess.Popen([sys.executable, str(child), str(case), str(tmp_path / name), steps],
+                                cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def finish(proc: subprocess.Popen) -> dict:
+        stdout, stderr = proc.communicate(timeout=600)
+        assert proc.returncode == 0, stderr
+        return json.loads(stdout.strip().splitlines()[-1])
+
+    a = start("cache-a", "a.npz", "points-full,motions-rows")
+    b = start("cache-b", "b.npz", "points-rows")
+    stats_a, stats_b = finish(a), finish(b)
+    c = start("cache-a", "c.npz", "points-rows,points-full,motions-full,motions-rows,lifted-alone")
+    stats_c = finish(c)
+    assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1]}, stats_a  # compiled there
+    assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0]}, stats_b
+    for name in ("deform_points_entry", "motion_params"):
+        assert stats_c[name][0] >= 1 and stats_c[name][1] == 0, (name, stats_c)  # loaded from A's cache
+    ra, rb, rc = (np.load(tmp_path / f"{x}.npz") for x in "abc")
+    full, motions = ra["points-full"], rc["motions-full"]
+    assert np.array_equal(rc["points-rows"], full[rows])  # C: loaded, rows first; A: compiled, full
+    assert np.array_equal(rc["points-full"], full)
+    assert np.array_equal(rb["points-rows"], rc["points-full"][rows])  # B: compiled, rows; C: loaded, full
+    assert np.array_equal(ra["motions-rows"], motions[:, rows])  # A: compiled, rows; C: loaded, full first
+    assert np.array_equal(rc["motions-rows"], motions[:, rows])
+    assert np.array_equal(rc["points-alone"], full[lifted])  # every θ > 1.8π row alone, cached
+    assert np.array_equal(rc["motions-alone"], motions[:, lifted])
+    # and this process (its entries compiled or loaded, whichever happened here)
+    assert np.array_equal(accel.deform_points_params(pts, params, idx, val), full)
+    assert np.array_equal(accel.vertex_motions(params, idx, val), motions)
