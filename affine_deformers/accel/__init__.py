@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 import warnings
 from collections.abc import Callable, Hashable
 from types import ModuleType
@@ -81,6 +82,7 @@ class _State:
         self.checked_weights_key: Hashable | None = None  # names checked indices and values only
         self.enabled = True
         self.warming: threading.Thread | None = None  # the thread compiling in `warm_up`
+        self.spin: tuple | bool | None = None  # `_spin`'s measurement (False: unavailable)
 
 
 _state = _State()
@@ -114,7 +116,8 @@ def _usable() -> ModuleType | None:
 
 def warm_up() -> str:
     """Compile (or load from numba's cache) both compiled entries (compiled.ENTRIES) on a tiny input,
-    so the first real update does not pay for it; returns `backend()`. Each has one specialisation
+    and the helper threads' `spin_wait`, so the first real update does not pay for it; returns
+    `backend()`. Each has one specialisation
     for all its calls (full or rows, float32 copy or not), so one call apiece is all it takes. Safe
     to call from a helper thread: calls into the compiled module are serialised by a lock, and a
     failure only switches the process to numpy."""
@@ -127,6 +130,10 @@ def warm_up() -> str:
     try:
         deform_points_params(pts, params, idx, val)  # deform_points_entry
         vertex_motions(params, idx, val)  # motion_params
+        module = _load()
+        if module is not None:
+            with _state.lock:
+                _spin(module)  # compiled.spin_wait, for the helper threads
     finally:
         _state.warming = None
     return backend()
@@ -159,24 +166,40 @@ def _fail(reason: str, warn: bool = True) -> None:
         warnings.warn(f"affine_deformers: compiled kernel disabled ({reason}); using numpy", stacklevel=3)
 
 
+#: How long an idle helper thread busy-waits (without the GIL) for the next call before it sleeps.
+#: Calls back to back (several deformers in one update, rows then motions) then find it awake; a
+#: sleeping thread can take 0.05–4 ms to get a core back (measured on a shared 2-vCPU VM). numba's
+#: OpenMP threads, used before, spun ~10 ms of CPU after every call; longer spins than this one
+#: made later wake-ups slower there.
+SPIN_MS = 1.0
+
+
 class _Helper:
     """A thread that runs one job at a time for `_run_chunks`: `start` hands it over, `join` waits
     for it and re-raises its exception. Two locks used as binary semaphores, so the hand-over is one
-    lock release each way (a thread pool's futures cost ~0.1 ms more per call here). Daemon: it only
-    ever waits for a job or runs one the caller waits for."""
+    lock release each way (a thread pool's futures cost ~0.1 ms more per call here); after a job it
+    spins for up to SPIN_MS on a job counter (`compiled.spin_wait`, GIL released) before it blocks.
+    Daemon: it only ever waits for a job or runs one the caller waits for."""
 
-    def __init__(self) -> None:
+    def __init__(self, spin: tuple[Callable[[np.ndarray, int, int], bool], int] | None) -> None:
         self._go = threading.Lock()
         self._go.acquire()
         self._done = threading.Lock()
         self._done.acquire()
+        self._posted = np.zeros(1, dtype=np.int64)  # jobs handed over so far (read by spin_wait)
         self._job: tuple[Callable[..., None], tuple] | None = None
         self._error: BaseException | None = None
+        self._spin = spin
         threading.Thread(target=self._loop, name="affine_deformers accel", daemon=True).start()
 
     def _loop(self) -> None:
+        seen = 0
         while True:
-            self._go.acquire()
+            if not self._go.acquire(blocking=False):
+                if self._spin is not None:
+                    spin_wait, n = self._spin
+                    spin_wait(self._posted, seen, n)
+                self._go.acquire()
             fn, args = self._job  # type: ignore[misc]
             try:
                 fn(*args)
@@ -184,10 +207,12 @@ class _Helper:
                 self._error = exc
             finally:
                 self._job = None
+                seen = int(self._posted[0])  # no new job before join() returns
                 self._done.release()
 
     def start(self, fn: Callable[..., None], args: tuple) -> None:
         self._job = (fn, args)
+        self._posted[0] += 1
         self._go.release()
 
     def join(self) -> None:
@@ -200,15 +225,37 @@ class _Helper:
 _helpers: list[_Helper] = []  # grown on demand; used under _state.lock only
 
 
-def _run_chunks(entry: Callable[..., None], args: tuple, n_chunks: int, threads: int) -> None:
+def _spin(module: ModuleType) -> tuple[Callable[[np.ndarray, int, int], bool], int] | None:
+    """(compiled.spin_wait, iterations for SPIN_MS), measured once; None when it does not compile
+    (the helpers then just sleep between calls)."""
+    if _state.spin is None:
+        try:
+            fn = module.spin_wait
+            flag = np.zeros(1, dtype=np.int64)
+            fn(flag, 0, 1)  # compiles or loads it
+            n = 20_000
+            t0 = time.perf_counter()
+            fn(flag, 0, n)
+            per_ms = n / max((time.perf_counter() - t0) * 1e3, 1e-6)
+            _state.spin = (fn, max(1, int(SPIN_MS * per_ms)))
+        except Exception:
+            _state.spin = False
+    return _state.spin or None
+
+
+def _run_chunks(
+    entry: Callable[..., None], args: tuple, n_chunks: int, threads: int,
+    spin: tuple[Callable[[np.ndarray, int, int], bool], int] | None = None,
+) -> None:
     """entry(*args, counter) on min(threads, n_chunks) threads sharing one chunk counter: this one
-    and `_Helper` threads (the entries release the GIL). Each thread claims the next chunk until none
-    is left, so a helper that starts late (thread wake-up, a busy core) takes fewer chunks instead of
-    delaying the call. A row's value does not depend on the thread. Call under _state.lock."""
+    and `_Helper` threads (the entries release the GIL; new helpers get `spin`). Each thread claims
+    the next chunk until none is left, so a helper that starts late (thread wake-up, a busy core)
+    takes fewer chunks instead of delaying the call. A row's value does not depend on the thread.
+    Call under _state.lock."""
     counter = np.zeros(1, dtype=np.int64)
     n_helpers = max(0, min(threads, n_chunks) - 1)
     while len(_helpers) < n_helpers:
-        _helpers.append(_Helper())
+        _helpers.append(_Helper(spin))
     started: list[_Helper] = []
     try:
         for helper in _helpers[:n_helpers]:
@@ -260,7 +307,9 @@ def _run(name: str, n: int, *args: object) -> bool:
     n_chunks = -(-n // module.CHUNK)
     with _state.lock:
         try:
-            _run_chunks(entry, args, n_chunks, _threads(numba) if name in _state.compiled else 1)
+            threads = _threads(numba) if name in _state.compiled else 1
+            spin = _spin(module) if threads > 1 and n_chunks > 1 else None
+            _run_chunks(entry, args, n_chunks, threads, spin)
         except Exception as exc:
             if name in _state.compiled:
                 # It ran before with these argument types: not a compile/platform problem.

@@ -84,6 +84,7 @@ file; without a usable cache location they are compiled in every session).
 from __future__ import annotations
 
 import math
+import platform
 from collections.abc import Callable
 from decimal import Decimal, localcontext
 from fractions import Fraction
@@ -92,9 +93,10 @@ import numba
 import numpy as np
 from llvmlite import ir
 from numba import types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["CHUNK", "ENTRIES", "deform_points_entry", "motion_params"]
+__all__ = ["CHUNK", "ENTRIES", "deform_points_entry", "motion_params", "spin_wait"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -105,7 +107,7 @@ CHUNK = 2048
 _STRIDE = CHUNK + 8
 _N_SCRATCH = 18  # 12 parameters, 3 point coordinates, 3 results
 _N_MOTION_SCRATCH = 24  # 12 parameters, 12 results (M e_x, M e_y, M e_z, t)
-#: The compiled entry points, one specialisation each (`warm_up` runs exactly these).
+#: The compiled kernel entries, one specialisation each (`warm_up` runs exactly these and `spin_wait`).
 ENTRIES = ("deform_points_entry", "motion_params")
 
 # ---------------------------------------------------------------------------------------------
@@ -182,6 +184,36 @@ def _claim(typingctx, counter):
         return builder.atomic_rmw("add", ary.data, ir.Constant(ir.IntType(64), 1), "monotonic")
 
     return types.int64(counter), codegen
+
+
+@intrinsic
+def _load_relaxed(typingctx, flag):
+    """flag[0] as an atomic load (a spin loop re-reads it every iteration). flag: 1-D int64."""
+    if not (isinstance(flag, types.Array) and flag.dtype == types.int64 and flag.ndim == 1):
+        return None
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        return builder.load_atomic(ary.data, "monotonic", 8)
+
+    return types.int64(flag), codegen
+
+
+_PAUSE = platform.machine().lower() in ("x86_64", "amd64")
+
+
+@intrinsic
+def _cpu_relax(typingctx):
+    """The x86 PAUSE hint in a spin loop (spares the sibling hyperthread); nothing elsewhere."""
+
+    def codegen(context, builder, signature, args):
+        if _PAUSE:
+            fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), []),
+                                                "llvm.x86.sse2.pause")
+            builder.call(fn, [])
+        return context.get_dummy_value()
+
+    return types.none(), codegen
 
 
 # ---------------------------------------------------------------------------------------------
@@ -684,3 +716,15 @@ def motion_params(
             break
         a = c * CHUNK
         _motion_chunk(W, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)
+
+
+@_entry
+def spin_wait(flag: np.ndarray, seen: int, n: int) -> bool:
+    """Busy-wait without the GIL until flag[0] != seen (True) or for n iterations (False): keeps an
+    idle helper thread of `affine_deformers.accel` awake for a moment after a call, so one that
+    follows at once does not wait for the thread (or its virtual CPU) to wake up. No numerics."""
+    for _ in range(n):
+        if _load_relaxed(flag) != seen:
+            return True
+        _cpu_relax()
+    return False

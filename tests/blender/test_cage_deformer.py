@@ -302,7 +302,7 @@ def test_whole_cage_affine_by_vertex_edit_is_exact(bl, installed, core_cage, mot
     expected = transform(G, rest)
     assert np.abs(expected - rest).max() > 0.3
     assert np.abs(got - expected).max() < 1e-5
-    # the ERRATA 9 normal apex alone is exact for similarities only: the test can tell the difference
+    # the MATH.md §9 normal apex alone is exact for similarities only: the test can tell the difference
     rest_cage = in_target_space(target, cage, points)
     normal = core_cage.face_motions(rest_cage, transform(G, rest_cage), topology(core_cage, cage),
                                     apex="NORMAL")
@@ -375,7 +375,7 @@ def test_quad_cage_and_its_triangulation_give_the_same_result(bl, installed, cor
     core.cage's 'NEIGHBOURS' apex a corner's motion also depends on its apex stencil (cage vertices
     off its plane), which differs between a quad's four corners and its triangles' corners; so the
     configuration where quad ≡ triangles is meaningful is an affine edit of the whole cage: every face
-    of either cage must come out as exactly G, although their weights differ and the bare ERRATA 9
+    of either cage must come out as exactly G, although their weights differ and the bare MATH.md §9
     normal apex would give the faces different motions (checked below)."""
     rng = np.random.default_rng(4)
     points = rng.uniform(-1.3, 1.3, size=(400, 3))

@@ -906,23 +906,26 @@ def test_motions_fall_back_to_numpy(monkeypatch: pytest.MonkeyPatch, fresh_state
 def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     compiled: ModuleType, fresh_state: accel._State
 ) -> None:
-    """warm_up runs both compiled entries once (so the first update does not compile) and nothing
-    else; every other jitted function of the module is inlined into them (a separately compiled
-    callee, or a prange body, would make a cache-loaded entry differ from one compiled in the
-    session: module doc); after calls of every kind (full, rows, offsets, out32, float32 motions)
-    each entry still has one specialisation, which numba can keep in its cache."""
+    """warm_up runs both compiled entries once (so the first update does not compile) and the helper
+    threads' spin_wait, nothing else; every other jitted function of the module is inlined into them
+    (a separately compiled callee, or a prange body, would make a cache-loaded entry differ from one
+    compiled in the session: module doc); after calls of every kind (full, rows, offsets, out32,
+    float32 motions) each entry still has one specialisation, which numba can keep in its cache."""
     from numba.core.registry import CPUDispatcher
 
     from affine_deformers.accel import compiled as kernel  # needs numba
 
     assert accel.warm_up().startswith("numba ")
     assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params"}
+    assert fresh_state.spin and fresh_state.spin[0] is kernel.spin_wait  # the helpers' busy-wait
     jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
     for name, f in jitted.items():
-        if name in kernel.ENTRIES:
+        if name in (*kernel.ENTRIES, "spin_wait"):
             assert f.targetoptions.get("nogil") and not f.targetoptions.get("parallel"), name
         else:
             assert f.targetoptions.get("inline") == "always", name
+    flag = np.array([5], dtype=np.int64)
+    assert kernel.spin_wait(flag, 4, 10**9) and not kernel.spin_wait(flag, 5, 1000)
     rng = np.random.default_rng(129)
     pts, params, idx, val = blend_case(rng, 300)
     accel.deform_points_params(pts, params, idx, val)
@@ -932,7 +935,7 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     accel.deform_points_params_rows(pts, params, idx.astype(np.int64), val, np.array([2], np.int32), out)
     accel.vertex_motions(params, idx, val, np.zeros((4, 300, 3), np.float32), rows=[5])
     accel.vertex_motions(params, idx, val, rows=np.arange(9))
-    for name in kernel.ENTRIES:
+    for name in (*kernel.ENTRIES, "spin_wait"):
         fn = getattr(kernel, name)
         assert len(fn.signatures) == 1, (name, fn.signatures)
         if type(fn._cache).__name__ != "NullCache":

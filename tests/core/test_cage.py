@@ -189,7 +189,7 @@ def test_similarity_of_the_whole_cage_gives_every_face_exactly_g(G: np.ndarray) 
 
 
 def test_normal_apex_is_exact_in_plane_but_follows_the_normal_under_shear() -> None:
-    """ERRATA 9's normal apex ('NORMAL') is similarity-covariant only: under a shear every corner maps
+    """MATH.md §9's normal apex ('NORMAL') is similarity-covariant only: under a shear every corner maps
     its own face exactly, and the normal direction goes to cof(M)·N/√|cof(M)·N|, not to M·N."""
     points, topo = mixed_prism()
     G = affine([[1.0, 0.6, 0.0], [0.0, 1.2, 0.3], [0.2, 0.0, 0.8]], [0.5, -0.1, 0.2])
