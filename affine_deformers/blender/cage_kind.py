@@ -379,7 +379,8 @@ class CageKind:
             controls = cached[1]
         else:
             current = to_target(stored, state.points)
-            if not signed_volume(current, topology) > 0.0:
+            volume = signed_volume(current, topology)
+            if np.isfinite(volume) and volume <= 0.0:  # non-finite vertices: collapsed faces, below
                 # Mirrored vertices (an animated inside-out cage) or a collapse to a plane or point:
                 # every face motion would be mirrored or singular, so nothing of it is blended.
                 controls = Motions.invalid(F, f"Cage '{cage.name}' is turned inside out or collapsed in its "

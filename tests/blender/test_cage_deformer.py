@@ -1186,7 +1186,7 @@ target_name = target.name
 bpy.ops.wm.save_as_mainfile(filepath=path)
 bpy.ops.wm.open_mainfile(filepath=path, load_ui=False)
 groups = [g for g in bpy.data.node_groups if g.get("affine_deformers_group")]
-assert len(groups) == 1 and groups[0]["affine_deformers_group"] == 2, groups
+assert len(groups) == 1 and groups[0]["affine_deformers_group"] == 3, groups
 target, cage = bpy.data.objects[target_name], bpy.data.objects["Cage"]
 cage.location = (0.0, 0.0, 0.0)
 assert np.abs(positions() - rest - (-0.3, 0.2, -0.5)).max() < 1e-5
