@@ -43,7 +43,7 @@ STAGE_POINTS = (
     ("blender.kinds", "*.current_motions", "read"),  # every kind class registered in kinds.KINDS
     ("blender.storage", "read_positions", "read mesh"),
     ("blender.storage", "read_weights", "read mesh"),
-    ("blender.evaluate", "motions_to_params", "psi"),
+    ("blender.params", "motions_to_params", "psi"),
     ("core.aff3", "params_from_matrices", "psi"),
     ("core.aff3", "matrices_from_params", "psi"),
     ("core.cage", "affected_faces", "psi"),  # cage: which faces moved, then their tetrahedra → params

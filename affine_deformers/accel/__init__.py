@@ -39,19 +39,19 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..core import deform as _np_kernel
-from ..core.deform import (
-    _check_given_out,
-    _check_indices,
-    _check_motion_indices,
-    _check_motion_out,
-    _check_out,
-    _check_points,
-    _check_rows,
-    _check_table,
-    _identity_motions,
-    _unchanged,
-    default_threads,
+from ..core.checks import (
+    check_given_out,
+    check_indices,
+    check_motion_indices,
+    check_motion_out,
+    check_out,
+    check_points,
+    check_rows,
+    check_table,
+    identity_motions,
+    unchanged,
 )
+from ..core.deform import default_threads
 
 __all__ = [
     "ACCEL_ENV",
@@ -336,7 +336,7 @@ def _inputs(
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int32], FloatArray]:
     """Checked points, table, indices and values. With a key seen before, only the shapes are
     checked (the caller vouches for the contents; the kernel clamps indices, so memory stays safe)."""
-    table = _check_table(params, 12, "params")
+    table = check_table(params, 12, "params")
     if key is not None and key == _state.checked_key:
         pts = np.asarray(points, dtype=np.float64)
         idx = np.asarray(indices)
@@ -352,12 +352,12 @@ def _inputs(
             _state.checked_key = None
             return _inputs(points, params, indices, values, None)
     else:
-        pts = _check_points(points)
+        pts = check_points(points)
         idx = np.asarray(indices)
         if idx.ndim != 2 or idx.shape[0] != pts.shape[0]:
             # the message of core.deform's weights cache, which checks this first
             raise ValueError(f"indices must have shape ({pts.shape[0]}, K), got {idx.shape}")
-        idx, val = _check_indices(idx, values, pts.shape[0], table.shape[0])
+        idx, val = check_indices(idx, values, pts.shape[0], table.shape[0])
         if key is not None:
             _state.checked_key = key
     return pts, table, idx, val
@@ -398,11 +398,11 @@ def deform_points_params(
     if _usable() is None:
         return _np_kernel.deform_points_params(points, params, indices, values, out, key=key)
     pts, table, idx, val = _inputs(points, params, indices, values, key)
-    out = _check_out(out, pts)
+    out = check_out(out, pts)
     if not out.flags.writeable:
         raise ValueError("out must be writable")
     if not table.any():  # every control at rest (also m = 0)
-        return _unchanged(pts, out)
+        return unchanged(pts, out)
     p = _c(pts, np.float64)
     dst = out if out.flags.c_contiguous else np.empty_like(p)
     # A chunk reads its points before writing its results, so out may be points itself — but not a
@@ -448,10 +448,10 @@ def deform_points_params_rows(
     if _usable() is None:
         return _numpy_rows(points, params, indices, values, rows, out, offsets, key, out32)
     pts, table, idx, val = _inputs(points, params, indices, values, key)
-    _check_given_out(out, pts)
+    check_given_out(out, pts)
     if not out.flags.writeable:
         raise ValueError("out must be writable")
-    sel = _c(_check_rows(rows, pts.shape[0]), np.intp)
+    sel = _c(check_rows(rows, pts.shape[0]), np.intp)
     if table.shape[0] == 0:  # then K = 0 or N = 0 (checked): φ(0) v = v
         table = np.zeros((1, 12))
     p = _c(pts, np.float64)
@@ -482,14 +482,14 @@ def _weights_inputs(
 ) -> tuple[FloatArray, NDArray[np.integer], FloatArray]:
     """Checked table, indices and values (no points: `vertex_motions`). With a key of an earlier
     checked call (with or without points) only the shapes are checked, as in `_inputs`."""
-    table = _check_table(params, 12, "params")
+    table = check_table(params, 12, "params")
     if key is not None and key in (_state.checked_key, _state.checked_weights_key):
         idx = np.asarray(indices)
         val = np.asarray(values, dtype=np.float64)
         if idx.ndim == 2 and idx.shape == val.shape and np.issubdtype(idx.dtype, np.integer):
             return table, idx, val
-    _check_motion_indices(indices, values, table.shape[0])
-    idx, val = _check_indices(indices, values, None, table.shape[0])
+    check_motion_indices(indices, values, table.shape[0])
+    idx, val = check_indices(indices, values, None, table.shape[0])
     if key is not None:
         _state.checked_weights_key = key
     return table, idx, val
@@ -514,12 +514,12 @@ def vertex_motions(
         return _np_kernel.vertex_motions(params, indices, values, out, rows=rows, key=key)
     table, idx, val = _weights_inputs(params, indices, values, key)
     n = idx.shape[0]
-    out = _check_motion_out(out, n)
+    out = check_motion_out(out, n)
     if not out.flags.writeable:
         raise ValueError("out must be writable")
-    sel = None if rows is None else _c(_check_rows(rows, n), np.intp)
+    sel = None if rows is None else _c(check_rows(rows, n), np.intp)
     if not table.any():  # every control at rest (also m = 0, which the kernel cannot index)
-        return _identity_motions(out, sel)
+        return identity_motions(out, sel)
     dst = out if out.flags.c_contiguous else np.ascontiguousarray(out)
     use32 = dst.dtype == np.float32
     args = (_c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), _NO_ROWS if sel is None else sel,

@@ -9,7 +9,7 @@ import traceback
 
 import bpy
 
-from . import bake, evaluate, operators, panels, prefs, props, relations
+from . import bake, handlers, operators, panels, prefs, props, relations
 
 CLASSES = (*prefs.CLASSES, *props.CLASSES, *operators.CLASSES, *bake.CLASSES, *panels.CLASSES)
 
@@ -19,7 +19,7 @@ def register() -> None:
         bpy.utils.register_class(cls)
     props.register_properties()
     bpy.types.VIEW3D_MT_object.append(panels.draw_object_menu)
-    evaluate.register_handlers()
+    handlers.register_handlers()
     prefs.apply(prefs.preferences())
     prefs.start_warm_up()
     _upgrade_open_file()
@@ -36,7 +36,7 @@ def _upgrade_open_file() -> None:
 
 
 def unregister() -> None:
-    evaluate.unregister_handlers()
+    handlers.unregister_handlers()
     bpy.types.VIEW3D_MT_object.remove(panels.draw_object_menu)
     props.unregister_properties()
     for cls in reversed(CLASSES):

@@ -1,5 +1,6 @@
 """Deformer life cycle shared by operators, property updates and scripts: create, bind, re-weight,
-remove and apply. Kind-specific work (rest data, weights, motions) is delegated to `kinds.KINDS`.
+remove and apply, and the lookup of a deformer by stack position or id. Kind-specific work (rest
+data, weights, motions) is delegated to the deformer's kind (kinds/).
 """
 
 from __future__ import annotations
@@ -11,8 +12,8 @@ import zlib
 import bpy
 import numpy as np
 
-from . import nodes, relations, storage
-from .kinds import KINDS, BindError
+from . import caches, kinds, nodes, relations, storage
+from .kinds import BindError
 
 __all__ = ["BindError", "apply", "bind", "create", "mask_weights", "rebind_probe_safely", "rebind_safely",
            "remove", "reweight", "reweight_safely", "target_problem"]
@@ -53,7 +54,7 @@ def target_problem(obj: bpy.types.Object | None) -> str:
 
 
 def _kind(deformer):
-    kind = KINDS.get(deformer.kind)
+    kind = kinds.get(deformer.kind)
     if kind is None:
         raise BindError(f"{deformer.kind.title()} deformers are not available in this version")
     return kind
@@ -83,11 +84,27 @@ def create(obj: bpy.types.Object, kind: str, name: str):
     return deformer
 
 
-def deformer_index(obj: bpy.types.Object, deformer) -> int:
+def deformer_at(obj: bpy.types.Object, index: int):
+    """Deformer `index` of `obj`; LookupError with a message for the artist when there is none (the
+    one lookup by index: operators, bake and scripts address deformers by their stack position)."""
+    count = len(obj.affine_deformers)
+    if not 0 <= index < count:
+        raise LookupError(f"'{obj.name}' has no affine deformer #{index} (it has {count})")
+    return obj.affine_deformers[index]
+
+
+def find_uid(obj: bpy.types.Object, uid: str):
+    """(index, deformer) of the deformer with id `uid` on `obj` (positions change when others are
+    removed); LookupError when it is gone."""
     for i, item in enumerate(obj.affine_deformers):
-        if item.uid == deformer.uid:
-            return i
-    raise LookupError(deformer.uid)
+        if item.uid == uid:
+            return i, item
+    raise LookupError(f"The deformer was removed from '{obj.name}'")
+
+
+def deformer_index(obj: bpy.types.Object, deformer) -> int:
+    """The stack position of `deformer` on `obj` (LookupError when it is not there)."""
+    return find_uid(obj, deformer.uid)[0]
 
 
 def bind(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
@@ -179,7 +196,7 @@ def rebind_safely(obj: bpy.types.Object, deformer, what: str) -> None:
 
 def remove(obj: bpy.types.Object, index: int) -> None:
     """Remove deformer `index`: its modifier, its mesh attributes and the item (rest shape back)."""
-    deformer = obj.affine_deformers[index]
+    deformer = deformer_at(obj, index)
     uid = deformer.uid
     relations.remove_modifier(obj, uid)
     if obj.type == "MESH" and obj.data.library is None:
@@ -187,9 +204,7 @@ def remove(obj: bpy.types.Object, index: int) -> None:
     obj.affine_deformers.remove(index)
     obj.affine_deformers_active_index = max(0, min(obj.affine_deformers_active_index,
                                                    len(obj.affine_deformers) - 1))
-    from . import evaluate  # evaluate imports this module's neighbours; avoid an import cycle
-
-    evaluate.forget(obj, uid)
+    caches.forget(obj, uid)
 
 
 def apply(obj: bpy.types.Object, index: int) -> None:
@@ -205,7 +220,7 @@ def apply(obj: bpy.types.Object, index: int) -> None:
         raise BindError(f"'{mesh.name}' has shape keys: apply is not supported (remove them or bake)")
     if mesh.users > 1:
         raise BindError(f"'{mesh.name}' is used by {mesh.users} objects: make it single-user first")
-    deformer = obj.affine_deformers[index]
+    deformer = deformer_at(obj, index)
     deformed = storage.deformed_positions(mesh, deformer.uid)
     remove(obj, index)
     if deformed is not None:
@@ -245,8 +260,6 @@ def separate_shared_ids(obj: bpy.types.Object) -> list[str]:
             nodes.set_offset_name(mod, storage.offset_name(new_uid))
             nodes.set_motion_names(mod, storage.motion_names(new_uid))
         relations.sync(obj, deformer)
-        from . import evaluate  # see remove()
-
-        evaluate.forget(obj, uid)
+        caches.forget(obj, uid)
         renamed.append(deformer.name)
     return renamed

@@ -315,3 +315,26 @@ def vertex_group_weights(obj: bpy.types.Object, names: list[str]) -> np.ndarray:
         bpy.data.objects.remove(tmp, do_unlink=True)
         bpy.data.node_groups.remove(ng)
     return out
+
+
+def evaluates(obj: bpy.types.Object, attr: str, control: bpy.types.Object,
+              depsgraph: bpy.types.Depsgraph) -> bool:
+    """Whether `depsgraph` evaluates `control` because a modifier of ours that is enabled in its mode
+    (viewport or render) reads the offset attribute `attr` and names `control` on its inputs: the
+    target's own, or the one of another object sharing its mesh (the bake's stand-in, which keeps
+    the controls evaluated while a baked deformer's modifier is muted)."""
+    flag = "show_render" if depsgraph.mode == "RENDER" else "show_viewport"
+
+    def names_control(host: bpy.types.Object) -> bool:
+        mod = find_modifier(host, attr)
+        if mod is None or not getattr(mod, flag):
+            return False
+        cage, collection = controls(mod)
+        return control == cage or (collection is not None and any(o == control for o in collection.objects))
+
+    if names_control(obj):
+        return True
+    mesh = obj.data
+    if obj.type != "MESH" or mesh.users <= 1:
+        return False
+    return any(names_control(other) for other in bpy.data.objects if other.data == mesh and other != obj)

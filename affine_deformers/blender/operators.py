@@ -7,15 +7,16 @@ makes `bpy.ops` raise RuntimeError carrying the message.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import bpy
 from bpy.props import IntProperty
 
-from . import binding, cage_kind, evaluate, relations
-from .kinds import BindError
+from . import binding, evaluate, kinds, relations
+from .kinds import BindError, KindId
+from .kinds import probe as probe_kind
 
 UNDOABLE = {"REGISTER", "UNDO"}
-#: Max Influences of a new probe deformer (the property's default, 4, stays for files of 0.1.0).
-DEFAULT_PROBE_INFLUENCES = 6
 
 
 class DeformerIndexed:
@@ -58,40 +59,21 @@ def active_target(context: bpy.types.Context) -> bpy.types.Object | None:
     return context.active_object if context.active_object is not None else context.object
 
 
-def _selected_probes(context: bpy.types.Context, target: bpy.types.Object) -> tuple[list, list]:
-    """Selected Empties (the probes) and the other selected non-target objects (ignored)."""
-    selected = list(getattr(context, "selected_objects", None) or [])
-    probes = [o for o in selected if o != target and o.type == "EMPTY"]
-    ignored = [o for o in selected if o != target and o.type != "EMPTY"]
-    return probes, ignored
-
-
-def _new_probe(context: bpy.types.Context, target: bpy.types.Object) -> bpy.types.Object:
-    """An Empty at the target's origin, sized to the target, in the target's first collection."""
-    probe = bpy.data.objects.new(f"{target.name}.Probe", None)
-    probe.empty_display_type = "SPHERE"
-    probe.empty_display_size = max(0.1, 0.25 * max(target.dimensions))
-    probe.location = target.matrix_world.translation  # unparented: location is the world position
-    collections = target.users_collection
-    (collections[0] if collections else context.scene.collection).objects.link(probe)
-    return probe
-
-
 def _lock_render_interface(context: bpy.types.Context) -> None:
     if context.scene is not None and not context.scene.render.use_lock_interface:
         context.scene.render.use_lock_interface = True
 
 
 def _bind_new(op: bpy.types.Operator, context: bpy.types.Context, target: bpy.types.Object, deformer,
-              created: bpy.types.Object | None = None) -> bool:
+              created: list[bpy.types.Object]) -> bool:
     """Bind a deformer the operator just created; on failure remove it again (and the Empty made for
     it), report why and return False, so a failed add leaves nothing behind."""
     try:
         binding.bind(target, deformer, context.evaluated_depsgraph_get())
     except (BindError, ValueError) as exc:
         binding.remove(target, binding.deformer_index(target, deformer))
-        if created is not None:
-            bpy.data.objects.remove(created, do_unlink=True)
+        for made in created:
+            bpy.data.objects.remove(made, do_unlink=True)
         op.report({"ERROR"}, str(exc))
         return False
     _lock_render_interface(context)
@@ -106,11 +88,11 @@ def _deformer(op: bpy.types.Operator, context: bpy.types.Context):
     if problem:
         op.report({"ERROR"}, problem)
         return None, None
-    if not 0 <= op.index < len(obj.affine_deformers):
-        op.report({"ERROR"}, f"'{obj.name}' has no affine deformer #{op.index} "
-                  f"(it has {len(obj.affine_deformers)})")
+    try:
+        return obj, binding.deformer_at(obj, op.index)
+    except LookupError as exc:
+        op.report({"ERROR"}, str(exc))
         return None, None
-    return obj, obj.affine_deformers[op.index]
 
 
 def _refresh(context: bpy.types.Context, obj: bpy.types.Object) -> None:
@@ -118,13 +100,12 @@ def _refresh(context: bpy.types.Context, obj: bpy.types.Object) -> None:
     evaluate.evaluate_object(obj, context.evaluated_depsgraph_get())
 
 
-class AFFINE_OT_probe_deformer_add(TargetPolled, bpy.types.Operator):
-    """Add a probe deformer to the active mesh; the selected Empties become its probes (none selected:
-    one new Empty at the mesh's origin). Their current poses become the rest pose"""
+class AddDeformer(TargetPolled):
+    """Add a deformer of the kind `kind_id` to the active mesh, its controls taken from the selection
+    (DeformerKind.adopt_selection), and bind it; a failed add leaves nothing behind."""
 
-    bl_idname = "object.affine_probe_deformer_add"
-    bl_label = "Add Probe Deformer"
     bl_options = UNDOABLE
+    kind_id: ClassVar[str]
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         target = active_target(context)
@@ -132,64 +113,37 @@ class AFFINE_OT_probe_deformer_add(TargetPolled, bpy.types.Operator):
         if problem:
             self.report({"ERROR"}, problem)
             return {"CANCELLED"}
-        probes, ignored = _selected_probes(context, target)
-        created = None
-        if not probes:
-            created = _new_probe(context, target)
-            probes = [created]
-        deformer = binding.create(target, "PROBE", "Probe Deformer")
-        with binding.quiet():  # bound below in one go
-            # 6 influences: with 4, steps near points where the 5 strongest probes nearly tie reach
-            # 5× the untruncated field's inside clouds of 8 probes (tests/core/test_probe_seams.py).
-            deformer.max_influences = DEFAULT_PROBE_INFLUENCES
-        for probe in probes:
-            deformer.probes.add().object = probe
-        if not _bind_new(self, context, target, deformer, created):
+        kind = kinds.get(self.kind_id)
+        try:
+            adopted = kind.adopt_selection(context, target)
+        except BindError as exc:
+            self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        if ignored:
-            self.report({"WARNING"}, "Ignored selected non-Empty objects: "
-                        + ", ".join(o.name for o in ignored))
-        made = f" (created '{created.name}')" if created is not None else ""
-        self.report({"INFO"}, f"Added a probe deformer to '{target.name}' with {len(probes)} probe(s){made}")
+        deformer = binding.create(target, kind.id, f"{kind.label} Deformer")
+        with binding.quiet():  # bound below in one go
+            kind.set_up(deformer, adopted)
+        if not _bind_new(self, context, target, deformer, adopted.created):
+            return {"CANCELLED"}
+        if adopted.warning:
+            self.report({"WARNING"}, adopted.warning)
+        self.report({"INFO"}, kind.added_message(target, deformer, adopted))
         return {"FINISHED"}
 
 
-class AFFINE_OT_cage_deformer_add(TargetPolled, bpy.types.Operator):
-    """Add a cage deformer to the active mesh; the other selected mesh is the cage (closed, normals
-    outward). Its current shape becomes the rest shape"""
+def add_operator(kind: type) -> type:
+    """The add operator of a kind: object.affine_<kind>_deformer_add (AFFINE_OT_<kind>_deformer_add)."""
+    name = kind.id.lower()
+    return type(f"AFFINE_OT_{name}_deformer_add", (AddDeformer, bpy.types.Operator), {
+        "bl_idname": kinds.add_operator_id(kind.id),
+        "bl_label": f"Add {kind.label} Deformer",
+        "bl_description": kind.add_description,
+        "kind_id": kind.id,
+        "__doc__": kind.add_description,
+    })
 
-    bl_idname = "object.affine_cage_deformer_add"
-    bl_label = "Add Cage Deformer"
-    bl_options = UNDOABLE
 
-    def execute(self, context: bpy.types.Context) -> set[str]:
-        target = active_target(context)
-        problem = binding.target_problem(target)
-        if problem:
-            self.report({"ERROR"}, problem)
-            return {"CANCELLED"}
-        selected = list(getattr(context, "selected_objects", None) or [])
-        cages = [o for o in selected if o != target and o.type == "MESH"]
-        if len(cages) != 1:
-            found = ", ".join(f"'{o.name}'" for o in cages)
-            self.report({"ERROR"}, "Select exactly one other mesh as the cage, with the target active "
-                        + (f"(selected: {found})" if cages else "(none selected)"))
-            return {"CANCELLED"}
-        cage = cages[0]
-        deformer = binding.create(target, "CAGE", "Cage Deformer")
-        with binding.quiet():  # bound below in one go
-            deformer.cage = cage
-            deformer.max_influences = 8
-        if not _bind_new(self, context, target, deformer):
-            return {"CANCELLED"}
-        ignored = [o for o in selected if o not in (target, cage)]
-        if ignored:
-            self.report({"WARNING"}, "Ignored selected non-mesh objects: "
-                        + ", ".join(o.name for o in ignored))
-        faces = len(deformer[cage_kind.LOOP_TOTAL])
-        self.report({"INFO"}, f"Added a cage deformer to '{target.name}' driven by '{cage.name}' "
-                    f"({faces} faces)")
-        return {"FINISHED"}
+#: One add operator per registered kind (the interface lists them in this order).
+ADD_OPERATORS = tuple(add_operator(kind) for kind in kinds.REGISTERED)
 
 
 class AFFINE_OT_deformer_bind(DeformerIndexed, bpy.types.Operator):
@@ -222,13 +176,14 @@ class AFFINE_OT_deformer_remove(DeformerIndexed, bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj = active_target(context)
-        if obj is None or not 0 <= self.index < len(obj.affine_deformers):
-            self.report({"ERROR"}, f"No affine deformer #{self.index} on the active object")
+        try:
+            name = binding.deformer_at(obj, self.index).name
+        except LookupError as exc:
+            self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         if obj.mode == "EDIT":
             self.report({"ERROR"}, f"'{obj.name}' is in Edit Mode: switch to Object Mode first")
             return {"CANCELLED"}
-        name = obj.affine_deformers[self.index].name
         binding.remove(obj, self.index)
         self.report({"INFO"}, f"Removed '{name}' from '{obj.name}'")
         return {"FINISHED"}
@@ -271,15 +226,15 @@ class AFFINE_OT_deformer_probe_add(DeformerIndexed, bpy.types.Operator):
         obj, deformer = _deformer(self, context)
         if obj is None:
             return {"CANCELLED"}
-        if deformer.kind != "PROBE":
+        if deformer.kind != KindId.PROBE:
             self.report({"ERROR"}, f"'{deformer.name}' is not a probe deformer")
             return {"CANCELLED"}
         existing = {item.object for item in deformer.probes}
-        probes, _ignored = _selected_probes(context, obj)
+        probes, _ignored = probe_kind.selected_probes(context, obj)
         probes = [p for p in probes if p not in existing]
         created = None
         if not probes:
-            created = _new_probe(context, obj)
+            created = probe_kind.new_probe(context, obj)
             probes = [created]
         first = len(deformer.probes)
         with binding.quiet():  # bound below in one go
@@ -333,8 +288,7 @@ class AFFINE_OT_deformer_probe_remove(DeformerIndexed, bpy.types.Operator):
 
 
 CLASSES = (
-    AFFINE_OT_probe_deformer_add,
-    AFFINE_OT_cage_deformer_add,
+    *ADD_OPERATORS,
     AFFINE_OT_deformer_bind,
     AFFINE_OT_deformer_remove,
     AFFINE_OT_deformer_apply,

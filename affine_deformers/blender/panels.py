@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import bpy
 
-from . import bake
+from . import kinds
+from .bake import AFFINE_OT_deformer_bake, AFFINE_OT_deformer_unbake, bake_state
 
 
 class AFFINE_UL_deformers(bpy.types.UIList):
     """The deformers of an object, with a warning icon on those whose status is not empty."""
 
     def draw_item(self, _context, layout, _data, item, _icon, _active_data, _active_prop, _index=0):
-        icon = "EMPTY_AXIS" if item.kind == "PROBE" else "MESH_CUBE"
+        kind = kinds.get(item.kind)
+        icon = kind.icon if kind is not None else "QUESTION"
         row = layout.row(align=True)
         row.prop(item, "name", text="", emboss=False, icon=icon)
         if item.status:
@@ -55,8 +57,8 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         row.template_list("AFFINE_UL_deformers", "", obj, "affine_deformers",
                           obj, "affine_deformers_active_index", rows=2)
         col = row.column(align=True)
-        col.operator("object.affine_probe_deformer_add", icon="EMPTY_AXIS", text="")
-        col.operator("object.affine_cage_deformer_add", icon="MESH_CUBE", text="")
+        for kind in kinds.KINDS.values():
+            col.operator(kinds.add_operator_id(kind.id), icon=kind.icon, text="")
         index = obj.affine_deformers_active_index
         if not 0 <= index < len(obj.affine_deformers):
             return
@@ -74,45 +76,45 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         row.operator("object.affine_deformer_apply", text="Apply", icon="CHECKMARK").index = index
         if deformer.is_bound:
             layout.label(text=f"Bound to {deformer.bound_vertex_count} vertices", icon="INFO")
-            bake.draw_bake(layout, deformer, index)
+            draw_bake(layout, deformer, index)
 
+        kind = kinds.get(deformer.kind)
+        if kind is None:
+            return
         col = layout.column()
         col.use_property_split = True
-        if deformer.kind == "CAGE":
-            col.prop(deformer, "cage")
-            col.prop(deformer, "cage_weights")
-            if deformer.cage_weights == "INVERSE_DISTANCE":
-                col.prop(deformer, "exponent")
-                col.prop(deformer, "half_space")
-        else:
-            col.prop(deformer, "weight_mode")
-            # Surface weights have no length scale (radius): their exponent sharpens them
-            if deformer.weight_mode in ("INVERSE_DISTANCE", "FALLOFF"):
-                col.prop(deformer, "radius")
-            if deformer.weight_mode in ("INVERSE_DISTANCE", "SURFACE"):
-                col.prop(deformer, "exponent")
-            col.prop(deformer, "normalize")
-        if deformer.kind != "CAGE" or deformer.cage_weights == "INVERSE_DISTANCE":
-            col.prop(deformer, "max_influences")  # harmonic cage weights: always 8 grid nodes
+        kind.draw_settings(col, deformer)
         col.prop(deformer, "mask_group", icon="GROUP_VERTEX")
         col.prop(deformer, "strength")
         col.prop(deformer, "blend_mode")
         sub = col.column()
-        # A linear blend of probes has no rotation branches; a cage's object motion is scaled in the
-        # log space in both modes, but its branch only matters at a strength other than 1.
-        sub.active = (deformer.blend_mode == "AFFINE_LOG" if deformer.kind == "PROBE"
-                      else deformer.strength != 1.0)
+        sub.active = kind.branch_rule_active(deformer)
         sub.prop(deformer, "branch_rule")
+        kind.draw_controls(layout, deformer, index)
 
-        if deformer.kind == "PROBE":
-            layout.label(text="Probes")
-            row = layout.row()
-            row.template_list("AFFINE_UL_probes", "", deformer, "probes", deformer, "active_probe_index",
-                              rows=2)
-            col = row.column(align=True)
-            col.operator("object.affine_deformer_probe_add", icon="ADD", text="").index = index
-            op = col.operator("object.affine_deformer_probe_remove", icon="REMOVE", text="")
-            op.index, op.probe_index = index, deformer.active_probe_index
+
+def draw_bake(layout: bpy.types.UILayout, deformer, index: int) -> None:
+    """The Bake section of the deformer panel."""
+    state = bake_state(deformer)
+    col = layout.column(align=True)
+    if state is None:
+        row = col.row(align=True)
+        op = row.operator(AFFINE_OT_deformer_bake.bl_idname, text="Bake PC2", icon="FILE_CACHE")
+        op.index, op.mode = index, "PC2"
+        op = row.operator(AFFINE_OT_deformer_bake.bl_idname, text="Bake Shape Keys", icon="SHAPEKEY_DATA")
+        op.index, op.mode = index, "SHAPE_KEYS"
+        return
+    what = state.get("filepath") if state.get("mode") == "PC2" else "shape keys"
+    col.label(text=f"Baked to {what}, frames {state.get('frame_start')}..{state.get('frame_end')}",
+              icon="FILE_CACHE")
+    if deformer.show_viewport or deformer.show_render:
+        col.label(text="The live deformer is on too: the motion is applied twice", icon="ERROR")
+    row = col.row(align=True)
+    op = row.operator(AFFINE_OT_deformer_bake.bl_idname, text="Re-bake", icon="FILE_REFRESH")
+    op.index, op.mode = index, state.get("mode", "PC2")
+    if state.get("mode") == "PC2":
+        op.filepath = state.get("filepath", "")
+    row.operator(AFFINE_OT_deformer_unbake.bl_idname, text="Un-bake", icon="X").index = index
 
 
 def _wrap(text: str, width: int) -> list[str]:
@@ -133,8 +135,8 @@ class AFFINE_MT_object(bpy.types.Menu):
     bl_idname = "AFFINE_MT_object"
 
     def draw(self, _context: bpy.types.Context) -> None:
-        self.layout.operator("object.affine_probe_deformer_add", icon="EMPTY_AXIS")
-        self.layout.operator("object.affine_cage_deformer_add", icon="MESH_CUBE")
+        for kind in kinds.KINDS.values():
+            self.layout.operator(kinds.add_operator_id(kind.id), icon=kind.icon)
 
 
 def draw_object_menu(self, _context: bpy.types.Context) -> None:

@@ -21,7 +21,8 @@ from bpy.props import (
     StringProperty,
 )
 
-from . import binding, nodes, relations, storage
+from . import binding, kinds, nodes, relations, storage
+from .kinds import KindId
 
 IDENTITY16 = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
@@ -40,7 +41,7 @@ ROTATION_MODES = [
 def _on_cage_object(self: AffineDeformer, _context: bpy.types.Context) -> None:
     # A newly picked cage is bound at its current shape (like a newly picked probe).
     obj = self.id_data
-    if binding.updates_suspended() or not isinstance(obj, bpy.types.Object) or self.kind != "CAGE":
+    if binding.updates_suspended() or not isinstance(obj, bpy.types.Object) or self.kind != KindId.CAGE:
         return
     # A deformer bound before (even if the last pick failed to bind, e.g. a curve) binds the new cage,
     # so the status speaks of it, not of the object picked before.
@@ -55,7 +56,7 @@ def _get_cage_weights(self: AffineDeformer) -> int:
     # weights are inverse-distance ones (no grid nodes): it keeps them until switched or rebound.
     value = self.get("cage_weights_mode")
     if value is None:
-        return 1 if self.bound_flag and self.kind == "CAGE" and "cage_node_points" not in self else 0
+        return 1 if self.bound_flag and self.kind == KindId.CAGE and "cage_node_points" not in self else 0
     return int(value)
 
 
@@ -169,8 +170,7 @@ class AffineDeformer(bpy.types.PropertyGroup):
         name="ID", options={"HIDDEN"},
         description="Stable short id used in the names of the deformer's mesh attributes")
     kind: EnumProperty(
-        name="Kind", items=[("PROBE", "Probe", "Driven by the motion of probe objects"),
-                            ("CAGE", "Cage", "Driven by the faces of a cage mesh")], default="PROBE")
+        name="Kind", items=kinds.enum_items(), default=kinds.REGISTERED[0].id)
     probes: CollectionProperty(type=AffineDeformerProbe)
     active_probe_index: IntProperty(name="Active Probe", default=0, min=0)
     cage: PointerProperty(

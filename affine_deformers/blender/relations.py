@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import nodes, storage
+from . import kinds, nodes, storage
 
 PROBES_NAME = ".AffineDeformer Probes"
 PROBES_MARK = "affine_deformers_probes"  # custom property on the probe collections we own
@@ -31,12 +31,14 @@ def _is_ours(collection: bpy.types.Collection | None) -> bool:
 
 
 def _wanted(obj: bpy.types.Object, deformer) -> tuple[bpy.types.Object | None, list[bpy.types.Object]]:
-    """(cage, probe objects) the deformer's modifier should name; the target itself never."""
-    if deformer.kind == "CAGE":
-        cage = deformer.cage
-        return (cage if cage is not None and cage != obj else None), []
-    probes = {item.object for item in deformer.probes if item.object is not None and item.object != obj}
-    return None, sorted(probes, key=lambda o: o.name_full)
+    """(object, collection members) the deformer's modifier should name: a kind with one control
+    object (a cage) names it on the Object input, others (probes) put theirs in the collection; the
+    target itself never."""
+    kind = kinds.get(deformer.kind)
+    controls = kind.controls(obj, deformer) if kind is not None else []
+    if kind is not None and kind.single_control:
+        return (controls[0] if controls else None), []
+    return None, controls
 
 
 def _probe_collection(current: bpy.types.Collection | None,
@@ -109,27 +111,3 @@ def upgrade_all() -> None:
             continue
         for deformer in obj.affine_deformers:
             sync(obj, deformer)
-
-
-def evaluates(obj: bpy.types.Object, deformer, control: bpy.types.Object,
-              depsgraph: bpy.types.Depsgraph) -> bool:
-    """Whether `depsgraph` evaluates `control` because a modifier of ours that is enabled in its mode
-    (viewport or render) reads this deformer's offsets and names `control` on its inputs: the
-    target's own, or the one of another object sharing its mesh (the bake's stand-in, which keeps
-    the controls evaluated while a baked deformer's modifier is muted)."""
-    attr = storage.offset_name(deformer.uid)
-    flag = "show_render" if depsgraph.mode == "RENDER" else "show_viewport"
-
-    def names_control(host: bpy.types.Object) -> bool:
-        mod = nodes.find_modifier(host, attr)
-        if mod is None or not getattr(mod, flag):
-            return False
-        cage, collection = nodes.controls(mod)
-        return control == cage or (collection is not None and any(o == control for o in collection.objects))
-
-    if names_control(obj):
-        return True
-    mesh = obj.data
-    if obj.type != "MESH" or mesh.users <= 1:
-        return False
-    return any(names_control(other) for other in bpy.data.objects if other.data == mesh and other != obj)

@@ -32,24 +32,8 @@ whose error is bounded where they are applied, so there is no masked work.
 
 Accuracy: ≤ 2e-15 relative to ‖M‖‖v‖ + ‖t‖ against aff3.phi on an adversarial parameter set (tests).
 
-Throughput on the shared 2-core development box (AMD EPYC, numpy 1.26, 130k vertices, 8 controls,
-top-K 4, float64, `bench/core_kernel.py`), one thread, weights as in the previous call (every frame
-after the first two): 8.3–9.6 ms per call, 13.5–15.5 M vertices/s; new weights every call
-11.5–13.3 ms (10–11 M/s); dense (N, 8) weights 8.3–9.5 ms. The default is one thread per core
-(the frame handler blocks Blender's main thread anyway), but on this box a second thread gains
-0–5 % (8.8 vs 9.0 ms median): the ufuncs are short (~15 µs per chunk row) and the threads spend
-their gains re-acquiring the GIL between them. Chunking and threads never change the values.
-
-Where the time goes (per call, one thread): the map φ(p)v ≈ 7.2 ms (eigen-solution ≈ 2 ms,
-exp(Y)v ≈ 2 ms, θ-coefficients ≈ 1 ms, final assembly with the output transpose ≈ 1.3 ms, input
-transpose 0.2 ms), the blend ≈ 0.5 ms from cached dense weights (≈ 2.2 ms scattering them per
-chunk), checks ≈ 0.2 ms. That is ~250 ufunc calls per chunk at ~0.2 ns per element each: memory
-traffic between the scratch rows (L2), not arithmetic, is the limit for numpy code.
-
-`vertex_motions` (same box, same case): 11.5–13.7 ms per call (float64 or float32 out), 3.8–4.4 ms
-for a quarter of the rows; its map costs about what φ(p)v does (the three columns of R exp(Y) replace
-exp(Y)v and one rigid step), plus twelve strided component stores. Accuracy against aff3:
-≤ 3e-15 relative to ‖M‖ for M, to ‖M‖ + ‖t‖ for t (tests).
+Throughput, where the time goes and why (memory traffic between scratch rows, not arithmetic): the
+'Kernel performance' section of docs/DEVELOPING.md (measurements belong there, not in code).
 """
 
 from __future__ import annotations
@@ -66,6 +50,18 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .aff3 import params_from_matrices
+from .checks import (
+    check_given_out,
+    check_indices,
+    check_motion_indices,
+    check_motion_out,
+    check_out,
+    check_points,
+    check_rows,
+    check_table,
+    identity_motions,
+    unchanged,
+)
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int32]
@@ -255,16 +251,16 @@ class DeformKernel:
         key: Hashable | None = None,
     ) -> FloatArray:
         """Sparse hot path; see `deform_points_params`."""
-        table = _check_table(params, 12, "params")
+        table = check_table(params, 12, "params")
         if cache_weights:
             pts, idx, val, dense = self._inputs(points, indices, values, table.shape[0], key)
         else:
-            pts = _check_points(points)
-            idx, val = _check_indices(indices, values, pts.shape[0], table.shape[0])
+            pts = check_points(points)
+            idx, val = check_indices(indices, values, pts.shape[0], table.shape[0])
             dense = None
-        out = _check_out(out, pts)
+        out = check_out(out, pts)
         if not table.any():
-            return _unchanged(pts, out)
+            return unchanged(pts, out)
         table_t = np.ascontiguousarray(table.T)
 
         def work(kernel: DeformKernel, a: int, b: int) -> None:
@@ -288,10 +284,10 @@ class DeformKernel:
         key: Hashable | None = None,
     ) -> FloatArray:
         """Only the listed rows; see `deform_points_params_rows`."""
-        table = _check_table(params, 12, "params")
+        table = check_table(params, 12, "params")
         pts, idx, val, dense = self._inputs(points, indices, values, table.shape[0], key)
-        _check_given_out(out, pts)
-        sel = _check_rows(rows, pts.shape[0])
+        check_given_out(out, pts)
+        sel = check_rows(rows, pts.shape[0])
         rs = self._row_set(key, sel, pts, idx, val, dense)
         points_t = rs.points_t
         assert points_t is not None  # _row_set gathers them when given points
@@ -322,14 +318,14 @@ class DeformKernel:
         key: Hashable | None = None,
     ) -> FloatArray | NDArray[np.float32]:
         """The per-vertex affine maps; see `vertex_motions`."""
-        table = _check_table(params, 12, "params")
+        table = check_table(params, 12, "params")
         m = table.shape[0]
-        n_total = _check_motion_indices(indices, values, m)
+        n_total = check_motion_indices(indices, values, m)
         idx, val, dense = self._sparse_weights(indices, values, n_total, m, key)
-        out = _check_motion_out(out, n_total)
-        sel = None if rows is None else _check_rows(rows, n_total)
+        out = check_motion_out(out, n_total)
+        sel = None if rows is None else check_rows(rows, n_total)
         if not table.any():  # every control at rest (also m = 0)
-            return _identity_motions(out, sel)
+            return identity_motions(out, sel)
         table_t = np.ascontiguousarray(table.T)
         if sel is None:
 
@@ -368,7 +364,7 @@ class DeformKernel:
         if key is not None and key == self._checked_key:
             pts = np.asarray(points, dtype=np.float64)
         else:
-            pts = _check_points(points)
+            pts = check_points(points)
         idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], m, key)
         if key is not None:
             self._checked_key = key
@@ -411,8 +407,8 @@ class DeformKernel:
 
     def deform_dense(self, points: ArrayLike, params: ArrayLike, weights: ArrayLike) -> FloatArray:
         """v' = φ(Σ_i weights[v, i] params[i]) v with dense weights (N, m)."""
-        pts = _check_points(points)
-        table = _check_table(params, 12, "params")
+        pts = check_points(points)
+        table = check_table(params, 12, "params")
         W = np.asarray(weights, dtype=np.float64)
         if W.shape != (pts.shape[0], table.shape[0]):
             raise ValueError(f"weights must have shape {(pts.shape[0], table.shape[0])}, got {W.shape}")
@@ -434,7 +430,7 @@ class DeformKernel:
         tab = np.asarray(table, dtype=np.float64)
         if tab.ndim != 2:
             raise ValueError(f"table must have shape (m, c), got {tab.shape}")
-        idx, val = _check_indices(indices, values, None, tab.shape[0])
+        idx, val = check_indices(indices, values, None, tab.shape[0])
         N = idx.shape[0]
         res = np.empty((N, tab.shape[1]))
         tab_t = np.ascontiguousarray(tab.T)
@@ -458,12 +454,12 @@ class DeformKernel:
         if T.ndim != 3 or T.shape[1:] != (4, 4):
             raise ValueError(f"transforms must have shape (m, 4, 4), got {T.shape}")
         D = (T[:, :3, :] - np.eye(3, 4)).reshape(T.shape[0], 12)  # row-major (3, 4) offsets from I
-        pts = _check_points(points)
-        table = _check_table(D, 12, "transforms")
-        out = _check_out(out, pts)
+        pts = check_points(points)
+        table = check_table(D, 12, "transforms")
+        out = check_out(out, pts)
         idx, val, dense = self._sparse_weights(indices, values, pts.shape[0], table.shape[0])
         if not table.any():
-            return _unchanged(pts, out)
+            return unchanged(pts, out)
         table_t = np.ascontiguousarray(table.T)
 
         def work(kernel: DeformKernel, a: int, b: int) -> None:
@@ -520,7 +516,7 @@ class DeformKernel:
                 cache.insert(0, cache.pop(i))
                 self._trim_weights_cache()
                 return entry.idx, entry.val, entry.dense
-        idx, val = _check_indices(idx, val, n_points, m)
+        idx, val = check_indices(idx, val, n_points, m)
         if m <= DENSE_BLEND_MAX_CONTROLS and m * n_points <= DENSE_CACHE_MAX_ENTRIES:
             cache.insert(0, _WeightsEntry(idx.copy(), val.copy(), m, None, key))
             self._trim_weights_cache()
@@ -647,6 +643,27 @@ class _FreeRows:
 # `_stretch`, `_exp_sym_matrix`, `_rotation_coeffs_poly`, `_rigid`, in the same order)
 
 
+def _eigen_gaps(ang: FloatArray, p: FloatArray, x: FloatArray, y: FloatArray, t1: FloatArray) -> None:
+    """The eigenvalue gaps of a symmetric 3×3 from its spread p and angle a = arccos(r)/3, into x
+    and y: x = e0 − e1 = −2√3 p sin a ≤ 0, y = e2 − e1 = 2√3 p sin(π/3 − a) ≥ 0. sin a comes from
+    its polynomial; cos a = √(1 − sin² a) ≥ ½ (a ≤ π/3) is well conditioned, and
+    sin(π/3 − a) = (√3/2) cos a − ½ sin a. Overwrites p (with 2√3 p) and t1."""
+    mul = np.multiply
+    mul(ang, ang, out=t1)
+    _horner(x, _SINC_EIG_COEFFS, t1)
+    x *= ang
+    mul(x, x, out=t1)
+    np.subtract(1.0, t1, out=t1)
+    np.sqrt(t1, out=t1)
+    mul(t1, 0.5 * _SQRT3, out=y)
+    mul(x, 0.5, out=t1)
+    y -= t1
+    p *= -2.0 * _SQRT3
+    x *= p
+    np.negative(p, out=p)
+    y *= p
+
+
 def _exp_sym_coeffs(Y: FloatArray, free: _FreeRows) -> tuple[FloatArray, ...]:
     """The spectral coefficients of exp(Y) for Y (6, n) = (Yxx, Yyy, Yzz, Yxy, Yxz, Yyz) rows:
     (E, α', g', z0, z1, z2) with exp(Y) = E I + α' Z + g' Z², Z = Y − e₁ I (z0 … z2 its diagonal,
@@ -694,22 +711,7 @@ def _exp_sym_coeffs(Y: FloatArray, free: _FreeRows) -> tuple[FloatArray, ...]:
     ang = det
     np.arccos(r, out=ang)
     ang *= 1.0 / 3.0
-    # sin a from its polynomial; cos a = √(1 − sin² a) ≥ ½ (a ≤ π/3), well conditioned;
-    # sin(π/3 − a) = (√3/2) cos a − ½ sin a.
-    mul(ang, ang, out=t1)
-    _horner(x, _SINC_EIG_COEFFS, t1)
-    x *= ang
-    mul(x, x, out=t1)
-    np.subtract(1.0, t1, out=t1)
-    np.sqrt(t1, out=t1)
-    mul(t1, 0.5 * _SQRT3, out=y)
-    mul(x, 0.5, out=t1)
-    y -= t1
-    # x = e0 − e1 = −2√3 p sin a ≤ 0,  y = e2 − e1 = 2√3 p sin(π/3 − a) ≥ 0
-    p *= -2.0 * _SQRT3
-    x *= p
-    np.negative(p, out=p)
-    y *= p
+    _eigen_gaps(ang, p, x, y, t1)
     e1 = q
     add(x, y, out=t1)
     t1 *= 1.0 / 3.0
@@ -983,112 +985,6 @@ def _scatter_weights(flat: FloatArray, stride: int, cols: NDArray[np.intp], idx:
             # Each k hits every column once, so `+=` is exact even when a vertex lists a control
             # twice (in different slots).
             flat[pos] += val[:, k]
-
-
-# ----------------------------------------------------------------------------------------------
-# argument checks
-
-
-def _unchanged(pts: FloatArray, out: FloatArray) -> FloatArray:
-    """Every control at the identity: the exact input, so "controls at rest ⇒ mesh unchanged" holds bit
-    for bit (the general path gives the same values but may turn −0.0 into +0.0)."""
-    if out is not pts:
-        np.copyto(out, pts)
-    return out
-
-
-def _check_points(points: ArrayLike) -> FloatArray:
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
-    if not np.all(np.isfinite(pts)):
-        raise ValueError("points contain non-finite coordinates")
-    return pts
-
-
-def _check_table(table: ArrayLike, width: int, name: str) -> FloatArray:
-    tab = np.asarray(table, dtype=np.float64)
-    if tab.ndim != 2 or tab.shape[1] != width:
-        raise ValueError(f"{name} must have shape (m, {width}), got {tab.shape}")
-    if not np.all(np.isfinite(tab)):
-        bad = int(np.argmax(~np.isfinite(tab).all(axis=1)))
-        raise ValueError(f"{name} row {bad} has non-finite values")
-    return tab
-
-
-def _check_indices(
-    indices: ArrayLike, values: ArrayLike, n_points: int | None, m: int
-) -> tuple[IntArray, FloatArray]:
-    idx = np.asarray(indices)
-    val = np.asarray(values, dtype=np.float64)
-    if idx.ndim != 2 or val.shape != idx.shape:
-        raise ValueError(f"indices and values must both have shape (N, K), got {idx.shape} and {val.shape}")
-    if n_points is not None and idx.shape[0] != n_points:
-        raise ValueError(f"indices have {idx.shape[0]} rows for {n_points} points")
-    if not np.issubdtype(idx.dtype, np.integer):
-        raise ValueError(f"indices must be integers, got {idx.dtype}")
-    if idx.size and (int(idx.min()) < 0 or int(idx.max()) >= m):
-        raise ValueError(f"indices must lie in [0, {m}), got [{int(idx.min())}, {int(idx.max())}]")
-    if not np.all(np.isfinite(val)):
-        raise ValueError("weight values contain non-finite entries")
-    return idx, val
-
-
-def _check_out(out: FloatArray | None, pts: FloatArray) -> FloatArray:
-    """`out` checked against the points, or a new array when None."""
-    return np.empty_like(pts) if out is None else _check_given_out(out, pts)
-
-
-def _check_given_out(out: FloatArray, pts: FloatArray) -> FloatArray:
-    if not isinstance(out, np.ndarray) or out.shape != pts.shape or out.dtype != np.float64:
-        raise ValueError(f"out must be a float64 array of shape {pts.shape}")
-    return out
-
-
-def _check_motion_indices(indices: ArrayLike, values: ArrayLike, m: int) -> int:
-    """N, the number of vertices, from (N, K) indices (there are no points to take it from);
-    ValueError with `_check_indices`' messages when the shapes do not fit."""
-    shape = np.shape(indices)
-    if len(shape) != 2:
-        raise ValueError(f"indices must have shape (N, K), got {shape}")
-    if np.shape(values) != shape:
-        _check_indices(indices, values, None, m)  # raises the shape message
-    return int(shape[0])
-
-
-def _check_motion_out(
-    out: FloatArray | NDArray[np.float32] | None, n: int
-) -> FloatArray | NDArray[np.float32]:
-    """`out` of `vertex_motions` checked ((4, n, 3), float64 or float32), or a new float64 array."""
-    if out is None:
-        return np.empty((4, n, 3))
-    if not isinstance(out, np.ndarray) or out.shape != (4, n, 3) or out.dtype not in (np.float64, np.float32):
-        raise ValueError(f"out must be a float64 or float32 array of shape {(4, n, 3)}")
-    return out
-
-
-def _identity_motions(
-    out: FloatArray | NDArray[np.float32], sel: NDArray[np.integer] | None
-) -> FloatArray | NDArray[np.float32]:
-    """The identity map (columns e_x, e_y, e_z, translation 0) in the rows `sel` of `out` (all rows
-    when None): the motion of every vertex when every control is at rest, exactly."""
-    ident = np.zeros((4, 1, 3), dtype=out.dtype)
-    ident[0, 0, 0] = ident[1, 0, 1] = ident[2, 0, 2] = 1.0
-    if sel is None:
-        out[...] = ident
-    else:
-        out[:, sel] = ident
-    return out
-
-
-def _check_rows(rows: ArrayLike, n_points: int) -> NDArray[np.integer]:
-    """`rows` as a checked 1-D integer array of row indices in [0, n_points)."""
-    sel = np.asarray(rows)
-    if sel.ndim != 1 or not np.issubdtype(sel.dtype, np.integer):
-        raise ValueError(f"rows must be a 1-D integer array, got {sel.dtype} {sel.shape}")
-    if sel.size and (int(sel.min()) < 0 or int(sel.max()) >= n_points):
-        raise ValueError(f"rows must lie in [0, {n_points})")
-    return sel
 
 
 # ----------------------------------------------------------------------------------------------

@@ -369,11 +369,11 @@ class _Recorder:
 
 def test_bake_section_of_the_panel_follows_the_bake_state(bl, installed, tmp_path):
     target, deformer = _scene(bl, tmp_path)
-    bake = _module(installed, "bake")
+    panels = _module(installed, "panels")
 
     def draw():
         log = []
-        bake.draw_bake(_Recorder(log), deformer, 0)
+        panels.draw_bake(_Recorder(log), deformer, 0)
         for entry in log:
             if entry[0] == "operator":
                 names = set(entry[2].rna.properties.keys())

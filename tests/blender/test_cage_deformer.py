@@ -523,7 +523,7 @@ def test_cage_selection_errors(bl):
 @pytest.mark.parametrize("weights", ["HARMONIC", "INVERSE_DISTANCE"])
 def test_collapsed_face_is_skipped_and_reported(bl, installed, core_cage, core_harmonic, weights):
     """An octahedron cage; moving its top vertex onto the midpoint of the +x/+y edge makes face 0
-    collinear. Face 0's weight goes to each vertex's other faces (evaluate.redistribute), or with
+    collinear. Face 0's weight goes to each vertex's other faces (blend.redistribute), or with
     harmonic weights to each grid node's other faces."""
     target = bl.grid_cube(cuts=5, size=1.2)
     cage = cage_from_polygons("Octa", *OCTAHEDRON)

@@ -1,12 +1,13 @@
 """The fast paths of the frame handler give exactly what a full recompute gives.
 
-evaluate.py caches bind data per bind generation and recomputes only the vertices influenced by
+bound.py caches bind data per bind generation and recomputes only the vertices influenced by
 controls whose blend parameters changed; these tests drive random sequences of control changes and
 compare every result bit for bit with a recompute from nothing (caches dropped), so the result still
 depends only on the current inputs."""
 
 from __future__ import annotations
 
+import importlib
 from types import SimpleNamespace
 
 import bpy
@@ -16,8 +17,10 @@ import pytest
 
 @pytest.fixture
 def ns(bl, installed) -> SimpleNamespace:
-    """The test helpers plus the installed layer's evaluate and storage modules."""
-    return SimpleNamespace(**vars(bl), evaluate=installed.evaluate, storage=installed.storage)
+    """The test helpers plus the installed layer's evaluate, storage, bind-data and blend modules."""
+    return SimpleNamespace(**vars(bl), evaluate=installed.evaluate, storage=installed.storage,
+                           bound=importlib.import_module(f"{installed.package}.blender.bound"),
+                           blend=importlib.import_module(f"{installed.package}.blender.blend"))
 
 
 def _rig(ns, n_probes: int = 6):
@@ -59,10 +62,10 @@ def test_incremental_update_touches_only_influenced_vertices(ns):
     target, probes, deformer, _ = _rig(ns)
     probes[0].location.x += 0.3
     bpy.context.view_layer.update()
-    bound = ns.evaluate._bound[(target.session_uid, deformer.uid)]
+    bound = ns.bound._bound[(target.session_uid, deformer.uid)]
     first = bound.offsets
     calls = []
-    deform = ns.evaluate.accel  # the kernel dispatch the layer calls (compiled or numpy)
+    deform = ns.blend.accel  # the kernel dispatch the layer calls (compiled or numpy)
     originals = deform.deform_points_params, deform.deform_points_params_rows
 
     def full(points, *args, **kwargs):

@@ -1,4 +1,4 @@
-"""The per-control memos of an update (kinds._rows: transforms → motions; evaluate._param_rows:
+"""The per-control memos of an update (kinds.probe._rows: transforms → motions; params._param_rows:
 motions → blend parameters) recompute only controls whose inputs changed, and give bit for bit what a
 recompute from nothing gives, whatever the order in which controls moved before (history-free)."""
 
@@ -23,8 +23,8 @@ def _rig(bl, n_probes: int = 5):
 
 
 def test_only_changed_controls_are_recomputed(bl, installed, monkeypatch):
-    kinds = importlib.import_module(f"{installed.package}.blender.kinds")
-    evaluate = installed.evaluate
+    kinds = importlib.import_module(f"{installed.package}.blender.kinds.probe")
+    evaluate = importlib.import_module(f"{installed.package}.blender.params")
     _target, probes, deformer = _rig(bl)
     probes[0].location.x += 0.2
     bpy.context.view_layer.update()
@@ -138,26 +138,26 @@ def test_rest_shape_edit_by_script_is_seen_with_the_cached_copy(bl, installed):
 def test_finiteness_check_of_changed_rows(installed):
     """Only the recomputed rows are checked on an incremental result (the rest were checked before);
     a full result is checked whole; NaN, ±inf and float32-overflowing offsets are all caught."""
-    evaluate = installed.evaluate
+    outputs = importlib.import_module(f"{installed.package}.blender.outputs")
     offsets = np.zeros((100, 3))
-    assert evaluate._finite(offsets, None)
-    assert evaluate._finite(offsets, np.array([], dtype=np.intp))
+    assert outputs.finite_offsets(offsets, None)
+    assert outputs.finite_offsets(offsets, np.array([], dtype=np.intp))
     for bad in (np.nan, np.inf, -np.inf, 1e200):
         offsets[37, 1] = bad
-        assert not evaluate._finite(offsets, None)
-        assert not evaluate._finite(offsets, np.array([3, 37]))  # few rows: gathered
-        assert not evaluate._finite(offsets, np.arange(30, 90))  # many rows: whole pass
-        assert evaluate._finite(offsets, np.array([3, 38]))  # row 37 unchanged: checked earlier
+        assert not outputs.finite_offsets(offsets, None)
+        assert not outputs.finite_offsets(offsets, np.array([3, 37]))  # few rows: gathered
+        assert not outputs.finite_offsets(offsets, np.arange(30, 90))  # many rows: whole pass
+        assert outputs.finite_offsets(offsets, np.array([3, 38]))  # row 37 unchanged: checked earlier
     offsets[37, 1] = 3e38
-    assert evaluate._finite(offsets, None)
+    assert outputs.finite_offsets(offsets, None)
 
 
 def test_scene_membership_and_cached_modifier_lookup(bl, installed):
-    kinds = importlib.import_module(f"{installed.package}.blender.kinds")
+    transforms = importlib.import_module(f"{installed.package}.blender.kinds.transforms")
     target, probes, deformer = _rig(bl, n_probes=2)
-    assert kinds.in_a_scene(probes[0])
+    assert transforms.in_a_scene(probes[0])
     loose = bpy.data.objects.new("Loose", None)
-    assert not kinds.in_a_scene(loose) and not loose.users_scene
+    assert not transforms.in_a_scene(loose) and not loose.users_scene
     mod = target.modifiers[0]
     mod.name = "Renamed by the user"  # the cached name is stale: found again by content
     probes[0].location.x += 0.3
@@ -173,6 +173,7 @@ def test_channel_frame_shared_solve_matches_the_public_function(bl, installed):
     """The per-probe frame (from the one solve shared with the local matrix) equals channel_frame's
     own computation for a sheared parent and a non-uniformly scaled, rotated target."""
     kinds = importlib.import_module(f"{installed.package}.blender.kinds")
+    transforms = importlib.import_module(f"{installed.package}.blender.kinds.transforms")
     target, probes, deformer = _rig(bl, n_probes=3)
     target.scale = (1.3, 0.8, 1.1)
     target.rotation_euler = (0.2, -0.4, 0.7)
@@ -191,13 +192,13 @@ def test_channel_frame_shared_solve_matches_the_public_function(bl, installed):
     bpy.context.view_layer.update()
     depsgraph = bpy.context.evaluated_depsgraph_get()
     motions = kinds.KINDS["PROBE"].current_motions(target, deformer, depsgraph)
-    target_world = kinds.world_matrix(target, depsgraph)
+    target_world = transforms.world_matrix(target, depsgraph)
     for i, probe in enumerate(probes):
-        expected = kinds.channel_frame(probe.evaluated_get(depsgraph), target_world)
-        assert np.allclose(motions.channel_frames[i], expected, rtol=0.0, atol=1e-12), i
+        expected = transforms.channel_frame(probe.evaluated_get(depsgraph), target_world)
+        assert np.allclose(motions.turns.frames[i], expected, rtol=0.0, atol=1e-12), i
         assert np.allclose(expected.T @ expected, np.eye(3), atol=1e-12)
         assert np.linalg.det(expected) > 0.0
-    assert motions.error == "" and not np.allclose(motions.channel_frames[1], np.eye(3), atol=0.1)
+    assert motions.error == "" and not np.allclose(motions.turns.frames[1], np.eye(3), atol=0.1)
 
 
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
@@ -206,8 +207,7 @@ def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, install
     copy of the attribute (no cast of the whole array): after a sequence of them, with rows shared
     between updates and rows no update touched, the attribute is bit for bit float32 of a fresh full
     evaluation, on both backends."""
-    evaluate = installed.evaluate
-    accel = evaluate.accel
+    accel = importlib.import_module(f"{installed.package}.blender.blend").accel
     monkeypatch.setattr(accel._state, "enabled", compiled)
     if accel.active() != compiled:
         pytest.skip(f"backend: {accel.backend()}")
@@ -215,7 +215,8 @@ def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, install
     deformer.radius = 1.0
     probes[0].location.x += 0.2  # the first result is a full one: it makes the copy
     bpy.context.view_layer.update()
-    bound = evaluate._bound[(target.session_uid, deformer.uid)]
+    bound = importlib.import_module(f"{installed.package}.blender.bound")._bound[
+        (target.session_uid, deformer.uid)]
     copy = bound.written
     assert copy is not None
     calls = []
@@ -251,7 +252,8 @@ def test_two_scenes_at_different_frames_do_not_fight_over_the_mesh(bl, installed
     """An object shown by two scenes at different frames: updates of the other scene's viewport leave
     the mesh to the scene the artist is in (one write, not one per alternate update); a render of the
     other scene still evaluates it there, and a scene that alone shows the object deforms it."""
-    storage, evaluate = installed.storage, installed.evaluate
+    storage = installed.storage
+    handlers = importlib.import_module(f"{installed.package}.blender.handlers")
     target, probes, deformer = _rig(bl)
     scene_a = bpy.context.scene
     probes[0].keyframe_insert("location", frame=1)
@@ -270,12 +272,12 @@ def test_two_scenes_at_different_frames_do_not_fight_over_the_mesh(bl, installed
     graph_b.update()
     at_frame_1 = bl.evaluated_positions(target).copy()
     for _ in range(10):
-        evaluate.on_depsgraph_update_post(scene_b, graph_b)
-        evaluate.on_depsgraph_update_post(scene_a, graph_a)
+        handlers.on_depsgraph_update_post(scene_b, graph_b)
+        handlers.on_depsgraph_update_post(scene_a, graph_a)
     assert len(writes) <= 1
     assert np.array_equal(bl.evaluated_positions(target), at_frame_1)
     assert deformer.status == ""
     # A scene that alone shows the object (the artist's scene does not) deforms it as usual.
     scene_a.collection.objects.unlink(target)
-    evaluate.on_depsgraph_update_post(scene_b, graph_b)
+    handlers.on_depsgraph_update_post(scene_b, graph_b)
     assert len(writes) >= 1

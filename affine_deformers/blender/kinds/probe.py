@@ -1,115 +1,58 @@
-"""Deformer kinds: what each kind of control gives the shared bind / evaluate machinery.
+"""The probe kind: any objects (normally Empties) whose motion drives the mesh.
 
-A kind provides
-  (a) at bind: `store_rest(obj, deformer, depsgraph)` records the rest control data on the deformer,
-      and `sparse_weights(obj, deformer, rest_points)` returns the per-vertex top-K weights computed
-      from that stored rest data only (so re-weighting never needs the current poses);
-  (b) per frame: `current_motions(obj, deformer, depsgraph)` returns the controls' motions
-      A_i = C_i · C_rest,i⁻¹ in the target's local space, plus validity.
-The probe kind lives here, the cage kind in cage_kind.py.
-
-Matrices are expressed in the target's local space, C = target_world⁻¹ · control_world, and rounded
-to float32 exactly like the stored rest matrices, so a control whose current matrix is bitwise equal
-to its rest matrix is recognised as "at rest" and contributes exactly the identity.
+Bind stores each probe's rest matrix C_rest (target space, float32) and its rotation channels on the
+probe item; per update each probe's A = C · C_rest⁻¹ comes from the evaluated depsgraph, memoised per
+probe on the exact bits of its inputs (`_rows`), with its channels for the rotation-log branch.
+Weights: inverse distance, falloff, painted vertex groups or harmonic surface weights
+(core.weights.probe_weights, core.surface).
 """
 
 from __future__ import annotations
 
 import hashlib
-import math
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import bpy
-import mathutils
 import numpy as np
 
-from ..core import aff3, surface, unwrap, weights
-from . import nodes
+from ...core import aff3, surface, weights
+from .. import nodes
+from .base import Adopted, BindError, ChannelTurns, Motions, ignored_note
+from .transforms import (
+    finite_transform,
+    frame_rotation,
+    in_a_scene,
+    local_matrix,
+    local_solve,
+    relative_motion,
+    rotation_channels,
+    world_matrix,
+)
+
+#: Max Influences of a new probe deformer (the property's default, 4, stays for files of 0.1.0): with
+#: 4, steps near points where the 5 strongest probes nearly tie reach 5× the untruncated field's
+#: inside clouds of 8 probes (tests/core/test_probe_seams.py).
+DEFAULT_INFLUENCES = 6
 
 
-class BindError(Exception):
-    """Bind-time failure with a message meant for the artist."""
+def selected_probes(context: bpy.types.Context, target: bpy.types.Object) -> tuple[list, list]:
+    """Selected Empties (the probes) and the other selected non-target objects (ignored)."""
+    selected = list(getattr(context, "selected_objects", None) or [])
+    probes = [o for o in selected if o != target and o.type == "EMPTY"]
+    ignored = [o for o in selected if o != target and o.type != "EMPTY"]
+    return probes, ignored
 
 
-@dataclass
-class Motions:
-    """Current motions of a deformer's controls.
-
-    matrices: (m, 4, 4) float64, A_i in Aff+(3) (identity where at_rest);
-    at_rest: (m,) bool, control i is exactly at its rest pose (its parameters are exactly zero);
-    error: '' or a message naming the first invalid control (the mesh then keeps its rest shape);
-    rest_rotation_modes / rest_rotations (m, 4) and rotation_modes / current_rotations (m, 4): the
-    controls' own rotation channels at bind and now (layout of props.AffineDeformerProbe), for choosing
-    the rotation-log branch of controls turned past 180°; empty for kinds without channels.
-    channel_frames (m, 3, 3): rotation taking vectors of the frame each control's channels turn in
-    (its parent frame) to the target's local space; pivots (m, 3): the controls' current origins in
-    the target's local space (see `reference_rotvecs`); empty = identity frames / origin pivots.
-
-    Optional, for kinds whose blend parameters are not ψ of one matrix per control (cages):
-    params (m, 12): the controls' blend parameters, used instead of ψ(matrices) (matrices then hold
-    φ(params), for the linear blend); outer (4, 4): a motion applied after the blend,
-    v' = outer · blend(v) (None = identity); valid (m,) bool: False marks a control to skip — its
-    weight goes to the vertex's other controls (evaluate.redistribute); warning: a non-fatal status
-    (the deformation is still shown); outer_reference (3,) and outer_pivot (3,): the reference
-    rotation vector (see `reference_rotvecs`) and current origin, in the target's space, of the object
-    whose motion `outer` is, for choosing the rotation-log branch when `outer` is scaled by a strength
-    (None = principal branch).
-    """
-
-    matrices: np.ndarray
-    at_rest: np.ndarray
-    error: str = ""
-    rest_rotation_modes: list[str] = field(default_factory=list)
-    rest_rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
-    rotation_modes: list[str] = field(default_factory=list)
-    current_rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
-    channel_frames: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
-    pivots: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    params: np.ndarray | None = None
-    outer: np.ndarray | None = None
-    valid: np.ndarray | None = None
-    warning: str = ""
-    outer_reference: np.ndarray | None = None
-    outer_pivot: np.ndarray | None = None
-
-    @classmethod
-    def invalid(cls, m: int, error: str) -> Motions:
-        return cls(np.broadcast_to(np.eye(4), (m, 4, 4)).copy(), np.ones(m, dtype=bool), error)
-
-
-def world_matrix(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
-    """World matrix (4, 4) float64 of `obj` as evaluated in `depsgraph` (bpy.data is stale in renders)."""
-    return np.array(obj.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
-
-
-def local_matrix(target_world: np.ndarray, control_world: np.ndarray) -> np.ndarray:
-    """C = target_world⁻¹ · control_world with an exact (0, 0, 0, 1) bottom row, rounded to float32.
-
-    Raises numpy.linalg.LinAlgError when the target's matrix is singular.
-    """
-    return _local_solve(target_world, control_world)[0]
-
-
-def _local_solve(target_world: np.ndarray, control_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(`local_matrix`, the float64 3×4 solve it was rounded from): the channel frame reuses the
-    solve's linear part (target_world⁻¹ · control_world's 3×3), so one LAPACK call serves both."""
-    out = np.zeros((4, 4), dtype=np.float64)
-    rhs = control_world[:3, :].copy()
-    rhs[:, 3] -= target_world[:3, 3]
-    solved = np.linalg.solve(target_world[:3, :3], rhs)
-    out[:3, :] = solved
-    out[3, 3] = 1.0
-    return out.astype(np.float32), solved
-
-
-def relative_motion(current: np.ndarray, rest: np.ndarray) -> np.ndarray:
-    """A = current · rest⁻¹ for affine 4×4 matrices, with an exact (0, 0, 0, 1) bottom row."""
-    out = np.eye(4)
-    lin = np.linalg.solve(rest[:3, :3].T, current[:3, :3].T).T
-    out[:3, :3] = lin
-    out[:3, 3] = current[:3, 3] - lin @ rest[:3, 3]
-    return out
+def new_probe(context: bpy.types.Context, target: bpy.types.Object) -> bpy.types.Object:
+    """An Empty at the target's origin, sized to the target, in the target's first collection."""
+    probe = bpy.data.objects.new(f"{target.name}.Probe", None)
+    probe.empty_display_type = "SPHERE"
+    probe.empty_display_size = max(0.1, 0.25 * max(target.dimensions))
+    probe.location = target.matrix_world.translation  # unparented: location is the world position
+    collections = target.users_collection
+    (collections[0] if collections else context.scene.collection).objects.link(probe)
+    return probe
 
 
 def rest_matrices(deformer) -> np.ndarray:
@@ -125,104 +68,17 @@ def probe_label(item) -> str:
     return obj.name if obj is not None else (item.name or "?")
 
 
-def rotation_channels(obj: bpy.types.Object, mode: str | None = None) -> tuple[float, ...]:
-    """The object's own rotation channels in the layout of props.AffineDeformerProbe.rest_rotation
-    (`mode`: obj.rotation_mode, when the caller has read it already)."""
-    if mode is None:
-        mode = obj.rotation_mode
-    if mode == "QUATERNION":
-        return tuple(obj.rotation_quaternion)
-    if mode == "AXIS_ANGLE":
-        return tuple(obj.rotation_axis_angle)
-    return (*obj.rotation_euler, 0.0)
-
-
-def _channel_matrix(mode: str, channels) -> np.ndarray:
-    channels = np.asarray(channels, dtype=np.float64)
-    return unwrap.channels_to_matrix(mode, channels if mode in ("QUATERNION", "AXIS_ANGLE") else channels[:3])
-
-
-def channel_frame(evaluated: bpy.types.Object, target_world: np.ndarray) -> np.ndarray:
-    """Rotation Q (3, 3) from the frame `evaluated`'s rotation channels turn in to the target's space.
-
-    Blender composes matrix_world = W·T·D·R·S (W: parent and constraints, T: location, D: delta
-    rotation, R: the channels' rotation, S: scale × delta scale), so turning the channels by ΔR
-    (R → ΔR·R) turns the object by ΔR in the frame of W·D, and Q is the rotation part of
-    target_world⁻¹·W·D = target_world⁻¹·matrix_world·S⁻¹·Rᵀ (polar split; a mirrored frame is
-    negated first, since rotation vectors are pseudovectors). Identity when that matrix is singular
-    or not finite: the motion is then rejected anyway, or the branch falls back to the shortest.
-    """
-    world = np.array(evaluated.matrix_world, dtype=np.float64)
-    try:
-        with np.errstate(all="ignore"):
-            linear = np.linalg.solve(target_world[:3, :3], world[:3, :3])
-    except np.linalg.LinAlgError:
-        return np.eye(3)
-    scale = (*evaluated.scale, *evaluated.delta_scale)
-    return _frame_rotation(linear, evaluated.rotation_mode, rotation_channels(evaluated), scale)
-
-
-def _frame_rotation(linear: np.ndarray, mode: str, channels, scale) -> np.ndarray:
-    """`channel_frame` from linear = target_world⁻¹ · matrix_world's 3×3 (float64), the rotation
-    channels and scale = (*scale, *delta_scale) as read from the evaluated object."""
-    R = _channel_matrix(mode, channels)
-    factors = np.array(scale, dtype=np.float64)
-    with np.errstate(all="ignore"):
-        frame = linear / (factors[:3] * factors[3:])[None, :] @ R.T
-    if not np.isfinite(frame).all():
-        return np.eye(3)
-    (a, b, c), (d, e, f), (g, h, i) = frame.tolist()
-    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-    if not (math.isfinite(det) and abs(det) > 1e-30):
-        return np.eye(3)
-    rotation, _ = aff3.polar(frame if det > 0.0 else -frame)
-    return rotation
-
-
-def rest_channels_in_mode(rest_mode: str, rest_rotation, mode: str) -> tuple[float, float, float, float]:
-    """The rest rotation's channels in rotation mode `mode` (for a control whose mode changed since bind).
-
-    Same mode: unchanged. Otherwise the rest rotation matrix converted to the principal values of the
-    new mode (Euler angles in [-π, π], quaternion with w ≥ 0, axis-angle angle in [0, π]): turns keyed
-    in the new mode are then counted from there. Blender itself keeps Euler turns across an Euler order
-    switch but cannot carry them into a quaternion or axis-angle, so such a switch shows the rotation
-    the converted channels hold (at most one turn).
-    """
-    if rest_mode == mode:
-        return tuple(float(c) for c in rest_rotation)
-    matrix = mathutils.Matrix(_channel_matrix(rest_mode, rest_rotation).tolist())
-    if mode == "QUATERNION":
-        return tuple(matrix.to_quaternion())
-    if mode == "AXIS_ANGLE":
-        axis, angle = matrix.to_quaternion().to_axis_angle()
-        return (angle, *axis)
-    return (*matrix.to_euler(mode), 0.0)
-
-
-def reference_rotvecs(rest_modes: list[str], rest_rotations, modes: list[str], current_rotations,
-                      frames: np.ndarray | None = None) -> np.ndarray:
-    """Reference rotation vectors (m, 3) in the target's space for choosing the rotation-log branch.
-
-    w_ref,i = Q_i · channel_rotvec(mode_i, rest_i, current_i): control i's own turn since bind read
-    from its rotation channels (unwrapped along the straight channel path, so Rotation Z = 400°
-    means 400°; rest channels in another mode are converted, see `rest_channels_in_mode`), carried
-    into the target's space by its channel frame Q_i (`channel_frame`; None = identity frames).
-    Depends on the current frame's channels only. ValueError (from core.unwrap) when channels are
-    non-finite or turn too often to unwrap.
-    """
-    m = len(modes)
-    if m == 0:
-        return np.zeros((0, 3))
-    rest = np.array([rest_channels_in_mode(r_mode, r_rot, mode)
-                     for r_mode, r_rot, mode in zip(rest_modes, rest_rotations, modes, strict=True)])
-    w_channels = unwrap.channel_rotvec(list(modes), rest, np.asarray(current_rotations, dtype=np.float64))
-    if frames is None or len(frames) != m:
-        return w_channels
-    return np.einsum("mij,mj->mi", frames, w_channels)
-
-
 class ProbeKind:
     """Probes: any objects (normally Empties) whose motion drives the mesh."""
+
+    id = "PROBE"
+    label = "Probe"
+    description = "Driven by the motion of probe objects"
+    icon = "EMPTY_AXIS"
+    single_control = False
+    add_description = ("Add a probe deformer to the active mesh; the selected Empties become its probes "
+                       "(none selected: one new Empty at the mesh's origin). Their current poses become the "
+                       "rest pose")
 
     def store_rest(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
                    only: list[int] | None = None) -> None:
@@ -324,12 +180,61 @@ class ProbeKind:
                 return Motions.invalid(m, row.error.format(probe=probe.name, target=obj.name))
             rows.append(row)
         if m == 0:
-            return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool), "", rest_modes, rest_rotations, [],
-                           rest_rotations.copy(), np.zeros((0, 3, 3)), np.zeros((0, 3)))
-        return Motions(np.stack([r.matrix for r in rows]), np.array([r.at_rest for r in rows]), "",
-                       rest_modes, rest_rotations, [r.mode for r in rows],
-                       np.array([r.rotation for r in rows], dtype=np.float64),
-                       np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
+            return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool),
+                           turns=ChannelTurns(rest_modes, rest_rotations, [], rest_rotations.copy(),
+                                              np.zeros((0, 3, 3)), np.zeros((0, 3))))
+        turns = ChannelTurns(rest_modes, rest_rotations, [r.mode for r in rows],
+                             np.array([r.rotation for r in rows], dtype=np.float64),
+                             np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
+        return Motions(np.stack([r.matrix for r in rows]), np.array([r.at_rest for r in rows]), turns=turns)
+
+    def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
+        """The selected Empties; none selected: one new Empty at the mesh's origin."""
+        probes, ignored = selected_probes(context, target)
+        created = [] if probes else [new_probe(context, target)]
+        return Adopted(probes or created, created, ignored_note("non-Empty", ignored))
+
+    def set_up(self, deformer, adopted: Adopted) -> None:
+        deformer.max_influences = DEFAULT_INFLUENCES
+        for probe in adopted.controls:
+            deformer.probes.add().object = probe
+
+    def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
+        made = f" (created '{adopted.created[0].name}')" if adopted.created else ""
+        return f"Added a probe deformer to '{target.name}' with {len(adopted.controls)} probe(s){made}"
+
+    def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
+        probes = {item.object for item in deformer.probes if item.object is not None and item.object != obj}
+        return sorted(probes, key=lambda o: o.name_full)
+
+    def draw_settings(self, layout: bpy.types.UILayout, deformer) -> None:
+        layout.prop(deformer, "weight_mode")
+        # Surface weights have no length scale (radius): their exponent sharpens them
+        if deformer.weight_mode in ("INVERSE_DISTANCE", "FALLOFF"):
+            layout.prop(deformer, "radius")
+        if deformer.weight_mode in ("INVERSE_DISTANCE", "SURFACE"):
+            layout.prop(deformer, "exponent")
+        layout.prop(deformer, "normalize")
+        layout.prop(deformer, "max_influences")
+
+    def branch_rule_active(self, deformer) -> bool:
+        """A linear blend of probes has no rotation branches."""
+        return deformer.blend_mode == "AFFINE_LOG"
+
+    def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
+        layout.label(text="Probes")
+        row = layout.row()
+        row.template_list("AFFINE_UL_probes", "", deformer, "probes", deformer, "active_probe_index", rows=2)
+        col = row.column(align=True)
+        col.operator("object.affine_deformer_probe_add", icon="ADD", text="").index = index
+        op = col.operator("object.affine_deformer_probe_remove", icon="REMOVE", text="")
+        op.index, op.probe_index = index, deformer.active_probe_index
+
+    def forget(self, key: tuple[int, str] | None = None) -> None:
+        """Drop the per-probe and surface-weight memos (keyed on their inputs, so shared by all
+        deformers: `key` is ignored; they only hold recomputable values)."""
+        _rows.clear()
+        _surface_memo.clear()
 
 
 def mesh_triangles(mesh: bpy.types.Mesh) -> np.ndarray:
@@ -386,17 +291,6 @@ def surface_warning(result: surface.HarmonicWeights, names: list[str]) -> str:
     return "; ".join(notes)
 
 
-def in_a_scene(obj: bpy.types.Object) -> bool:
-    """`bool(obj.users_scene)` without its cost in the common case: users_scene lists every object of
-    every scene (O(objects) per call); a lookup by name finds the object directly, and only a miss
-    (e.g. a linked object sharing a local one's name) takes the full scan."""
-    name = obj.name
-    for scene in bpy.data.scenes:
-        if scene.objects.get(name) == obj:
-            return True
-    return bool(obj.users_scene)
-
-
 @dataclass(frozen=True)
 class _ProbeRow:
     """What one probe contributes to `Motions`, a pure function of the values it is keyed on in `_rows`.
@@ -422,22 +316,6 @@ ROW_MEMO_SIZE = 4096
 _rows: dict[tuple, _ProbeRow] = {}
 
 
-def forget() -> None:
-    """Drop the per-probe and surface-weight memos (they only hold recomputable values)."""
-    _rows.clear()
-    _surface_memo.clear()
-
-
-#: Blender clamps an infinite location or scale to ±3.4e38 (the float32 maximum): entries beyond this
-#: are treated as not finite, instead of sending the mesh there.
-MAX_COORDINATE = 1e30
-
-
-def finite_transform(matrix: np.ndarray) -> bool:
-    """Whether every entry of `matrix` is finite and below MAX_COORDINATE in magnitude (NaN fails too)."""
-    return bool(np.all(np.abs(matrix) < MAX_COORDINATE))
-
-
 def _bits(values: tuple[float, ...]) -> bytes:
     """The exact float64 bits of a short tuple of numbers (−0.0 and NaN payloads included)."""
     return struct.pack(f"{len(values)}d", *values)
@@ -455,11 +333,11 @@ def _probe_row(target_world: np.ndarray, world: np.ndarray, channels: tuple[floa
                          "Probe '{probe}' has a non-finite transform (NaN or infinity): the mesh shows its "
                          "rest shape")
     try:
-        current, solved = _local_solve(target_world, world)
+        current, solved = local_solve(target_world, world)
     except np.linalg.LinAlgError:
         return _ProbeRow(identity, True, mode, rotation, np.eye(3), np.zeros(3),
                          "'{target}' is scaled to zero: the mesh shows its rest shape")
-    frame = _frame_rotation(solved[:, :3], mode, channels, scale)
+    frame = frame_rotation(solved[:, :3], mode, channels, scale)
     pivot = current[:3, 3].astype(np.float64)
     # At rest = the same matrix AND the same channels (a full turn changes only the channels).
     if (np.array_equal(current, rest) and mode == rest_mode
@@ -484,8 +362,3 @@ def _probe_row(target_world: np.ndarray, world: np.ndarray, channels: tuple[floa
                          "Probe '{probe}' " + reason + ": the mesh shows its rest shape")
     return _ProbeRow(matrix, False, mode, rotation, frame, pivot)
 
-
-# cage_kind builds on the helpers above, so it is imported once they exist.
-from .cage_kind import CageKind  # noqa: E402
-
-KINDS: dict[str, ProbeKind | CageKind] = {"PROBE": ProbeKind(), "CAGE": CageKind()}

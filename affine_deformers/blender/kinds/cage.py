@@ -22,7 +22,7 @@ to float32 like the probes' matrices) and q the cage's vertex positions in its o
   (core.cage.affected_faces) get parameters; the others are exactly at rest.
 
 At a strength s other than 1 the target gets φ(s·ψ(G)), where the branch of ψ's rotation log matters
-once the cage object has turned past 180°: as for probes (evaluate.motions_to_params), bind stores the
+once the cage object has turned past 180°: as for probes (params.motions_to_params), bind stores the
 cage's own rotation channels and each frame carries the reference rotation vector read from them and
 the cage's origin, so a cage keyed 0 → 720° at s = 0.5 turns the target by 0 → 360° continuously.
 
@@ -31,7 +31,7 @@ The cage is read only when the depsgraph evaluates it: the deformer's modifier n
 viewports or renders.
 
 A face that collapses in the current pose (zero area or non-finite) is skipped: its weight goes to
-the vertex's other faces (evaluate.redistribute, or the node's other faces) and the status names how
+the vertex's other faces (blend.redistribute, or the node's other faces) and the status names how
 many faces are skipped.
 
 Weights (`cage_weights` option, `weight_mode`):
@@ -57,8 +57,8 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from ..core import aff3
-from ..core.cage import (
+from ...core import aff3
+from ...core.cage import (
     CageTopology,
     affected_faces,
     cage_weights,
@@ -66,11 +66,10 @@ from ..core.cage import (
     face_motions,
     signed_volume,
 )
-from ..core.cage_harmonic import harmonic_weights, node_matrices_linear, node_params
-from . import relations, storage
-from .kinds import (
-    BindError,
-    Motions,
+from ...core.cage_harmonic import harmonic_weights, node_matrices_linear, node_params
+from .. import nodes, storage
+from .base import Adopted, BindError, Motions, ignored_note
+from .transforms import (
     channel_frame,
     finite_transform,
     local_matrix,
@@ -97,16 +96,6 @@ _last_motions: dict[tuple[int, str], tuple[tuple, Motions]] = {}
 # (target session_uid, deformer uid) -> (bind generation, node points (G, 3), node weights (G, F)
 # float64 with rows summing to 1): the 'HARMONIC' bind data as the blend uses them.
 _node_data: dict[tuple[int, str], tuple[int, np.ndarray, np.ndarray]] = {}
-
-
-def forget(key: tuple[int, str] | None = None) -> None:
-    """Drop the cached motions and node data of one deformer ((target session_uid, uid)) or of all."""
-    if key is None:
-        _last_motions.clear()
-        _node_data.clear()
-    else:
-        _last_motions.pop(key, None)
-        _node_data.pop(key, None)
 
 
 def weight_mode(deformer) -> str:
@@ -175,7 +164,7 @@ def is_evaluated(cage: bpy.types.Object, evaluated: bpy.types.Object, depsgraph:
                  related: bool = False) -> bool:
     """Whether the depsgraph really evaluates the cage this update.
 
-    `related`: an enabled modifier of ours names the cage on its inputs (relations.evaluates), so the
+    `related`: an enabled modifier of ours names the cage on its inputs (nodes.evaluates), so the
     depsgraph evaluates it with the target. Otherwise a cage disabled in viewports (or renders) is
     not evaluated, yet `evaluated_get` may still return a stale copy (the deformer's pointer to the
     cage puts an ID node in the depsgraph). Evaluated objects are then those the depsgraph lists,
@@ -214,6 +203,12 @@ def read_cage(cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph, related: b
     finally:
         evaluated.to_mesh_clear()
     return CageState(points, loops, start, total, np.array(evaluated.matrix_world, dtype=np.float64))
+
+
+def _evaluated(obj: bpy.types.Object, deformer, cage: bpy.types.Object,
+               depsgraph: bpy.types.Depsgraph) -> bool:
+    """Whether `depsgraph` evaluates the cage for this deformer (nodes.evaluates)."""
+    return nodes.evaluates(obj, storage.offset_name(deformer.uid), cage, depsgraph)
 
 
 def to_target(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -263,6 +258,63 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
 class CageKind:
     """A closed mesh with outward normals; each face is a control."""
 
+    id = "CAGE"
+    label = "Cage"
+    description = "Driven by the faces of a cage mesh"
+    icon = "MESH_CUBE"
+    single_control = True
+    add_description = ("Add a cage deformer to the active mesh; the other selected mesh is the cage (closed, "
+                       "normals outward). Its current shape becomes the rest shape")
+
+    def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
+        """The one other selected mesh (the cage)."""
+        selected = list(getattr(context, "selected_objects", None) or [])
+        cages = [o for o in selected if o != target and o.type == "MESH"]
+        if len(cages) != 1:
+            found = ", ".join(f"'{o.name}'" for o in cages)
+            raise BindError("Select exactly one other mesh as the cage, with the target active "
+                            + (f"(selected: {found})" if cages else "(none selected)"))
+        ignored = [o for o in selected if o not in (target, cages[0])]
+        return Adopted(cages, [], ignored_note("non-mesh", ignored))
+
+    def set_up(self, deformer, adopted: Adopted) -> None:
+        deformer.cage = adopted.controls[0]
+        deformer.max_influences = 8
+
+    def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
+        faces = len(deformer[LOOP_TOTAL])
+        return (f"Added a cage deformer to '{target.name}' driven by '{adopted.controls[0].name}' "
+                f"({faces} faces)")
+
+    def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
+        cage = deformer.cage
+        return [cage] if cage is not None and cage != obj else []
+
+    def draw_settings(self, layout: bpy.types.UILayout, deformer) -> None:
+        layout.prop(deformer, "cage")
+        layout.prop(deformer, "cage_weights")
+        if deformer.cage_weights == "INVERSE_DISTANCE":
+            layout.prop(deformer, "exponent")
+            layout.prop(deformer, "half_space")
+            layout.prop(deformer, "max_influences")  # harmonic weights: always 8 grid nodes
+
+    def branch_rule_active(self, deformer) -> bool:
+        """The cage object's motion is scaled in the log space in both blend modes, and its branch
+        only matters at a strength other than 1."""
+        return deformer.strength != 1.0
+
+    def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
+        """A cage is one object, picked in the settings."""
+
+    def forget(self, key: tuple[int, str] | None = None) -> None:
+        """Drop the cached motions and node data of one deformer ((target session_uid, uid)) or of all."""
+        if key is None:
+            _last_motions.clear()
+            _node_data.clear()
+        else:
+            _last_motions.pop(key, None)
+            _node_data.pop(key, None)
+
     def store_rest(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
                    only: list[int] | None = None) -> None:
         """Record the cage's current evaluated shape and placement as its rest (`only` is ignored: a
@@ -274,7 +326,7 @@ class CageKind:
             raise BindError(problem)
         try:
             target_world = world_matrix(obj, depsgraph)
-            state = read_cage(cage, depsgraph, relations.evaluates(obj, deformer, cage, depsgraph))
+            state = read_cage(cage, depsgraph, _evaluated(obj, deformer, cage, depsgraph))
             matrix = local_matrix(target_world, state.matrix_world)
         except np.linalg.LinAlgError:
             raise BindError(f"'{obj.name}' has a zero scale: fix its transform before binding") from None
@@ -332,7 +384,7 @@ class CageKind:
         if problem:
             return Motions.invalid(F, problem)
         try:
-            state = read_cage(cage, depsgraph, relations.evaluates(obj, deformer, cage, depsgraph))
+            state = read_cage(cage, depsgraph, _evaluated(obj, deformer, cage, depsgraph))
         except CageUnavailableError as exc:
             return Motions.invalid(F, f"{exc}: the mesh shows its rest shape")
         same = (len(state.points) == len(rest) and np.array_equal(state.loop_vertices, loops)
@@ -401,7 +453,7 @@ def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgra
 
     Only needed where the branch of log G matters: 'CHANNELS', a strength other than 0 and 1, and
     channels stored at bind. The reference is the cage's own turn since bind read from its rotation
-    channels (kinds.reference_rotvecs, in the target's space), the pivot its current origin in the
+    channels (transforms.reference_rotvecs, in the target's space), the pivot its current origin in the
     target's space. A cage back at its rest matrix after whole turns (its channels differ) gets
     G = identity so that the turns still count. ValueError when the channels cannot be unwrapped.
     """

@@ -1,0 +1,184 @@
+"""The kernel step of an update: each vertex's blend of its controls' parameters, as offsets from
+the rest shape (OFFSET path) or as affine motions (MOTION path), recomputing only the vertices whose
+result can change.
+
+v' = φ(Σ_k w_vk P_idx(v,k)) v (the affine blend, MATH.md §5), or the linear blend
+v' = (I + Σ_k w_vk (A_idx(v,k) − I)) v, followed by the kind's outer motion when it has one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import accel
+from ..core import deform
+from . import params as parameters
+from .bound import BoundData
+from .kinds import Motions
+
+#: Above this fraction of the vertices, an update recomputes everything (gathering and scattering the
+#: affected rows would cost more than it saves).
+INCREMENTAL_MAX_FRACTION = 0.6
+
+
+def redistribute(indices: np.ndarray, values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Weights with the slots of invalid controls zeroed and each row rescaled to its former sum, so a
+    skipped control's weight goes to the vertex's other controls. Rows left with no valid control
+    become zero (the vertex follows only `Motions.outer`)."""
+    kept = np.where(valid[indices], values, 0.0)
+    before, after = values.sum(axis=1), kept.sum(axis=1)
+    scale = np.divide(before, after, out=np.zeros_like(before), where=after > 0.0)
+    return kept * scale[:, None]
+
+
+def _values(deformer, motions: Motions, bound: BoundData) -> np.ndarray:
+    """The bound weights at the deformer's strength, with skipped controls' weight redistributed."""
+    if motions.valid is not None and not np.all(motions.valid):
+        return redistribute(bound.indices, bound.values, motions.valid) * deformer.strength
+    return bound.scaled_values(deformer.strength)
+
+
+def blend_offsets(deformer, motions: Motions, bound: BoundData,
+                  state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
+    """(v' − v for every rest vertex (N, 3) float64, rows): exactly zero when every control is at rest.
+
+    `rows` are the only vertices whose offsets may differ from the previous result of `bound` (None:
+    any may); `state` is what the result is computed with (Snapshot.result_state). The returned
+    array may be the cache's own (`bound.offsets`): callers must not modify it.
+    """
+    outer = parameters.outer_at_strength(motions, deformer.strength, deformer.branch_rule)
+    points = bound.points
+    if deformer.strength == 0.0 or len(motions.matrices) == 0 or (np.all(motions.at_rest) and outer is None):
+        bound.forget_result()
+        return np.zeros(points.shape, dtype=np.float64), None
+    if np.all(motions.at_rest):
+        bound.forget_result()
+        deformed = points.copy()
+    elif (deformer.blend_mode != "LINEAR" and outer is None
+          and (motions.valid is None or np.all(motions.valid))):
+        return _offsets_affine(deformer, motions, bound, state)
+    else:
+        bound.forget_result()
+        indices, values = bound.indices, _values(deformer, motions, bound)
+        if deformer.blend_mode == "LINEAR":
+            deformed = deform.blend_linear_sparse(points, motions.matrices, indices, values)
+        else:
+            params = parameters.motions_to_params(motions, deformer.branch_rule)
+            deformed = accel.deform_points_params(points, params, indices, values)
+    if outer is not None:
+        deformed = deformed @ outer[:3, :3].T + outer[:3, 3]
+    return deformed - points, None
+
+
+def _offsets_affine(deformer, motions: Motions, bound: BoundData,
+                    state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
+    """`blend_offsets` for the plain affine blend, recomputing only the vertices whose result can differ
+    from the cached one: those with a non-zero weight on a control whose parameters changed bitwise.
+    The others keep their cached offsets, which equal a recomputation bit for bit (a vertex's result
+    depends only on its rest position, its weights and its controls' parameters; the kernel's rows
+    are independent of how vertices are grouped). Controls at rest have zero parameters, so vertices
+    that only they influence keep offset 0, exactly what φ(0) gives."""
+    params = parameters.motions_to_params(motions, deformer.branch_rule)
+    values = bound.scaled_values(deformer.strength)
+    points = bound.points
+    key = (bound.serial, deformer.strength)
+    offsets = bound.offsets
+    rows = _changed_rows(bound, offsets, params, state)
+    if rows is not None:
+        if len(rows):
+            # The kernel also rounds the rows it computes into the copy of the attribute, so
+            # `outputs.write_offsets` writes that copy as it is (same condition there: keep in step).
+            written = bound.written
+            out32 = written if written is not None and written.shape == offsets.shape else None
+            accel.deform_points_params_rows(points, params, bound.indices, values, rows, offsets,
+                                             offsets=True, key=key, out32=out32)
+        bound.params = params
+        return offsets, rows
+    bound.forget_result()
+    offsets = accel.deform_points_params(points, params, bound.indices, values, key=key)
+    offsets -= points
+    bound.state, bound.params, bound.offsets = state, params, offsets
+    return offsets, None
+
+
+def _changed_rows(bound: BoundData, previous: np.ndarray | None, params: np.ndarray,
+                  state: tuple) -> np.ndarray | None:
+    """The vertices to recompute when `previous` (the cached result) was computed with the same
+    `state` (the snapshot's result state: path, strength, branch rule, kernel backend — the two
+    kernels agree to ~1e-15, not bit for bit, and an incremental update must equal a full recompute
+    exactly): those with weight on a control whose parameter row changed bitwise. None: recompute
+    everything (no usable previous result, or too many rows changed)."""
+    if previous is None or bound.state != state or bound.params.shape != params.shape:
+        return None
+    changed = np.flatnonzero((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1))
+    rows = bound.affected_rows(changed)
+    return rows if len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points) else None
+
+
+def blend_motions(deformer, motions: Motions, bound: BoundData,
+                  state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
+    """(each rest vertex's motion x ↦ M x + t as (4, N, 3) float32 columns M e_x, M e_y, M e_z, t,
+    rows): the motion path's counterpart of `blend_offsets` (same rules, same `rows` meaning); exactly the
+    identity when every control is at rest. The array may be the cache's own: do not modify it."""
+    outer = parameters.outer_at_strength(motions, deformer.strength, deformer.branch_rule)
+    n = len(bound.points)
+    if (deformer.blend_mode != "LINEAR" and outer is None
+            and (motions.valid is None or np.all(motions.valid))):
+        return _motions_affine(deformer, motions, bound, state)
+    bound.forget_result()
+    if deformer.strength == 0.0 or len(motions.matrices) == 0 or np.all(motions.at_rest):
+        result = _identity_motions(n)
+    else:
+        indices, values = bound.indices, _values(deformer, motions, bound)
+        if deformer.blend_mode == "LINEAR":
+            result = _linear_motions(motions.matrices, indices, values)
+        else:
+            params = parameters.motions_to_params(motions, deformer.branch_rule)
+            result = accel.vertex_motions(params, indices, values)
+    if outer is not None:
+        result = _compose(outer, result)
+    return np.ascontiguousarray(result, dtype=np.float32), None
+
+
+def _identity_motions(n: int) -> np.ndarray:
+    result = np.zeros((4, n, 3))
+    for c in range(3):
+        result[c, :, c] = 1.0
+    return result
+
+
+def _linear_motions(matrices: np.ndarray, indices: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The 'LINEAR' blend as motions: M = I + Σ_k w_k (M_k − I), t = Σ_k w_k t_k (the identity carries
+    the leftover weight, as in deform.blend_linear_sparse), (4, N, 3) float64."""
+    m = len(matrices)
+    table = (matrices[:, :3, :] - np.eye(3, 4)).transpose(0, 2, 1).reshape(m, 12)
+    blended = deform.blend_params(table, indices, values).reshape(-1, 4, 3).transpose(1, 0, 2)
+    return blended + _identity_motions(len(indices))
+
+
+def _compose(outer: np.ndarray, motions: np.ndarray) -> np.ndarray:
+    """Motions (4, N, 3) followed by the affine map `outer` (4, 4): columns G₃ M e_c, and G₃ t + g."""
+    result = np.asarray(motions, dtype=np.float64) @ outer[:3, :3].T
+    result[3] += outer[:3, 3]
+    return result
+
+
+def _motions_affine(deformer, motions: Motions, bound: BoundData,
+                    state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
+    """`blend_motions` for the plain affine blend, recomputing only the vertices whose motion can
+    differ from the cached one (the rule of `_offsets_affine`, for motions instead of offsets)."""
+    params = parameters.motions_to_params(motions, deformer.branch_rule)
+    values = bound.scaled_values(deformer.strength)
+    key = (bound.serial, deformer.strength)
+    result = bound.motions
+    rows = _changed_rows(bound, result, params, state)
+    if rows is not None:
+        if len(rows):
+            accel.vertex_motions(params, bound.indices, values, out=result, rows=rows, key=key)
+        bound.params = params
+        return result, rows
+    bound.forget_result()
+    result = accel.vertex_motions(params, bound.indices, values,
+                                  out=np.empty((4, len(bound.points), 3), dtype=np.float32), key=key)
+    bound.state, bound.params, bound.motions = state, params, result
+    return result, None

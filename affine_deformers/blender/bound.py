@@ -1,0 +1,132 @@
+"""Bind data of each deformer as the update uses it: read from the mesh once per bind generation,
+kept with the deformer's last result so an update recomputes only what changed.
+
+The .blend holds the truth (weights as hidden mesh attributes, storage.py); `_bound` is a cache of
+it, keyed so that any change of the mesh, the bind or the rest shape rebuilds the entry.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import bpy
+import numpy as np
+
+from . import storage
+
+_bound: dict[tuple[int, str], BoundData] = {}
+_serial = itertools.count(1)
+
+
+@dataclass
+class BoundData:
+    """Bind data of one deformer read once per bind generation, plus its last result (a cache: the .blend
+    holds the truth, and every value here is recomputed from it when the key no longer matches).
+
+    key = (mesh session uid, bind generation, vertex count, control count); `rest32` is checked against
+    the mesh on every evaluation (a cheap array compare), so edits of the rest shape (Edit Mode, Sculpt
+    Mode, scripts) are seen without rebinding. `serial` changes whenever the entry is rebuilt.
+    `written` is what this process last wrote to the offset attribute, so an update writes it
+    without reading the attribute back (a write by anyone else to that attribute is not supported;
+    undo and file load drop the cache). The last result (`state`, `params`, `offsets`) lets an
+    update recompute only the vertices with a non-zero weight on a control whose blend parameters
+    changed: every vertex's result depends only on its own rest position, weights and the parameters
+    of its controls, so this is bit-identical to a full recompute.
+    """
+
+    key: tuple
+    serial: int
+    rest32: np.ndarray  # (N, 3) float32, exactly as stored in the mesh
+    points: np.ndarray  # (N, 3) float64
+    indices: np.ndarray  # (N, K) int32
+    values: np.ndarray  # (N, K) float64, strength not applied
+    scaled: tuple[float, np.ndarray] | None = None  # (strength, values · strength)
+    csr: tuple[np.ndarray, np.ndarray] | None = None  # per control: the rows it influences
+    state: tuple | None = None  # settings `params` and `offsets` were computed with
+    params: np.ndarray | None = None  # (m, 12) blend parameters of the last result
+    offsets: np.ndarray | None = None  # (N, 3) float64 last offsets
+    written: np.ndarray | None = None  # (N, 3) float32 the offset attribute holds (None = unknown)
+    motions: np.ndarray | None = None  # (4, N, 3) float32 last motions (motion path)
+    motions_written: np.ndarray | None = None  # (4, N, 3) float32 the motion attributes hold (None = unknown)
+
+    def scaled_values(self, strength: float) -> np.ndarray:
+        if self.scaled is None or self.scaled[0] != strength:
+            self.scaled = (strength, self.values * strength)
+        return self.scaled[1]
+
+    def affected_rows(self, controls: np.ndarray) -> np.ndarray:
+        """Sorted vertices with a non-zero weight on any of `controls`; O(affected) to gather (plus
+        one boolean pass over the vertices), from per-control row lists built once per generation."""
+        if self.csr is None:
+            m = len(self.params) if self.params is not None else int(self.indices.max(initial=-1)) + 1
+            rows, slots = np.nonzero(self.values)
+            cols = self.indices[rows, slots]
+            order = np.argsort(cols, kind="stable")
+            ptr = np.zeros(m + 1, dtype=np.intp)
+            np.cumsum(np.bincount(cols, minlength=m), out=ptr[1:])
+            self.csr = (ptr, rows[order].astype(np.intp))
+        ptr, rows = self.csr
+        if len(controls) == 1:  # one control's rows are already sorted and distinct
+            return rows[ptr[controls[0]] : ptr[controls[0] + 1]]
+        mask = np.zeros(len(self.points), dtype=bool)
+        for i in controls:
+            mask[rows[ptr[i] : ptr[i + 1]]] = True
+        return np.flatnonzero(mask)
+
+    def forget_result(self) -> None:
+        self.state = self.params = self.offsets = self.motions = None
+
+
+def forget(key: tuple[int, str] | None = None) -> None:
+    """Drop the cached bind data of one deformer ((object session uid, deformer uid)) or of all."""
+    if key is None:
+        _bound.clear()
+    else:
+        _bound.pop(key, None)
+
+
+def cached(obj: bpy.types.Object, deformer) -> BoundData | None:
+    """The cached entry of `deformer` on `obj`, if any (not checked against the mesh)."""
+    return _bound.get((obj.session_uid, deformer.uid))
+
+
+def bind_data(obj: bpy.types.Object, deformer, n_controls: int) -> BoundData:
+    """The cached bind data of `deformer`, re-read when the bind generation, mesh, vertex or control
+    count changed or the rest positions differ from the cached ones. Raises storage.StorageError."""
+    mesh = obj.data
+    rest = storage.read_positions(mesh)
+    key = (mesh.session_uid, deformer.bind_generation, len(rest), n_controls)
+    cache_key = (obj.session_uid, deformer.uid)
+    bound = _bound.get(cache_key)
+    if bound is not None and bound.key == key and np.array_equal(bound.rest32, rest):
+        return bound
+    _bound.pop(cache_key, None)
+    _check_vertices(mesh, deformer, rest)
+    indices, values = storage.read_weights(mesh, deformer.uid, n_controls)
+    bound = BoundData(key, next(_serial), rest, rest.astype(np.float64), indices, values)
+    _bound[cache_key] = bound
+    return bound
+
+
+def _check_vertices(mesh: bpy.types.Mesh, deformer, rest32: np.ndarray) -> None:
+    """Raise StorageError when the mesh's vertices are no longer the ones the weights were bound to.
+
+    Compared with the signature stored at bind (storage.topology_signature): a change of the shape
+    alone (Edit / Sculpt Mode moves) or of the connectivity alone (faces added or deleted, vertices in
+    place) keeps the vertices and is accepted — the stored signature follows it; both at once, as
+    deleting one vertex and adding another gives, means the indices were renumbered. Called only
+    when the rest positions differ from the cached ones (or on the first read), so updates pay nothing.
+    """
+    stored = deformer.bound_topology
+    if not stored:  # bound by 0.1.0
+        return
+    now = storage.topology_signature(mesh, rest32)
+    if now == stored:
+        return
+    connectivity, shape = stored.split(":")
+    connectivity_now, shape_now = now.split(":")
+    if connectivity != connectivity_now and shape != shape_now:
+        raise storage.StorageError("The mesh's vertices changed since bind (deleted and added?): the "
+                                   "topology changed, rebind the deformer")
+    deformer.bound_topology = now

@@ -1,0 +1,83 @@
+"""The application handlers: frame changes, depsgraph updates, file load, undo / redo, render start.
+
+All are @persistent and never let an exception escape (a bug must not take Blender down); the
+updates they start are guarded against re-entrancy (evaluate.run: an update writes mesh attributes,
+which triggers another depsgraph update).
+"""
+
+from __future__ import annotations
+
+import traceback
+
+import bpy
+from bpy.app.handlers import persistent
+
+from . import caches, evaluate, relations
+
+
+@persistent
+def on_frame_change_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None) -> None:
+    evaluate.run(scene, depsgraph)
+
+
+@persistent
+def on_depsgraph_update_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None) -> None:
+    evaluate.run(scene, depsgraph)
+
+
+@persistent
+def on_load_post(*_args) -> None:
+    caches.forget()
+    try:
+        relations.upgrade_all()  # versioning: node groups and control inputs of older files
+    except Exception:
+        traceback.print_exc()
+    try:
+        if bpy.context.scene is not None:
+            evaluate.run(bpy.context.scene, bpy.context.evaluated_depsgraph_get())
+    except Exception:
+        traceback.print_exc()
+
+
+@persistent
+def on_undo_redo(*_args) -> None:
+    # Undo restores mesh attributes and transforms together; cached signatures may describe neither.
+    caches.forget()
+
+
+@persistent
+def on_render_start(scene: bpy.types.Scene, *_args) -> None:
+    # Handlers write mesh data during renders: the interface must be locked or Blender may crash.
+    try:
+        if not scene.render.use_lock_interface:
+            scene.render.use_lock_interface = True
+    except Exception:
+        traceback.print_exc()
+
+
+HANDLERS = (
+    ("frame_change_post", on_frame_change_post),
+    ("depsgraph_update_post", on_depsgraph_update_post),
+    ("load_post", on_load_post),
+    ("undo_post", on_undo_redo),
+    ("redo_post", on_undo_redo),
+    ("render_init", on_render_start),
+    ("render_pre", on_render_start),
+)
+
+
+def register_handlers() -> None:
+    unregister_handlers()
+    for name, func in HANDLERS:
+        getattr(bpy.app.handlers, name).append(func)
+
+
+def unregister_handlers() -> None:
+    # Match by qualified name too: after a reload the old function objects are different objects.
+    ours = {(f.__module__, f.__name__) for _, f in HANDLERS}
+    for name, _func in HANDLERS:
+        handlers = getattr(bpy.app.handlers, name)
+        stale = [h for h in handlers if (getattr(h, "__module__", ""), getattr(h, "__name__", "")) in ours]
+        for h in stale:
+            handlers.remove(h)
+    caches.forget()

@@ -1,0 +1,160 @@
+"""What every deformer kind gives the shared bind / update machinery, and what it gets back.
+
+A kind is one kind of control (probe objects, the faces of a cage, …). The rest of the Blender layer
+knows kinds only through `DeformerKind`: binding asks it for the rest data and the weights, the
+update pipeline for the controls' current motions A_i = C_i · C_rest,i⁻¹ (`Motions`), relations for
+the objects to evaluate with the target, and the panel for its part of the interface. The update
+turns motions into blend parameters ψ(A_i) in one place (params.py); a kind never does.
+
+Matrices are expressed in the target's local space, C = target_world⁻¹ · control_world, and rounded
+to float32 exactly like stored rest matrices, so a control whose current matrix is bitwise equal to
+its rest matrix is recognised as "at rest" and contributes exactly the identity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
+
+import bpy
+import numpy as np
+
+
+class BindError(Exception):
+    """Bind-time failure with a message meant for the artist."""
+
+
+@dataclass
+class ChannelTurns:
+    """The controls' own rotation channels, for choosing the rotation-log branch (MATH.md §8).
+
+    rest_modes / rest_rotations (m, 4): the channels at bind; modes / rotations (m, 4): now (layout
+    of props.AffineDeformerProbe.rest_rotation: a quaternion, an axis-angle, or Euler angles and 0);
+    frames (m, 3, 3): the rotation taking vectors of the frame each control's channels turn in (its
+    parent frame) to the target's space (transforms.channel_frame); pivots (m, 3): the controls'
+    current origins in the target's space, about which a lifted rotation keeps its translation.
+    """
+
+    rest_modes: list[str]
+    rest_rotations: np.ndarray
+    modes: list[str]
+    rotations: np.ndarray
+    frames: np.ndarray
+    pivots: np.ndarray
+
+
+@dataclass
+class Motions:
+    """Current motions of a deformer's controls: the common core every kind fills.
+
+    matrices (m, 4, 4) float64: A_i in Aff+(3) (identity where at_rest); at_rest (m,) bool: control i
+    is exactly at its rest pose (its parameters are exactly zero); error: '' or a message naming the
+    first invalid control (the input then passes through unchanged); warning: a non-fatal status
+    (the deformation is still shown).
+
+    Optional parts, each None when a kind has no use for it:
+    turns: the rotation channels of controls that have them (probes), for the branch of ψ;
+    params (m, 12): blend parameters used instead of ψ(matrices), for controls whose parameters are
+      not ψ of one matrix (a cage face averages its corner tetrahedra; matrices then hold φ(params));
+    valid (m,) bool: False marks a control to skip — its weight goes to the vertex's other controls;
+    outer (4, 4): a motion applied after the blend, v' = outer · blend(v) (a cage object's motion);
+    outer_reference (3,) and outer_pivot (3,): the reference rotation vector and current origin of
+      the object `outer` belongs to, for the branch of ψ(outer) when it is scaled by a strength.
+    """
+
+    matrices: np.ndarray
+    at_rest: np.ndarray
+    error: str = ""
+    warning: str = ""
+    turns: ChannelTurns | None = None
+    params: np.ndarray | None = None
+    valid: np.ndarray | None = None
+    outer: np.ndarray | None = None
+    outer_reference: np.ndarray | None = None
+    outer_pivot: np.ndarray | None = None
+
+    @classmethod
+    def invalid(cls, m: int, error: str) -> Motions:
+        """m controls at rest with `error` (the update then shows the input unchanged)."""
+        return cls(np.broadcast_to(np.eye(4), (m, 4, 4)).copy(), np.ones(m, dtype=bool), error)
+
+    def key(self) -> tuple:
+        """The exact bits of everything in these motions (a part of the update's input snapshot)."""
+        turns = self.turns
+        return (self.matrices.tobytes(), self.at_rest.tobytes(), self.error, self.warning,
+                None if turns is None else (tuple(turns.modes), turns.rotations.tobytes(),
+                                            turns.frames.tobytes(), turns.pivots.tobytes()),
+                *(None if a is None else np.asarray(a).tobytes()
+                  for a in (self.params, self.valid, self.outer, self.outer_reference, self.outer_pivot)))
+
+
+@dataclass
+class Adopted:
+    """What a new deformer takes from the selection (DeformerKind.adopt_selection): its controls, the
+    objects made for it (removed again when its bind fails) and a warning for the report."""
+
+    controls: list
+    created: list
+    warning: str = ""
+
+
+def ignored_note(what: str, objects: list) -> str:
+    """'Ignored selected <what> objects: A, B' ('' when there are none), for an add report."""
+    return f"Ignored selected {what} objects: " + ", ".join(o.name for o in objects) if objects else ""
+
+
+class DeformerKind(Protocol):
+    """The interface of a deformer kind (see kinds/__init__.py for how one is registered).
+
+    id: the value of `AffineDeformer.kind` (and of kinds.KindId); label, description, icon and
+    add_description (the add operator's tooltip): how the interface names it; single_control: the
+    kind's controls are one object (named on the modifier's Object input; otherwise they go in its
+    probe collection, relations.py). Every method receives the target object and its deformer item."""
+
+    id: ClassVar[str]
+    label: ClassVar[str]
+    description: ClassVar[str]
+    icon: ClassVar[str]
+    add_description: ClassVar[str]
+    single_control: ClassVar[bool]
+
+    def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
+        """The controls a new deformer of this kind on `target` gets from the selection (objects may
+        be created, e.g. a probe when none is selected); BindError when the selection cannot make one,
+        with nothing created."""
+
+    def set_up(self, deformer, adopted: Adopted) -> None:
+        """Give a new, unbound deformer item its controls and the kind's defaults."""
+
+    def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
+        """The report after a new deformer of this kind was added and bound."""
+
+    def store_rest(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
+                   only: list[int] | None = None) -> None:
+        """Record the controls' current poses (all, or those at indices `only`) as their rest, on the
+        deformer item (saved in the .blend). BindError, with nothing stored, when they cannot be."""
+
+    def sparse_weights(self, obj: bpy.types.Object, deformer,
+                       rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        """(indices (N, K) int32, values (N, K) float64, warning) for the rest vertices, from the
+        stored rest data only (re-weighting never needs the current poses)."""
+
+    def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
+        """The controls' motions now, read from the evaluated `depsgraph`; never raises for bad input
+        (an invalid control is `Motions.invalid` with a message)."""
+
+    def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
+        """The objects the target must be evaluated with (never `obj` itself)."""
+
+    def draw_settings(self, layout: bpy.types.UILayout, deformer) -> None:
+        """The kind's options in the deformer panel (between the header and the common options)."""
+
+    def branch_rule_active(self, deformer) -> bool:
+        """Whether the branch rule changes anything with the deformer's current settings (the panel
+        greys it out otherwise)."""
+
+    def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
+        """The kind's control list, below the common options (nothing for a single-object kind)."""
+
+    def forget(self, key: tuple[int, str] | None = None) -> None:
+        """Drop the kind's caches for one deformer ((target session_uid, uid)) or for all."""

@@ -1,0 +1,167 @@
+"""Transforms of controls as every kind reads them: world → target space, relative motions, and the
+rotation channels that choose the rotation-log branch (MATH.md §8).
+
+C = target_world⁻¹ · control_world is rounded to float32 like the stored rest matrices (base.py), and
+A = C · C_rest⁻¹ has an exact (0, 0, 0, 1) bottom row.
+"""
+
+from __future__ import annotations
+
+import math
+
+import bpy
+import mathutils
+import numpy as np
+
+from ...core import aff3, unwrap
+
+
+def world_matrix(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
+    """World matrix (4, 4) float64 of `obj` as evaluated in `depsgraph` (bpy.data is stale in renders)."""
+    return np.array(obj.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
+
+
+def local_matrix(target_world: np.ndarray, control_world: np.ndarray) -> np.ndarray:
+    """C = target_world⁻¹ · control_world with an exact (0, 0, 0, 1) bottom row, rounded to float32.
+
+    Raises numpy.linalg.LinAlgError when the target's matrix is singular.
+    """
+    return local_solve(target_world, control_world)[0]
+
+
+def local_solve(target_world: np.ndarray, control_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(`local_matrix`, the float64 3×4 solve it was rounded from): the channel frame reuses the
+    solve's linear part (target_world⁻¹ · control_world's 3×3), so one LAPACK call serves both."""
+    out = np.zeros((4, 4), dtype=np.float64)
+    rhs = control_world[:3, :].copy()
+    rhs[:, 3] -= target_world[:3, 3]
+    solved = np.linalg.solve(target_world[:3, :3], rhs)
+    out[:3, :] = solved
+    out[3, 3] = 1.0
+    return out.astype(np.float32), solved
+
+
+def relative_motion(current: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """A = current · rest⁻¹ for affine 4×4 matrices, with an exact (0, 0, 0, 1) bottom row."""
+    out = np.eye(4)
+    lin = np.linalg.solve(rest[:3, :3].T, current[:3, :3].T).T
+    out[:3, :3] = lin
+    out[:3, 3] = current[:3, 3] - lin @ rest[:3, 3]
+    return out
+
+
+def rotation_channels(obj: bpy.types.Object, mode: str | None = None) -> tuple[float, ...]:
+    """The object's own rotation channels in the layout of props.AffineDeformerProbe.rest_rotation
+    (`mode`: obj.rotation_mode, when the caller has read it already)."""
+    if mode is None:
+        mode = obj.rotation_mode
+    if mode == "QUATERNION":
+        return tuple(obj.rotation_quaternion)
+    if mode == "AXIS_ANGLE":
+        return tuple(obj.rotation_axis_angle)
+    return (*obj.rotation_euler, 0.0)
+
+
+def _channel_matrix(mode: str, channels) -> np.ndarray:
+    channels = np.asarray(channels, dtype=np.float64)
+    return unwrap.channels_to_matrix(mode, channels if mode in ("QUATERNION", "AXIS_ANGLE") else channels[:3])
+
+
+def channel_frame(evaluated: bpy.types.Object, target_world: np.ndarray) -> np.ndarray:
+    """Rotation Q (3, 3) from the frame `evaluated`'s rotation channels turn in to the target's space.
+
+    Blender composes matrix_world = W·T·D·R·S (W: parent and constraints, T: location, D: delta
+    rotation, R: the channels' rotation, S: scale × delta scale), so turning the channels by ΔR
+    (R → ΔR·R) turns the object by ΔR in the frame of W·D, and Q is the rotation part of
+    target_world⁻¹·W·D = target_world⁻¹·matrix_world·S⁻¹·Rᵀ (polar split; a mirrored frame is
+    negated first, since rotation vectors are pseudovectors). Identity when that matrix is singular
+    or not finite: the motion is then rejected anyway, or the branch falls back to the shortest.
+    """
+    world = np.array(evaluated.matrix_world, dtype=np.float64)
+    try:
+        with np.errstate(all="ignore"):
+            linear = np.linalg.solve(target_world[:3, :3], world[:3, :3])
+    except np.linalg.LinAlgError:
+        return np.eye(3)
+    scale = (*evaluated.scale, *evaluated.delta_scale)
+    return frame_rotation(linear, evaluated.rotation_mode, rotation_channels(evaluated), scale)
+
+
+def frame_rotation(linear: np.ndarray, mode: str, channels, scale) -> np.ndarray:
+    """`channel_frame` from linear = target_world⁻¹ · matrix_world's 3×3 (float64), the rotation
+    channels and scale = (*scale, *delta_scale) as read from the evaluated object."""
+    R = _channel_matrix(mode, channels)
+    factors = np.array(scale, dtype=np.float64)
+    with np.errstate(all="ignore"):
+        frame = linear / (factors[:3] * factors[3:])[None, :] @ R.T
+    if not np.isfinite(frame).all():
+        return np.eye(3)
+    (a, b, c), (d, e, f), (g, h, i) = frame.tolist()
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    if not (math.isfinite(det) and abs(det) > 1e-30):
+        return np.eye(3)
+    rotation, _ = aff3.polar(frame if det > 0.0 else -frame)
+    return rotation
+
+
+def rest_channels_in_mode(rest_mode: str, rest_rotation, mode: str) -> tuple[float, float, float, float]:
+    """The rest rotation's channels in rotation mode `mode` (for a control whose mode changed since bind).
+
+    Same mode: unchanged. Otherwise the rest rotation matrix converted to the principal values of the
+    new mode (Euler angles in [-π, π], quaternion with w ≥ 0, axis-angle angle in [0, π]): turns keyed
+    in the new mode are then counted from there. Blender itself keeps Euler turns across an Euler order
+    switch but cannot carry them into a quaternion or axis-angle, so such a switch shows the rotation
+    the converted channels hold (at most one turn).
+    """
+    if rest_mode == mode:
+        return tuple(float(c) for c in rest_rotation)
+    matrix = mathutils.Matrix(_channel_matrix(rest_mode, rest_rotation).tolist())
+    if mode == "QUATERNION":
+        return tuple(matrix.to_quaternion())
+    if mode == "AXIS_ANGLE":
+        axis, angle = matrix.to_quaternion().to_axis_angle()
+        return (angle, *axis)
+    return (*matrix.to_euler(mode), 0.0)
+
+
+def reference_rotvecs(rest_modes: list[str], rest_rotations, modes: list[str], current_rotations,
+                      frames: np.ndarray | None = None) -> np.ndarray:
+    """Reference rotation vectors (m, 3) in the target's space for choosing the rotation-log branch.
+
+    w_ref,i = Q_i · channel_rotvec(mode_i, rest_i, current_i): control i's own turn since bind read
+    from its rotation channels (unwrapped along the straight channel path, so Rotation Z = 400°
+    means 400°; rest channels in another mode are converted, see `rest_channels_in_mode`), carried
+    into the target's space by its channel frame Q_i (`channel_frame`; None = identity frames).
+    Depends on the current frame's channels only. ValueError (from core.unwrap) when channels are
+    non-finite or turn too often to unwrap.
+    """
+    m = len(modes)
+    if m == 0:
+        return np.zeros((0, 3))
+    rest = np.array([rest_channels_in_mode(r_mode, r_rot, mode)
+                     for r_mode, r_rot, mode in zip(rest_modes, rest_rotations, modes, strict=True)])
+    w_channels = unwrap.channel_rotvec(list(modes), rest, np.asarray(current_rotations, dtype=np.float64))
+    if frames is None or len(frames) != m:
+        return w_channels
+    return np.einsum("mij,mj->mi", frames, w_channels)
+
+
+def in_a_scene(obj: bpy.types.Object) -> bool:
+    """`bool(obj.users_scene)` without its cost in the common case: users_scene lists every object of
+    every scene (O(objects) per call); a lookup by name finds the object directly, and only a miss
+    (e.g. a linked object sharing a local one's name) takes the full scan."""
+    name = obj.name
+    for scene in bpy.data.scenes:
+        if scene.objects.get(name) == obj:
+            return True
+    return bool(obj.users_scene)
+
+
+#: Blender clamps an infinite location or scale to ±3.4e38 (the float32 maximum): entries beyond this
+#: are treated as not finite, instead of sending the mesh there.
+MAX_COORDINATE = 1e30
+
+
+def finite_transform(matrix: np.ndarray) -> bool:
+    """Whether every entry of `matrix` is finite and below MAX_COORDINATE in magnitude (NaN fails too)."""
+    return bool(np.all(np.abs(matrix) < MAX_COORDINATE))

@@ -1,0 +1,185 @@
+"""Where a deformer's result goes: its modifier in the stack, the output path that is exact there,
+and the attribute writes (only when the values changed: a write tags the mesh for another update).
+
+OFFSET: v' − v from the rest shape (3 floats per vertex), exact only when the positions reaching the
+modifier are the mesh's own; MOTION: each vertex's affine map x ↦ M x + t as four vectors (MATH.md
+§11), applied by the modifier to whatever reaches it.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+from . import nodes, storage
+from .bound import BoundData
+
+
+def forget(key: tuple[int, str] | None = None) -> None:
+    """Drop the remembered modifier names (all, or of one (object session uid, deformer uid))."""
+    if key is None:
+        _modifiers.clear()
+    else:
+        _modifiers.pop(key, None)
+
+
+#: (object session uid, deformer uid) → name of the modifier `nodes.find_modifier` found last time.
+_modifiers: dict[tuple[int, str], str] = {}
+
+
+def modifier(obj: bpy.types.Object, uid: str) -> bpy.types.Modifier | None:
+    """`nodes.find_modifier(obj, offset attribute of uid)`, trying the modifier found last time first:
+    it still counts when it is still ours and still reads this deformer's attribute (the same test
+    find_modifier applies), otherwise the stack is searched again."""
+    key = (obj.session_uid, uid)
+    offset_attr = storage.offset_name(uid)
+    name = _modifiers.get(key)
+    if name is not None:
+        mod = obj.modifiers.get(name)
+        if nodes.is_modifier_for(mod, offset_attr):
+            return mod
+    mod = nodes.find_modifier(obj, offset_attr)
+    if mod is None:
+        _modifiers.pop(key, None)
+        return None
+    _modifiers[key] = mod.name
+    return mod
+
+
+def has_modifier(obj: bpy.types.Object, uid: str) -> bool:
+    return modifier(obj, uid) is not None
+
+
+#: Modifier types that rebuild the mesh from scratch and drop its point attributes: a deformer after
+#: one of them receives no motions (measured on 4.2 and 5.0; Subdivision, Multires, Mirror, Array,
+#: Bevel, Solidify, Triangulate, Decimate, Weld, Edge Split, Screw, Wireframe and Boolean keep or
+#: interpolate them).
+DROPS_ATTRIBUTES = frozenset({"REMESH", "SKIN", "OCEAN"})
+
+
+def output_path(obj: bpy.types.Object, deformer, rest32: np.ndarray) -> tuple[str, str]:
+    """('OFFSET' or 'MOTION', error) for the deformer's modifier where it stands in the stack.
+
+    OFFSET (v' − v from the rest shape, 3 floats per vertex) is exact only when the positions that
+    reach the modifier are the mesh's own (`rest32`, as stored): no modifier before it is enabled in
+    the viewport or in renders, and the mesh has no shape keys, or only its reference key holding
+    exactly those positions (a Basis nothing is keyed on yet). Otherwise MOTION: each vertex's affine
+    map, applied to whatever reaches the modifier. A modifier before it that drops point attributes is
+    an error naming it (the modifier then passes its input through)."""
+    mod = modifier(obj, deformer.uid)
+    before = []
+    for other in obj.modifiers:
+        if other == mod:
+            break
+        if other.show_viewport or other.show_render:
+            before.append(other)
+    if not before and keys_keep_rest(obj.data, rest32):
+        return "OFFSET", ""
+    for other in before:
+        if other.type in DROPS_ATTRIBUTES:
+            return "MOTION", (f"'{other.name}' rebuilds the mesh before '{mod.name}', which then gets no "
+                              f"per-vertex motions: move '{other.name}' below '{mod.name}' in the stack "
+                              "(until then the deformer has no effect)")
+    return "MOTION", ""
+
+
+def keys_keep_rest(mesh: bpy.types.Mesh, rest32: np.ndarray) -> bool:
+    """Whether the shape keys (if any) leave the mesh's stored positions as they are: none, or only the
+    reference key, holding exactly `rest32`."""
+    key = mesh.shape_keys
+    if key is None:
+        return True
+    if len(key.key_blocks) != 1:
+        return False
+    basis = np.empty(rest32.size, dtype=np.float32)
+    key.key_blocks[0].data.foreach_get("co", basis)
+    return np.array_equal(basis.reshape(rest32.shape), rest32)
+
+
+def write_motions(mesh: bpy.types.Mesh, uid: str, result: np.ndarray, rows: np.ndarray | None,
+                   bound: BoundData | None) -> None:
+    """Write `result` (4, N, 3) float32 to the motion attributes unless they already hold it (as
+    `write_offsets`: an incremental result is written when rows changed, a full one when it differs
+    from what this process wrote last, or from what the mesh holds when that is unknown), and drop the
+    offset attribute, which would add to the motion."""
+    if storage.remove_output(mesh, uid, keep="MOTION"):
+        mesh.update_tag()
+        if bound is not None:
+            bound.written = None
+    known = bound.motions_written if bound is not None else None
+    if known is not None and known.shape == result.shape:
+        if rows is not None and len(rows) == 0 and known is result:
+            return
+        if rows is None and known is not result and np.array_equal(known, result):
+            if bound.motions is result:
+                bound.motions = known  # keep one array: later incremental updates write into it
+            return
+    elif rows is None:
+        stored = storage.read_motions(mesh, uid)
+        if stored is not None and np.array_equal(stored, result):
+            if bound is not None:
+                bound.motions_written = result
+            return
+    storage.write_motions(mesh, uid, result)
+    if bound is not None:
+        bound.motions_written = result
+
+
+def finite_motions(result: np.ndarray, rows: np.ndarray | None) -> bool:
+    """Whether the motions (4, N, 3) are all finite, given that only `rows` changed (see `finite_offsets`)."""
+    # A float32 dot product (BLAS): it also overflows to inf for entries beyond ~1e19, which a float32
+    # position could not use either.
+    if rows is not None:
+        if len(rows) == 0:
+            return True
+        if 4 * len(rows) < result.shape[1]:
+            changed = np.take(result, rows, axis=1).reshape(-1)
+            return bool(np.isfinite(np.dot(changed, changed)))
+    flat = result.reshape(-1)
+    return bool(np.isfinite(np.dot(flat, flat)))
+
+
+def finite_offsets(offsets: np.ndarray, rows: np.ndarray | None) -> bool:
+    """Whether `offsets` (N, 3) float64 are all finite, given that only `rows` (None: any) changed since
+    they were last found finite (an incremental result starts from a checked one: a failed check
+    drops it, see evaluate_deformer).
+
+    One dot product x·x instead of a (N, 3) boolean array: NaN and ±inf propagate into it, and it only
+    overflows for some |x| > 1.3e154, which float32 storage would turn into ±inf anyway.
+    """
+    if rows is not None:
+        if len(rows) == 0:
+            return True
+        if 4 * len(rows) < len(offsets):  # a gather of few rows costs less than a pass over all
+            changed = np.take(offsets, rows, axis=0).reshape(-1)
+            return bool(np.isfinite(np.dot(changed, changed)))
+    flat = offsets.reshape(-1)
+    return bool(np.isfinite(np.dot(flat, flat)))
+
+
+def write_offsets(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray, rows: np.ndarray | None,
+                   bound: BoundData | None) -> None:
+    """Write `offsets` to the offset attribute unless it already holds them (a write tags the mesh,
+    which triggers another depsgraph update).
+
+    With `bound`'s copy of the attribute nothing is read back from the mesh: an incremental result
+    (`rows` not None) is written when rows were recomputed (their parameters changed, so they almost
+    always moved; an identical write only costs one more, signature-cached, update) and skipped when
+    none were; a full result is compared with the copy. Without a copy the attribute is read back.
+    An incremental result's rows are already in the copy: `blend.offsets_affine` had the kernel round them
+    into it (float32(offset), what a cast of the whole array would give), so nothing is converted here.
+    """
+    if bound is not None and bound.written is not None and bound.written.shape == offsets.shape:
+        if rows is not None and len(rows) == 0:
+            return
+        if rows is None:
+            fresh = offsets.astype(np.float32)
+            if np.array_equal(bound.written, fresh):
+                return
+            bound.written = fresh
+        storage.write_offsets_unchecked(mesh, uid, bound.written)
+        return
+    fresh = np.array(offsets, dtype=np.float32, order="C")  # always a copy: `offsets` may be a cache's
+    storage.write_offsets(mesh, uid, fresh)  # compares with what the mesh holds
+    if bound is not None:
+        bound.written = fresh

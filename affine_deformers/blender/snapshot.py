@@ -1,0 +1,113 @@
+"""The inputs of one deformer update, taken once; every cache key of the update derives from them.
+
+`take` reads everything an update depends on — the pre-checks, the kind's current motions, the bind
+data, the output path, the deformer's settings and the kernel backend — into a `Snapshot`:
+
+* `Snapshot.signature()` is the update's key: equal signatures mean the written output is already
+  right (evaluate.evaluate_deformer returns at once);
+* `Snapshot.result_state()` is what a cached result was computed with (bound.BoundData.state): a
+  result is reused incrementally only under the same state;
+* the per-control parameter memo (params.py) is keyed on the bits of `Snapshot.motions` rows.
+
+Every property of a deformer item is either read into the snapshot or declared below with the reason
+it does not need to be (tests/blender/test_structure.py changes each one and checks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import bpy
+
+from .. import accel
+from . import bound as bound_data
+from . import kinds, outputs, storage
+from .bound import BoundData
+from .kinds import Motions
+
+#: Deformer properties the update reads itself: their values are in `Snapshot.settings`.
+SETTINGS = ("strength", "blend_mode", "branch_rule", "bind_generation")
+
+#: Deformer properties an update does not read directly, and why that is safe.
+DECLARED = {
+    # Re-weighting (binding.reweight) runs when one of these changes and bumps bind_generation.
+    "weight_mode": "re-weights: bind_generation", "radius": "re-weights: bind_generation",
+    "exponent": "re-weights: bind_generation", "normalize": "re-weights: bind_generation",
+    "mask_group": "re-weights: bind_generation", "max_influences": "re-weights: bind_generation",
+    "half_space": "re-weights: bind_generation", "cage_weights": "re-weights: bind_generation",
+    "bind_warning": "written by re-weighting: bind_generation",
+    # Read by the kind: their effect is in Snapshot.motions.
+    "probes": "read by the kind: motions", "cage": "read by the kind: motions",
+    "cage_rest_matrix": "read by the kind: motions", "cage_rest_rotation_mode": "read by the kind: motions",
+    "cage_rest_rotation": "read by the kind: motions",
+    # Read by the pre-checks: their effect is in Snapshot.error.
+    "kind": "pre-check: error", "is_bound": "pre-check: error", "bound_flag": "pre-check: error",
+    "bound_vertex_count": "pre-check: error", "bound_topology": "checked with the bind data: error",
+    # Not inputs of the deformation.
+    "name": "a label", "uid": "names the attributes: part of the cache key itself",
+    "active_probe_index": "interface only", "status": "the update's output",
+    "show_viewport": "the modifier's own toggle (Blender skips a disabled modifier)",
+    "show_render": "the modifier's own toggle (Blender skips a disabled modifier)",
+}
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """The inputs of one update of one deformer (see the module docstring). `motions` and `bound` are
+    carried for the computation; they enter the comparisons through `motions_key` and `serial`."""
+
+    mesh: int  # the mesh's session uid
+    serial: int | None  # the bind data entry read (bound.BoundData.serial), None without one
+    error: str
+    path: str  # 'OFFSET' or 'MOTION' (outputs.output_path)
+    settings: tuple  # values of SETTINGS
+    motions_key: tuple | None  # Motions.key()
+    backend: bool  # the compiled kernel is active (the kernels agree to ~1e-15, not bit for bit)
+    motions: Motions | None = field(default=None, compare=False)
+    bound: BoundData | None = field(default=None, compare=False)
+
+    def signature(self) -> tuple:
+        return (self.mesh, self.serial, self.error, self.path, self.settings, self.motions_key, self.backend)
+
+    def result_state(self) -> tuple:
+        """What a result is computed with besides the parameters (the incremental update's key)."""
+        strength, _blend, branch_rule, _generation = self.settings
+        return (self.path, strength, branch_rule, self.backend)
+
+
+def precheck(obj: bpy.types.Object, deformer) -> str:
+    """Why the deformer cannot be evaluated at all ('' when it can be)."""
+    if obj.type != "MESH":
+        return f"'{obj.name}' is not a mesh: the deformer has no effect"
+    if kinds.get(deformer.kind) is None:
+        return f"Deformer kind '{deformer.kind}' is not available in this version"
+    if not deformer.is_bound:
+        return "Not bound: press Bind" + (f" ({deformer.bind_warning})" if deformer.bind_warning else "")
+    if not outputs.has_modifier(obj, deformer.uid):
+        return "The deformer's modifier was removed or applied: Rebind to recreate it"
+    n = len(obj.data.vertices)
+    if n != deformer.bound_vertex_count:
+        return (f"The mesh has {n} vertices but was bound with {deformer.bound_vertex_count}: "
+                "the topology changed, rebind the deformer")
+    return ""
+
+
+def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Snapshot:
+    """Read the inputs of an update of `deformer` on `obj` (a mesh) from the evaluated `depsgraph`."""
+    error = precheck(obj, deformer)
+    motions = bound = None
+    path = "OFFSET"
+    if not error:
+        motions = kinds.get(deformer.kind).current_motions(obj, deformer, depsgraph)
+        error = motions.error
+    if not error:
+        try:
+            bound = bound_data.bind_data(obj, deformer, len(motions.matrices))
+        except storage.StorageError as exc:
+            error = str(exc)
+    if not error:
+        path, error = outputs.output_path(obj, deformer, bound.rest32)
+    return Snapshot(
+        obj.data.session_uid, None if bound is None else bound.serial, error, path,
+        tuple(getattr(deformer, name) for name in SETTINGS),
+        None if motions is None else motions.key(), accel.active(), motions, bound)
