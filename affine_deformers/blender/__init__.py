@@ -9,9 +9,10 @@ import traceback
 
 import bpy
 
-from . import bake, handlers, operators, panels, prefs, props, relations
+from . import armature_convert, bake, handlers, operators, panels, prefs, props, relations
 
-CLASSES = (*prefs.CLASSES, *props.CLASSES, *operators.CLASSES, *bake.CLASSES, *panels.CLASSES)
+CLASSES = (*prefs.CLASSES, *props.CLASSES, *operators.CLASSES, *bake.CLASSES, *armature_convert.CLASSES,
+           *panels.CLASSES)
 
 
 def register() -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import kinds
+from . import armature_convert, kinds
 from .bake import AFFINE_OT_deformer_bake, AFFINE_OT_deformer_unbake, bake_state
 
 
@@ -38,6 +38,20 @@ class AFFINE_UL_probes(bpy.types.UIList):
         row.prop(item, "weight_scale", text="")
 
 
+class AFFINE_UL_bones(bpy.types.UIList):
+    """The bones of a bone deformer: name (a missing bone is flagged) and weight scale."""
+
+    def draw_item(self, _context, layout, data, item, _icon, _active_data, _active_prop, _index=0):
+        row = layout.row(align=True)
+        armature = data.armature
+        found = armature is not None and armature.data.bones.get(item.name) is not None
+        if found:
+            row.label(text=item.name, icon="BONE_DATA")
+        else:
+            row.label(text=f"{item.name} (missing)", icon="ERROR")
+        row.prop(item, "weight_scale", text="")
+
+
 class AFFINE_PT_deformers(bpy.types.Panel):
     """Affine Deformers of the active object."""
 
@@ -59,6 +73,7 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         col = row.column(align=True)
         for kind in kinds.KINDS.values():
             col.operator(kinds.add_operator_id(kind.id), icon=kind.icon, text="")
+        armature_convert.draw_convert(layout, obj)
         index = obj.affine_deformers_active_index
         if not 0 <= index < len(obj.affine_deformers):
             return
@@ -81,6 +96,7 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         kind = kinds.get(deformer.kind)
         if kind is None:
             return
+        armature_convert.draw_restore(layout, deformer, index)
         col = layout.column()
         col.use_property_split = True
         kind.draw_settings(col, deformer)
@@ -144,4 +160,4 @@ def draw_object_menu(self, _context: bpy.types.Context) -> None:
     self.layout.menu(AFFINE_MT_object.bl_idname)
 
 
-CLASSES = (AFFINE_UL_deformers, AFFINE_UL_probes, AFFINE_PT_deformers, AFFINE_MT_object)
+CLASSES = (AFFINE_UL_deformers, AFFINE_UL_probes, AFFINE_UL_bones, AFFINE_PT_deformers, AFFINE_MT_object)

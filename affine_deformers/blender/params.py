@@ -94,7 +94,9 @@ def _param_keys(motions: Motions, lift: bool) -> list[tuple]:
     m = len(motions.matrices)
     parts = [motions.matrices.reshape(m, 16), motions.at_rest.reshape(m, 1).astype(np.float64)]
     turns = motions.turns
-    if lift:
+    if lift and turns.references is not None:
+        parts += [turns.references.reshape(m, 3), turns.pivots.reshape(m, 3)]
+    elif lift:
         parts += [turns.rest_rotations.reshape(m, -1), turns.rotations.reshape(m, -1),
                   turns.frames.reshape(m, 9), turns.pivots.reshape(m, 3)]
     bits = np.ascontiguousarray(np.concatenate(parts, axis=1, dtype=np.float64))
@@ -107,7 +109,9 @@ def _param_keys(motions: Motions, lift: bool) -> list[tuple]:
 def _params_of_rows(motions: Motions, rows: np.ndarray, lift: bool) -> np.ndarray:
     """ψ(A_i), lifted to the channels' branch when `lift`, of the controls `rows` (zero at rest)."""
     reference = pivots = None
-    if lift:
+    if lift and motions.turns.references is not None:
+        reference, pivots = motions.turns.references[rows], motions.turns.pivots[rows]
+    elif lift:
         turns = motions.turns
         reference = reference_rotvecs([turns.rest_modes[i] for i in rows], turns.rest_rotations[rows],
                                       [turns.modes[i] for i in rows], turns.rotations[rows],

@@ -73,13 +73,15 @@ def _search_vertex_groups(self: AffineDeformer, _context: bpy.types.Context, _te
     return [g.name for g in obj.vertex_groups] if isinstance(obj, bpy.types.Object) else []
 
 
-def _owner_deformer(probe: AffineDeformerProbe) -> tuple[bpy.types.Object, AffineDeformer, int] | None:
-    """The object and deformer holding `probe`, and its index (property groups do not know their parent)."""
-    obj = probe.id_data
-    path = probe.path_from_id()  # 'affine_deformers[i].probes[j]'
-    if not isinstance(obj, bpy.types.Object) or ".probes[" not in path:
+def _owner_deformer(item) -> tuple[bpy.types.Object, AffineDeformer, int] | None:
+    """The object and deformer holding a probe or bone item, and its index (property groups do not
+    know their parent)."""
+    obj = item.id_data
+    path = item.path_from_id()  # 'affine_deformers[i].probes[j]' or '….bones[j]'
+    collection = next((c for c in (".probes[", ".bones[") if c in path), None)
+    if not isinstance(obj, bpy.types.Object) or collection is None:
         return None
-    deformer_path, index = path.rsplit(".probes[", 1)
+    deformer_path, index = path.rsplit(collection, 1)
     return obj, obj.path_resolve(deformer_path), int(index.rstrip("]"))
 
 
@@ -140,6 +142,30 @@ class AffineDeformerProbe(bpy.types.PropertyGroup):
         description="Multiplies this probe's raw weight before normalisation")
 
 
+class AffineDeformerBone(bpy.types.PropertyGroup):
+    """One bone control of a bone deformer: `name` is the bone's name in the deformer's armature (its
+    painted weights are the vertex group of that name, as the Armature modifier reads them)."""
+
+    weight_scale: FloatProperty(
+        name="Weight Scale", default=1.0, min=0.0, soft_max=4.0, update=_on_probe_weight_option,
+        description="Multiplies this bone's raw weight before normalisation")
+
+
+def _poll_armature(self: AffineDeformer, candidate: bpy.types.Object) -> bool:
+    return candidate.type == "ARMATURE"
+
+
+def _on_armature(self: AffineDeformer, _context: bpy.types.Context) -> None:
+    # A newly picked armature is bound at once (its deform bones become the controls).
+    obj = self.id_data
+    if binding.updates_suspended() or not isinstance(obj, bpy.types.Object) or self.kind != KindId.BONE:
+        return
+    if self.armature is not None and (self.is_bound or self.bind_generation > 0):
+        binding.rebind_safely(obj, self, "the new armature")
+    else:
+        relations.sync(obj, self)
+
+
 def _modifier(deformer: AffineDeformer) -> bpy.types.Modifier | None:
     obj = deformer.id_data
     if not isinstance(obj, bpy.types.Object) or not deformer.uid:
@@ -173,6 +199,12 @@ class AffineDeformer(bpy.types.PropertyGroup):
         name="Kind", items=kinds.enum_items(), default=kinds.REGISTERED[0].id)
     probes: CollectionProperty(type=AffineDeformerProbe)
     active_probe_index: IntProperty(name="Active Probe", default=0, min=0)
+    armature: PointerProperty(
+        name="Armature", type=bpy.types.Object, poll=_poll_armature, update=_on_armature,
+        description="Armature whose pose bones drive the target (its deform bones, at their rest pose "
+                    "in Edit Mode, are the rest)")
+    bones: CollectionProperty(type=AffineDeformerBone)
+    active_bone_index: IntProperty(name="Active Bone", default=0, min=0)
     cage: PointerProperty(
         name="Cage", type=bpy.types.Object, poll=_poll_cage, update=_on_cage_object,
         description="Closed mesh with outward normals whose faces drive the target (a new pick is bound "
@@ -273,7 +305,7 @@ class AffineDeformer(bpy.types.PropertyGroup):
         options={"HIDDEN"}, default=0, description="Bumped at every (re)weighting: evaluation cache key")
 
 
-CLASSES = (AffineDeformerProbe, AffineDeformer)
+CLASSES = (AffineDeformerProbe, AffineDeformerBone, AffineDeformer)
 
 
 def register_properties() -> None:

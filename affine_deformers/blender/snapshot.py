@@ -38,6 +38,7 @@ DECLARED = {
     "bind_warning": "written by re-weighting: bind_generation",
     # Read by the kind: their effect is in Snapshot.motions.
     "probes": "read by the kind: motions", "cage": "read by the kind: motions",
+    "armature": "read by the kind: motions", "bones": "read by the kind: motions",
     "cage_rest_matrix": "read by the kind: motions", "cage_rest_rotation_mode": "read by the kind: motions",
     "cage_rest_rotation": "read by the kind: motions",
     # Read by the pre-checks: their effect is in Snapshot.error.
@@ -45,7 +46,8 @@ DECLARED = {
     "bound_vertex_count": "pre-check: error", "bound_topology": "checked with the bind data: error",
     # Not inputs of the deformation.
     "name": "a label", "uid": "names the attributes: part of the cache key itself",
-    "active_probe_index": "interface only", "status": "the update's output",
+    "active_probe_index": "interface only", "active_bone_index": "interface only",
+    "status": "the update's output",
     "show_viewport": "the modifier's own toggle (Blender skips a disabled modifier)",
     "show_render": "the modifier's own toggle (Blender skips a disabled modifier)",
 }

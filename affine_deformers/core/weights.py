@@ -234,6 +234,24 @@ def top_k_dense(
                               continuous=False)
 
 
+def point_distances(points: FloatArray, centers: FloatArray) -> FloatArray:
+    """|p_n − c_i| (N, m) for points (N, 3) and centers (m, 3)."""
+    diff = points[:, None, :] - centers[None, :, :]
+    return np.sqrt(np.einsum("nmi,nmi->nm", diff, diff))
+
+
+def segment_distances(points: FloatArray, heads: FloatArray, tails: FloatArray) -> FloatArray:
+    """Distances (N, m) from points (N, 3) to the segments heads[i] → tails[i] (m, 3): to the closest
+    point h + t (e − h), t = clamp((p − h)·(e − h)/|e − h|², 0, 1) (a zero-length segment: its head)."""
+    axis = tails - heads
+    length2 = np.einsum("mi,mi->m", axis, axis)
+    diff = points[:, None, :] - heads[None, :, :]
+    t = np.einsum("nmi,mi->nm", diff, axis) / np.where(length2 > 0.0, length2, 1.0)
+    np.clip(t, 0.0, 1.0, out=t)
+    diff -= t[:, :, None] * axis[None, :, :]
+    return np.sqrt(np.einsum("nmi,nmi->nm", diff, diff))
+
+
 def probe_weights(
     points: ArrayLike,
     centers: ArrayLike,
@@ -246,9 +264,14 @@ def probe_weights(
     scales: ArrayLike | None = None,
     dense: ArrayLike | None = None,
     solved: ArrayLike | None = None,
+    tails: ArrayLike | None = None,
     chunk_size: int | None = None,
 ) -> tuple[IntArray, FloatArray]:
     """Sparse probe weights for points (N, 3) and probe rest positions centers (m, 3).
+
+    With `tails` (m, 3) each control is the segment centers[i] → tails[i] (a bone: head → tail) and
+    d is the distance to that segment, |p − (c + t (e − c))| with t = clamp((p − c)·(e − c)/|e − c|², 0, 1);
+    without, the distance to the point centers[i].
 
     mode 'INVERSE_DISTANCE': (radius/d)^exponent (radius is the reference distance, d floored);
     with normalize 'NONE' it is capped at 1 — a raw weight above 1 would apply a probe's motion more
@@ -273,6 +296,9 @@ def probe_weights(
     if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(ctr))):
         raise ValueError("points or probe positions contain non-finite coordinates")
     m = ctr.shape[0]
+    ends = None if tails is None else np.asarray(tails, dtype=np.float64)
+    if ends is not None and (ends.shape != ctr.shape or not np.all(np.isfinite(ends))):
+        raise ValueError(f"tails must be finite with the shape of centers {ctr.shape}, got {ends.shape}")
     scale = np.ones(m) if scales is None else np.asarray(scales, dtype=np.float64)
     if scale.shape != (m,) or not np.all(np.isfinite(scale)) or np.any(scale < 0.0):
         raise ValueError(f"scales must be {m} finite non-negative numbers")
@@ -304,8 +330,7 @@ def probe_weights(
                                  "with one flag per row")
 
         def distance_block(p: FloatArray) -> FloatArray:
-            diff = p[:, None, :] - ctr[None, :, :]
-            d = np.sqrt(np.einsum("nmi,nmi->nm", diff, diff))
+            d = segment_distances(p, ctr, ends) if ends is not None else point_distances(p, ctr)
             if mode == "FALLOFF":
                 return smooth_falloff(d, radius) * scale
             w = inverse_distance(d, exponent, radius)

@@ -112,7 +112,7 @@ def test_pre_checked_properties_change_the_error(bl, installed):
     assert "Not bound" in snapshot.take(target, deformer, bpy.context.evaluated_depsgraph_get()).error
 
 
-@pytest.mark.parametrize("kind_id", ["PROBE", "CAGE"])
+@pytest.mark.parametrize("kind_id", ["PROBE", "CAGE", "BONE"])
 def test_every_kind_implements_the_protocol(installed, kind_id):
     _snapshot, _props, kinds = _modules(installed)
     protocol = kinds.DeformerKind

@@ -88,6 +88,7 @@ def test_panel_draws_in_every_state(bl, panels):
         ("list", "affine_deformers"),
         ("operator", "object.affine_probe_deformer_add"),
         ("operator", "object.affine_cage_deformer_add"),
+        ("operator", "object.affine_bone_deformer_add"),
     ]
     probes = [bl.empty("A"), bl.empty("B", (0, 0, 1))]
     deformer = bl.add_probe_deformer(target, probes)
@@ -140,6 +141,32 @@ def test_menu_draws(panels):
     panels.AFFINE_MT_object.draw(menu, None)
     panels.draw_object_menu(menu, None)
     assert ("operator", "object.affine_probe_deformer_add") in log and ("menu", "AFFINE_MT_object") in log
+
+
+def test_bone_deformer_panel_and_convert_buttons(bl, panels):
+    target = bl.grid_cube(cuts=2)
+    data = bpy.data.armatures.new("Rig")
+    arm = bpy.data.objects.new("Rig", data)
+    bpy.context.scene.collection.objects.link(arm)
+    bpy.context.view_layer.objects.active = arm
+    bpy.ops.object.mode_set(mode="EDIT")
+    bone = data.edit_bones.new("Bone")
+    bone.head, bone.tail = (0.0, 0.0, -1.0), (0.0, 0.0, 1.0)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    native = target.modifiers.new("Armature", "ARMATURE")
+    native.object = arm
+    log = _draw_panel(panels, target)
+    assert ("operator", "object.affine_armature_convert") in log
+    with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target]):
+        assert bpy.ops.object.affine_armature_convert() == {"FINISHED"}
+    log = _draw_panel(panels, target)
+    assert ("list", "bones") in log and ("prop", "armature") in log
+    assert ("operator", "object.affine_armature_restore") in log
+    assert ("operator", "object.affine_armature_convert") not in log  # the modifier is disabled now
+    deformer = target.affine_deformers[0]
+    for item in deformer.bones:
+        panels.AFFINE_UL_bones.draw_item(None, None, RecordingLayout([]), deformer, item, 0, None, "")
+    panels.AFFINE_UL_deformers.draw_item(None, None, RecordingLayout([]), None, deformer, 0, None, "")
 
 
 def test_panel_hidden_for_non_mesh(bl, panels):

@@ -256,3 +256,33 @@ def test_property_sparse_weights(W: np.ndarray, k: int, mode: str, chunk: int) -
         assert np.all(total[~positive] == 0.0)
     ref = wt.top_k_dense(W, k, normalize=mode)
     assert np.array_equal(ref[0], idx) and np.array_equal(ref[1], val)
+
+
+def test_segment_distances_match_a_dense_sampling_of_the_segments():
+    from affine_deformers.core.weights import segment_distances
+
+    rng = np.random.default_rng(5)
+    points = rng.normal(size=(200, 3)) * 2.0
+    heads = rng.normal(size=(4, 3))
+    tails = heads + rng.normal(size=(4, 3))
+    tails[3] = heads[3]  # a zero-length segment: the distance to its head
+    t = np.linspace(0.0, 1.0, 20001)
+    samples = heads[:, None, :] + t[None, :, None] * (tails - heads)[:, None, :]  # (m, S, 3)
+    brute = np.sqrt(((points[:, None, None, :] - samples[None]) ** 2).sum(-1)).min(axis=2)
+    got = segment_distances(points, heads, tails)
+    assert np.allclose(got, brute, atol=1e-3)  # the sampling step bounds the brute-force error
+    assert np.allclose(got[:, 3], np.linalg.norm(points - heads[3], axis=1))
+    assert np.all(got <= brute + 1e-12)  # the exact minimum is never above a sampled one
+
+
+def test_probe_weights_with_tails_use_the_segment_distance():
+    from affine_deformers.core.weights import probe_weights
+
+    points = np.array([[0.5, 1.0, 0.0], [3.0, 0.0, 0.0]])
+    heads = np.array([[0.0, 0.0, 0.0], [3.0, 5.0, 0.0]])
+    tails = np.array([[1.0, 0.0, 0.0], [3.0, 6.0, 0.0]])
+    idx, val = probe_weights(points, heads, tails=tails, mode="FALLOFF", radius=1.5, normalize="NONE", k=2)
+    dense = np.zeros((2, 2))
+    np.put_along_axis(dense, idx, val, axis=1)
+    assert dense[0, 0] > 0.0 and dense[0, 1] == 0.0  # 1.0 from segment 0 (0.5 from its line, 1.1 from head)
+    assert dense[1, 0] == 0.0  # 2.0 beyond the radius from segment 0's tail

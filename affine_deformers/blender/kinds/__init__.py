@@ -12,6 +12,7 @@ from __future__ import annotations
 import enum
 
 from .base import BindError, ChannelTurns, DeformerKind, Motions
+from .bone import BoneKind
 from .cage import CageKind
 from .probe import ProbeKind
 
@@ -20,7 +21,7 @@ __all__ = ["KINDS", "REGISTERED", "BindError", "ChannelTurns", "DeformerKind", "
 
 #: Every kind, in the order the interface lists them (the first is the default). Append new kinds at
 #: the end: a .blend stores a deformer's kind as its position here.
-REGISTERED: tuple[type[DeformerKind], ...] = (ProbeKind, CageKind)
+REGISTERED: tuple[type[DeformerKind], ...] = (ProbeKind, CageKind, BoneKind)
 
 KINDS: dict[str, DeformerKind] = {cls.id: cls() for cls in REGISTERED}
 

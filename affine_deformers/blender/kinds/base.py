@@ -32,7 +32,9 @@ class ChannelTurns:
     of props.AffineDeformerProbe.rest_rotation: a quaternion, an axis-angle, or Euler angles and 0);
     frames (m, 3, 3): the rotation taking vectors of the frame each control's channels turn in (its
     parent frame) to the target's space (transforms.channel_frame); pivots (m, 3): the controls'
-    current origins in the target's space, about which a lifted rotation keeps its translation.
+    current origins in the target's space, about which a lifted rotation keeps its translation;
+    references (m, 3) or None: the reference rotation vectors themselves, when the kind forms them
+    (a bone's turn adds up its chain's channels), else params.py reads them from the channels.
     """
 
     rest_modes: list[str]
@@ -41,6 +43,7 @@ class ChannelTurns:
     rotations: np.ndarray
     frames: np.ndarray
     pivots: np.ndarray
+    references: np.ndarray | None = None
 
 
 @dataclass
@@ -83,7 +86,8 @@ class Motions:
         turns = self.turns
         return (self.matrices.tobytes(), self.at_rest.tobytes(), self.error, self.warning,
                 None if turns is None else (tuple(turns.modes), turns.rotations.tobytes(),
-                                            turns.frames.tobytes(), turns.pivots.tobytes()),
+                                            turns.frames.tobytes(), turns.pivots.tobytes(),
+                                            None if turns.references is None else turns.references.tobytes()),
                 *(None if a is None else np.asarray(a).tobytes()
                   for a in (self.params, self.valid, self.outer, self.outer_reference, self.outer_pivot)))
 

@@ -1,0 +1,356 @@
+"""The bone kind: the pose bones of an Armature object drive the mesh — an affine skin.
+
+Every motion is expressed as the Armature modifier does, in the armature's space carried into the
+target's: with P = target_world⁻¹ · armature_world (both evaluated), bone i's pose matrix B_i and its
+rest matrix R_i (`Bone.matrix_local`, Edit Mode's rest, both in armature space),
+
+    A_i = P · B_i · R_i⁻¹ · P⁻¹,
+
+so moving the armature object alone does not move the mesh (as with the Armature modifier), and a
+bone's full affine motion — scale and the shear a scaled parent gives its children included, which
+the Armature modifier's linear and dual-quaternion blends drop or distort — is blended by ψ/φ like
+every other control. Bendy-bone segments are not followed (a bendy bone moves as a straight bone).
+
+Rotation-log branch (MATH.md §8): a bone's own turn since rest is read from its pose channels (its
+rest channels are the identity), carried into the target's space by its channel frame
+Q_i = rot(P · B_i · S_i⁻¹ · R(channels_i)⁻¹) (the bone's frame before its own rotation), and added up
+along its parent chain — a twist spread over a chain of bones turns the last one by the sum, which
+no single bone's channels show. Deterministic: it depends on the current frame's channels only.
+
+Weights: the vertex groups named after the bones ('VERTEX_GROUPS', what the Armature modifier
+reads), or from the bones' rest segments head → tail stored in the target's space at bind
+('INVERSE_DISTANCE', 'FALLOFF': distance to the segment; 'SURFACE': harmonic, anchored at the
+segments' midpoints).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import bpy
+import numpy as np
+
+from ...core import aff3, unwrap, weights
+from .. import nodes
+from .base import Adopted, BindError, ChannelTurns, Motions, ignored_note
+from .probe import harmonic_surface_weights, surface_warning
+from .transforms import finite_transform, frame_rotation, in_a_scene, rotation_channels
+
+REST_SEGMENTS = "bone_rest_segments"  # ID property: (m, 2, 3) float64 heads and tails, target space
+#: Max Influences of a new bone deformer (painted weights keep their K largest: as many bones as a
+#: vertex of a typical skin is painted with).
+DEFAULT_INFLUENCES = 8
+#: A bone whose pose matrix differs from its rest by at most this (relative to the bone's scale of
+#: motion: entries of B·R⁻¹ − I) counts as at rest, so a rest pose gives the mesh exactly back.
+AT_REST_TOL = 1e-6
+
+_IDENTITY_CHANNELS = {"QUATERNION": (1.0, 0.0, 0.0, 0.0), "AXIS_ANGLE": (0.0, 0.0, 1.0, 0.0)}
+
+
+def identity_channels(mode: str) -> tuple[float, float, float, float]:
+    """A pose bone's rotation channels at rest in `mode` (layout of props.AffineDeformerProbe)."""
+    return _IDENTITY_CHANNELS.get(mode, (0.0, 0.0, 0.0, 0.0))
+
+
+def deform_bones(armature: bpy.types.Object) -> list[str]:
+    """The names of the armature's deform bones, in its bone order."""
+    return [bone.name for bone in armature.data.bones if bone.use_deform]
+
+
+def armature_problem(target: bpy.types.Object, armature: bpy.types.Object | None) -> str:
+    """Why `armature` cannot drive `target` ('' when it can)."""
+    if armature is None:
+        return "No armature: pick the armature whose bones drive the mesh"
+    if armature.type != "ARMATURE":
+        return f"'{armature.name}' is not an armature"
+    if not in_a_scene(armature):
+        return f"Armature '{armature.name}' is not in any scene (deleted?): link it back or pick another"
+    return ""
+
+
+@dataclass(frozen=True)
+class _BoneRow:
+    """What one bone contributes to `Motions` (a pure function of the values it is keyed on)."""
+
+    matrix: np.ndarray  # (4, 4) A_i (identity at rest)
+    at_rest: bool
+    mode: str
+    rotation: tuple[float, ...]  # the pose channels (4,)
+    frame: np.ndarray  # (3, 3) Q_i
+    pivot: np.ndarray  # (3,) the bone's head now, target space
+    turn: np.ndarray  # (3,) Q_i · the channels' rotation vector (its own turn, target space)
+    error: str = ""
+
+
+#: Per-bone memo keyed on the exact bits of every input of `_bone_row`. Bounded: cleared when full.
+ROW_MEMO_SIZE = 4096
+_rows: dict[tuple, _BoneRow] = {}
+
+
+def _bits(values: tuple[float, ...]) -> bytes:
+    return struct.pack(f"{len(values)}d", *values)
+
+
+def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndarray, rest: np.ndarray,
+              mode: str, channels: tuple[float, ...], scale: tuple[float, ...]) -> _BoneRow:
+    """The `_BoneRow` of one pose bone: `frame_matrix` P and its inverse, its pose matrix B and rest
+    matrix R (armature space, float64), its rotation mode, channels and scale."""
+    identity = np.eye(4)
+    rotation = tuple(float(c) for c in channels) + (0.0,) * (4 - len(channels))
+    posed = frame_matrix @ pose
+    pivot = posed[:3, 3].copy()
+    if not (finite_transform(pose) and finite_transform(posed)):
+        return _BoneRow(identity, False, mode, rotation, np.eye(3), np.zeros(3), np.zeros(3),
+                        "Bone '{bone}' has a non-finite pose (NaN or infinity): the mesh shows its input")
+    try:
+        with np.errstate(all="ignore"):
+            local = pose @ np.linalg.inv(rest)
+    except np.linalg.LinAlgError:
+        return _BoneRow(identity, False, mode, rotation, np.eye(3), pivot, np.zeros(3),
+                        "Bone '{bone}' has a zero-length rest: fix it in Edit Mode")
+    frame = frame_rotation(posed[:3, :3], mode, channels, scale)
+    width = 4 if mode in ("QUATERNION", "AXIS_ANGLE") else 3
+    try:
+        turn = frame @ unwrap.channel_rotvec(mode, np.array(identity_channels(mode)[:width]),
+                                             np.array(rotation[:width], dtype=np.float64))
+    except ValueError:
+        turn = np.full(3, np.nan)  # reported only when the branch rule needs it (see current_motions)
+    # At rest = the rest matrix AND identity channels (a full turn changes only the channels).
+    unturned = np.array_equal(np.float32(rotation[:width]), np.float32(identity_channels(mode)[:width]))
+    if unturned and np.max(np.abs(local - identity)) <= AT_REST_TOL:
+        return _BoneRow(identity, True, mode, rotation, frame, pivot, turn)
+    with np.errstate(all="ignore"):
+        matrix = frame_matrix @ local @ frame_inverse
+    matrix[3] = (0.0, 0.0, 0.0, 1.0)
+    try:
+        aff3.validate_affine(matrix)
+    except ValueError:
+        if not np.all(np.isfinite(matrix)):
+            reason = "has a non-finite pose (NaN or infinity)"
+        elif np.linalg.det(matrix[:3, :3]) < 0.0:
+            reason = "is mirrored (negative scale)"
+        else:
+            reason = "is scaled to zero"
+        return _BoneRow(identity, False, mode, rotation, frame, pivot, turn,
+                        "Bone '{bone}' " + reason + ": the mesh shows its input")
+    return _BoneRow(matrix, False, mode, rotation, frame, pivot, turn)
+
+
+class BoneKind:
+    """An Armature object's pose bones (all deform bones, or a chosen set) drive the mesh."""
+
+    id = "BONE"
+    label = "Bone"
+    description = "Driven by the pose bones of an armature (an affine skin)"
+    icon = "BONE_DATA"
+    single_control = True
+    add_description = ("Add a bone deformer to the active mesh; the selected armature's deform bones drive "
+                       "it, weighted by the vertex groups named after them (as the Armature modifier reads "
+                       "them), or by distance to the bones when the mesh has none of those groups")
+
+    def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
+        """The one selected armature."""
+        selected = list(getattr(context, "selected_objects", None) or [])
+        armatures = [o for o in selected if o != target and o.type == "ARMATURE"]
+        if len(armatures) != 1:
+            found = ", ".join(f"'{o.name}'" for o in armatures)
+            raise BindError("Select exactly one armature, with the mesh to deform active "
+                            + (f"(selected: {found})" if armatures else "(none selected)"))
+        if not deform_bones(armatures[0]):
+            raise BindError(f"Armature '{armatures[0].name}' has no deform bones")
+        ignored = [o for o in selected if o not in (target, armatures[0])]
+        return Adopted(armatures, [], ignored_note("non-armature", ignored))
+
+    def set_up(self, deformer, adopted: Adopted) -> None:
+        armature = adopted.controls[0]
+        deformer.armature = armature
+        target = deformer.id_data
+        names = deform_bones(armature)
+        for name in names:
+            deformer.bones.add().name = name
+        painted = any(target.vertex_groups.get(name) is not None for name in names)
+        deformer.weight_mode = "VERTEX_GROUPS" if painted else "INVERSE_DISTANCE"
+        deformer.normalize = "SUM"  # as the Armature modifier: a vertex's bone weights sum to 1
+        deformer.max_influences = DEFAULT_INFLUENCES
+
+    def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
+        weights_from = ("their vertex groups" if deformer.weight_mode == "VERTEX_GROUPS"
+                        else "distance (the mesh has no groups named after them)")
+        return (f"Added a bone deformer to '{target.name}' driven by {len(deformer.bones)} bones of "
+                f"'{adopted.controls[0].name}', weighted by {weights_from}")
+
+    def store_rest(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
+                   only: list[int] | None = None) -> None:
+        """Check the armature and its bones; record the bones' rest segments in the target's space
+        (for distance weights). The rest pose itself is the armature's (Edit Mode) rest, read live."""
+        armature = deformer.armature
+        problem = armature_problem(obj, armature)
+        if problem:
+            raise BindError(problem)
+        bones = armature.data.bones
+        if len(deformer.bones) == 0 or not any(bones.get(item.name) for item in deformer.bones):
+            deformer.bones.clear()  # a new armature: its deform bones
+            for name in deform_bones(armature):
+                deformer.bones.add().name = name
+        if len(deformer.bones) == 0:
+            raise BindError(f"Armature '{armature.name}' has no deform bones")
+        missing = [item.name for item in deformer.bones if bones.get(item.name) is None]
+        if missing:
+            raise BindError(f"Armature '{armature.name}' has no bone named "
+                            + ", ".join(f"'{n}'" for n in missing) + ": remove it from the deformer")
+        try:
+            frame = _frame_matrix(obj, armature, depsgraph)
+        except np.linalg.LinAlgError:
+            raise BindError(f"'{obj.name}' has a zero scale: fix its transform before binding") from None
+        segments = np.empty((len(deformer.bones), 2, 3))
+        for i, item in enumerate(deformer.bones):
+            bone = bones[item.name]
+            segments[i, 0] = frame[:3, :3] @ np.array(bone.head_local) + frame[:3, 3]
+            segments[i, 1] = frame[:3, :3] @ np.array(bone.tail_local) + frame[:3, 3]
+        if not np.all(np.isfinite(segments)):
+            raise BindError(f"Armature '{armature.name}' has a non-finite transform: fix it before binding")
+        if REST_SEGMENTS in deformer:  # never assign an array of another length over an ID property
+            del deformer[REST_SEGMENTS]
+        deformer[REST_SEGMENTS] = segments.ravel().tolist()
+
+    def sparse_weights(self, obj: bpy.types.Object, deformer,
+                       rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        names = [item.name for item in deformer.bones]
+        stored = np.asarray(deformer.get(REST_SEGMENTS, ()), dtype=np.float64)
+        if stored.size != 6 * len(names):
+            raise BindError("The bone deformer's rest data is damaged: rebind it")
+        segments = stored.reshape(-1, 2, 3)
+        heads, tails = segments[:, 0], segments[:, 1]
+        scales = np.array([item.weight_scale for item in deformer.bones], dtype=np.float64)
+        warning = ""
+        dense = solved = None
+        mode = deformer.weight_mode
+        if mode == "VERTEX_GROUPS":
+            missing = [n for n in names if obj.vertex_groups.get(n) is None]
+            if len(missing) == len(names):
+                warning = ("No vertex group is named after a bone: paint groups named after the bones, "
+                           "or choose distance weights")
+            dense = nodes.vertex_group_weights(obj, names)
+        elif mode == "SURFACE":
+            result = harmonic_surface_weights(obj.data, rest_points, 0.5 * (heads + tails))
+            dense, solved = result.weights, result.solved
+            warning = surface_warning(result, names)
+        indices, values = weights.probe_weights(
+            rest_points, heads, mode=mode, radius=deformer.radius, exponent=deformer.exponent,
+            normalize=deformer.normalize, k=deformer.max_influences, scales=scales, dense=dense,
+            solved=solved, tails=tails if mode in ("INVERSE_DISTANCE", "FALLOFF") else None)
+        return indices, values, warning
+
+    def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
+        m = len(deformer.bones)
+        armature = deformer.armature
+        problem = armature_problem(obj, armature)
+        if problem:
+            return Motions.invalid(m, f"{problem}: the mesh shows its input")
+        try:
+            frame = _frame_matrix(obj, armature, depsgraph)
+            frame_inverse = np.linalg.inv(frame)
+        except np.linalg.LinAlgError:
+            return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' is scaled to zero: the "
+                                   "mesh shows its input")
+        if not finite_transform(frame):
+            return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' has a non-finite "
+                                   "transform: the mesh shows its input")
+        pose = armature.evaluated_get(depsgraph).pose
+        rows: dict[str, _BoneRow] = {}
+        for item in deformer.bones:
+            error = _chain_rows(item.name, pose, frame, frame_inverse, rows)
+            if error:
+                return Motions.invalid(m, error.format(bone=item.name, armature=armature.name))
+        chosen = [rows[item.name] for item in deformer.bones]
+        if m == 0:
+            return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool))
+        turns = None
+        if deformer.branch_rule == "CHANNELS":
+            references = np.stack([_chain_turn(item.name, pose, rows) for item in deformer.bones])
+            if not np.all(np.isfinite(references)):
+                bad = deformer.bones[int(np.flatnonzero(~np.isfinite(references).all(axis=1))[0])].name
+                return Motions.invalid(m, f"The rotation channels of bone '{bad}' (or of a parent) cannot be "
+                                       "unwrapped (non-finite or too many turns): the mesh shows its input")
+            modes = [r.mode for r in chosen]
+            turns = ChannelTurns(modes, np.array([identity_channels(mode) for mode in modes]), modes,
+                                 np.array([r.rotation for r in chosen]), np.stack([r.frame for r in chosen]),
+                                 np.stack([r.pivot for r in chosen]), references)
+        return Motions(np.stack([r.matrix for r in chosen]), np.array([r.at_rest for r in chosen]),
+                       turns=turns)
+
+    def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
+        armature = deformer.armature
+        return [armature] if armature is not None and armature != obj else []
+
+    def draw_settings(self, layout: bpy.types.UILayout, deformer) -> None:
+        layout.prop(deformer, "armature")
+        layout.prop(deformer, "weight_mode")
+        if deformer.weight_mode in ("INVERSE_DISTANCE", "FALLOFF"):
+            layout.prop(deformer, "radius")
+        if deformer.weight_mode in ("INVERSE_DISTANCE", "SURFACE"):
+            layout.prop(deformer, "exponent")
+        layout.prop(deformer, "normalize")
+        layout.prop(deformer, "max_influences")
+
+    def branch_rule_active(self, deformer) -> bool:
+        return deformer.blend_mode == "AFFINE_LOG"
+
+    def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
+        layout.label(text=f"Bones ({len(deformer.bones)})")
+        layout.template_list("AFFINE_UL_bones", "", deformer, "bones", deformer, "active_bone_index", rows=3)
+
+    def forget(self, key: tuple[int, str] | None = None) -> None:
+        """Drop the per-bone memo (keyed on its inputs: shared by all deformers, `key` is ignored)."""
+        _rows.clear()
+
+
+def _frame_matrix(obj: bpy.types.Object, armature: bpy.types.Object,
+                  depsgraph: bpy.types.Depsgraph) -> np.ndarray:
+    """P = target_world⁻¹ · armature_world (evaluated, float64); LinAlgError for a singular target."""
+    target_world = np.array(obj.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
+    armature_world = np.array(armature.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
+    out = np.linalg.solve(target_world, armature_world)
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def _chain_rows(name: str, pose, frame: np.ndarray, frame_inverse: np.ndarray,
+                rows: dict[str, _BoneRow]) -> str:
+    """Fill `rows` with the `_BoneRow` of bone `name` and of its parents (their turns add up); returns
+    the first error ('' when none), with {bone} / {armature} placeholders."""
+    while name and name not in rows:
+        pose_bone = pose.bones.get(name)
+        if pose_bone is None:
+            return ("Armature '{armature}' has no bone named '{bone}' (renamed or deleted?): rename it "
+                    "back, remove it from the deformer or rebind")
+        posed = np.array(pose_bone.matrix, dtype=np.float64)
+        rest = np.array(pose_bone.bone.matrix_local, dtype=np.float64)
+        mode = pose_bone.rotation_mode
+        channels = rotation_channels(pose_bone, mode)
+        scale = (*pose_bone.scale, 1.0, 1.0, 1.0)
+        key = (frame.tobytes(), posed.tobytes(), rest.tobytes(), mode, _bits(channels + scale))
+        row = _rows.get(key)
+        if row is None:
+            row = _bone_row(frame, frame_inverse, posed, rest, mode, channels, scale)
+            if len(_rows) >= ROW_MEMO_SIZE:
+                _rows.clear()
+            _rows[key] = row
+        rows[name] = row
+        if row.error:
+            return row.error.replace("{bone}", name)
+        parent = pose_bone.parent
+        name = parent.name if parent is not None else ""
+    return ""
+
+
+def _chain_turn(name: str, pose, rows: dict[str, _BoneRow]) -> np.ndarray:
+    """Σ over bone `name` and its parents of their own turns Q_b · rotvec(channels_b): the reference
+    rotation vector of the bone's motion in the target's space."""
+    total = np.zeros(3)
+    while name:
+        total = total + rows[name].turn
+        parent = pose.bones[name].parent
+        name = parent.name if parent is not None else ""
+    return total

@@ -1,0 +1,345 @@
+"""Bones as controls (kinds/bone.py): an affine skin measured against Blender's Armature modifier with
+Preserve Volume (dual quaternions) on a bar with identical vertex groups.
+
+The bar runs along +X from 0 to 4 (cross-section 0.4 × 0.4); its bones lie on the X axis. Weights are
+smooth ramps in x, quantised to 1/256 so that they can be painted per value (no loop over vertices).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import bpy
+import numpy as np
+import pytest
+
+LENGTH = 4.0
+HALF = 0.2
+
+
+def _bar(bl, cuts: int = 23, name: str = "Bar"):
+    obj = bl.grid_cube(cuts=cuts, size=2.0, name=name)
+    co = bl.rest_positions(obj).astype(np.float64)
+    co[:, 0] = (co[:, 0] + 1.0) * 0.5 * LENGTH
+    co[:, 1:] *= HALF
+    obj.data.vertices.foreach_set("co", co.astype(np.float32).ravel())
+    obj.data.update()
+    return obj
+
+
+def _armature(heads: list[float], name: str = "Rig"):
+    """A chain of connected bones along +X from heads[i] to heads[i+1] (names B0, B1, …)."""
+    data = bpy.data.armatures.new(name)
+    arm = bpy.data.objects.new(name, data)
+    bpy.context.scene.collection.objects.link(arm)
+    bpy.context.view_layer.objects.active = arm
+    bpy.ops.object.mode_set(mode="EDIT")
+    previous = None
+    for i, (a, b) in enumerate(itertools.pairwise(heads)):
+        bone = data.edit_bones.new(f"B{i}")
+        bone.head, bone.tail = (a, 0.0, 0.0), (b, 0.0, 0.0)
+        bone.roll = 0.0
+        if previous is not None:
+            bone.parent, bone.use_connect = previous, True
+        previous = bone
+    bpy.ops.object.mode_set(mode="OBJECT")
+    return arm
+
+
+def _paint(obj, weights: np.ndarray, names: list[str]) -> None:
+    """Vertex groups `names` holding weights (N, m), quantised to 1/256: one add() per value."""
+    q = np.round(weights * 256.0) / 256.0
+    for j, name in enumerate(names):
+        group = obj.vertex_groups.new(name=name)
+        for value in np.unique(q[:, j]):
+            if value > 0.0:
+                group.add(np.flatnonzero(q[:, j] == value).tolist(), float(value), "REPLACE")
+
+
+def _ramp_weights(x: np.ndarray, centers: list[float], width: float) -> np.ndarray:
+    """Partition of unity of hat functions of the given width around the bones' centres."""
+    hats = np.maximum(0.0, 1.0 - np.abs(x[:, None] - np.array(centers)[None, :]) / width)
+    hats[:, 0] = np.where(x <= centers[0], 1.0, hats[:, 0])
+    hats[:, -1] = np.where(x >= centers[-1], 1.0, hats[:, -1])
+    return hats / hats.sum(axis=1, keepdims=True)
+
+
+def _rig(bl, heads=(0.0, 2.0, 4.0), width=None):
+    bar = _bar(bl)
+    arm = _armature(list(heads))
+    names = [f"B{i}" for i in range(len(heads) - 1)]
+    centers = [0.5 * (a + b) for a, b in itertools.pairwise(heads)]
+    x = bl.rest_positions(bar)[:, 0].astype(np.float64)
+    _paint(bar, _ramp_weights(x, centers, width or (centers[1] - centers[0])), names)
+    native = bar.modifiers.new("Armature", "ARMATURE")
+    native.object = arm
+    native.use_deform_preserve_volume = True
+    native.show_viewport = native.show_render = False
+    bpy.context.view_layer.objects.active = bar
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar, arm]):
+        assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+    deformer = bar.affine_deformers[0]
+    assert deformer.status == "" and deformer.weight_mode == "VERTEX_GROUPS"
+    return bar, arm, native, deformer
+
+
+def _ours_and_native(bl, bar, native, deformer):
+    deformer.show_viewport = True
+    native.show_viewport = False
+    bpy.context.view_layer.update()
+    ours = bl.evaluated_positions(bar).astype(np.float64)
+    deformer.show_viewport = False
+    native.show_viewport = True
+    bpy.context.view_layer.update()
+    theirs = bl.evaluated_positions(bar).astype(np.float64)
+    deformer.show_viewport = True
+    native.show_viewport = False
+    bpy.context.view_layer.update()
+    return ours, theirs
+
+
+def _twist_at(rest: np.ndarray, posed: np.ndarray, x0: float) -> float:
+    """The mean rotation (degrees, about +X) of the cross-section nearest x = x0."""
+    gap = np.abs(rest[:, 0] - x0)
+    ring = gap <= gap.min() + 1e-4
+    ring &= np.hypot(rest[:, 1], rest[:, 2]) > 1e-6
+    a0 = np.arctan2(rest[ring, 2], rest[ring, 1])
+    a1 = np.arctan2(posed[ring, 2], posed[ring, 1])
+    delta = np.angle(np.mean(np.exp(1j * (a1 - a0))))
+    return math.degrees(delta)
+
+
+def test_rest_pose_gives_the_mesh_back(bl):
+    bar, _arm, _native, _deformer = _rig(bl)
+    assert np.array_equal(bl.evaluated_positions(bar), bl.rest_positions(bar))
+
+
+def test_rigid_motions_under_180_agree_with_preserve_volume(bl):
+    bar, arm, native, deformer = _rig(bl, heads=(0.0, 1.0, 2.0, 3.0, 4.0))
+    bones = arm.pose.bones
+    for pb in bones:
+        pb.rotation_mode = "XYZ"
+    bones["B1"].rotation_euler = (0.0, math.radians(60.0), math.radians(30.0))
+    bones["B2"].rotation_euler = (math.radians(20.0), 0.0, math.radians(45.0))
+    bones["B3"].rotation_euler = (0.0, math.radians(90.0), 0.0)
+    ours, theirs = _ours_and_native(bl, bar, native, deformer)
+    difference = np.abs(ours - theirs).max()
+    print(f"bar test, rigid bones < 180°: max |ours − Preserve Volume| = {difference:.4f} (bar length 4)")
+    assert difference < 0.025 * LENGTH
+    assert deformer.status == ""
+
+
+@pytest.mark.parametrize(("turn", "ours_mid"), [(270.0, 135.0), (360.0, 180.0)])
+def test_twists_past_180_go_on_where_preserve_volume_flips(bl, turn, ours_mid):
+    bar, arm, native, deformer = _rig(bl)
+    rest = bl.rest_positions(bar).astype(np.float64)
+    end = arm.pose.bones["B1"]
+    end.rotation_mode = "XYZ"
+    end.rotation_euler.y = math.radians(turn)  # a bone's own axis is its local Y
+    ours, theirs = _ours_and_native(bl, bar, native, deformer)
+    mid = _twist_at(rest, ours, 2.0)
+    native_mid = _twist_at(rest, theirs, 2.0)
+    print(f"{turn:.0f}° end twist, middle: ours {mid:.1f}°, Preserve Volume {native_mid:.1f}°")
+    assert abs(((mid - ours_mid + 180.0) % 360.0) - 180.0) < 1.0
+    assert abs(((native_mid - ours_mid + 180.0) % 360.0) - 180.0) > 45.0  # the native one flips
+    # Smooth: the twist grows monotonically along the bar (no flip between rings).
+    xs = np.unique(np.round(rest[:, 0], 5))
+    twists = np.unwrap(np.radians([_twist_at(rest, ours, x) for x in xs]))
+    assert np.all(np.diff(twists) * np.sign(turn) >= -1e-3)
+
+
+def test_a_scaled_and_sheared_bone_is_followed_exactly(bl):
+    bar, arm, native, deformer = _rig(bl, heads=(0.0, 2.0, 4.0))
+    bones = arm.pose.bones
+    bones["B0"].scale = (1.0, 1.0, 2.0)  # non-uniform: its rotated child is sheared
+    bones["B1"].rotation_mode = "XYZ"
+    bones["B1"].rotation_euler = (0.0, 0.0, math.radians(35.0))
+    bones["B1"].scale = (1.3, 0.7, 1.0)
+    bpy.context.view_layer.update()
+    rest = bl.rest_positions(bar).astype(np.float64)
+    ours, theirs = _ours_and_native(bl, bar, native, deformer)
+    full = rest[:, 0] > 3.0  # weight 1 on B1
+    pose, bone = arm.pose.bones["B1"], arm.data.bones["B1"]
+    frame = np.linalg.solve(np.array(bar.matrix_world), np.array(arm.matrix_world))
+    motion = frame @ np.array(pose.matrix) @ np.linalg.inv(np.array(bone.matrix_local)) @ np.linalg.inv(frame)
+    expected = rest[full] @ motion[:3, :3].T + motion[:3, 3]
+    assert abs(np.linalg.det(motion[:3, :3]) - 2.0 * 0.91) > 0.0  # it does scale
+    error = np.abs(ours[full] - expected).max()
+    native_error = np.abs(theirs[full] - expected).max() / np.abs(expected - rest[full]).max()
+    print(f"scaled + sheared bone: ours {error:.2e}, Preserve Volume {100 * native_error:.0f}% of the motion")
+    assert error < 1e-5
+
+
+def _volume(bl, obj) -> float:
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    mesh = obj.evaluated_get(depsgraph).data
+    mesh.calc_loop_triangles()
+    tris = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int32)
+    mesh.loop_triangles.foreach_get("vertices", tris)
+    co = bl.evaluated_positions(obj).astype(np.float64)[tris.reshape(-1, 3)]
+    return float(np.einsum("ti,ti->t", co[:, 0], np.cross(co[:, 1], co[:, 2])).sum() / 6.0)
+
+
+def test_volume_is_kept_in_a_90_degree_bend(bl):
+    bar, arm, _native, deformer = _rig(bl, width=1.5)
+    rest_volume = _volume(bl, bar)
+    end = arm.pose.bones["B1"]
+    end.rotation_mode = "XYZ"
+    end.rotation_euler.z = math.radians(90.0)
+    bpy.context.view_layer.update()
+    ratio = _volume(bl, bar) / rest_volume
+    print(f"90° bend: volume ratio {ratio:.4f}")
+    assert deformer.status == ""
+    assert ratio >= 0.99
+
+
+def test_moving_the_armature_object_alone_does_not_move_the_mesh(bl):
+    bar, arm, _native, deformer = _rig(bl)
+    rest = bl.rest_positions(bar)
+    arm.location = (1.0, 2.0, 0.5)
+    arm.rotation_euler.z = 0.7
+    bpy.context.view_layer.update()
+    assert np.abs(bl.evaluated_positions(bar) - rest).max() < 1e-5
+    assert deformer.status == ""
+
+
+def test_bad_inputs_get_a_message_and_the_input_passes_through(bl):
+    bar, arm, _native, deformer = _rig(bl)
+    rest = bl.rest_positions(bar)
+    pose = arm.pose.bones["B1"]
+    pose.rotation_mode = "XYZ"
+    pose.rotation_euler.y = 1.0
+    bpy.context.view_layer.update()
+    assert np.abs(bl.evaluated_positions(bar) - rest).max() > 0.01
+    pose.scale = (0.0, 0.0, 0.0)
+    bpy.context.view_layer.update()
+    assert "Bone 'B1' is scaled to zero" in deformer.status
+    assert np.array_equal(bl.evaluated_positions(bar), rest)
+    pose.scale = (-1.0, 1.0, 1.0)
+    bpy.context.view_layer.update()
+    assert "Bone 'B1' is mirrored" in deformer.status
+    pose.scale = (1.0, 1.0, 1.0)
+    bpy.context.view_layer.update()
+    assert deformer.status == ""
+    arm.data.bones["B1"].name = "Renamed"
+    bpy.context.view_layer.update()
+    assert "has no bone named 'B1'" in deformer.status
+    assert np.array_equal(bl.evaluated_positions(bar), rest)
+    arm.data.bones["Renamed"].name = "B1"
+    bpy.context.view_layer.update()
+    assert deformer.status == ""
+    bpy.data.objects.remove(arm, do_unlink=True)
+    bpy.context.view_layer.update()
+    assert "armature" in deformer.status.lower()
+    assert np.array_equal(bl.evaluated_positions(bar), rest)
+
+
+def _key_twist(arm, bone: str, frames_degrees: dict[int, float]) -> None:
+    pose = arm.pose.bones[bone]
+    pose.rotation_mode = "XYZ"
+    for frame, degrees in frames_degrees.items():
+        pose.rotation_euler.y = math.radians(degrees)
+        pose.keyframe_insert("rotation_euler", index=1, frame=frame)
+
+
+def test_keyed_twists_depend_only_on_the_frame_and_survive_reopening(bl, tmp_path):
+    bar, arm, _native, deformer = _rig(bl)
+    _key_twist(arm, "B1", {1: 0.0, 20: 400.0})
+    rest = bl.rest_positions(bar).astype(np.float64)
+    seen = {}
+    for frame in (20, 1, 10, 20, 15, 10):
+        bpy.context.scene.frame_set(frame)
+        got = bl.evaluated_positions(bar)
+        if frame in seen:
+            assert np.array_equal(seen[frame], got), f"frame {frame} depends on the frames before"
+        seen[frame] = got.copy()
+        assert deformer.status == ""
+    assert np.array_equal(seen[1], rest.astype(np.float32))
+    assert abs(_twist_at(rest, seen[20].astype(np.float64), 2.0) - 200.0 + 360.0) < 1.0  # 400° / 2
+    bl.check_frames_survive_reopen(bar, (1, 10, 20), tmp_path)
+
+
+def test_a_common_bone_motion_moves_what_reaches_the_modifier(bl):
+    """Shape keys before the deformer: a motion G shared by every bone gives exactly G · (the mix)."""
+    bar, arm, _native, deformer = _rig(bl)
+    bar.shape_key_add(name="Basis", from_mix=False)
+    key = bar.shape_key_add(name="Bulge", from_mix=False)
+    co = bl.rest_positions(bar).astype(np.float64)
+    co[:, 1] *= 1.0 + 0.5 * np.exp(-((co[:, 0] - 2.0) ** 2))
+    key.data.foreach_set("co", co.astype(np.float32).ravel())
+    key.value = 1.0
+    root = arm.pose.bones["B0"]
+    root.rotation_mode = "XYZ"
+    root.rotation_euler = (0.3, 0.0, 0.8)  # B1 is connected: the whole chain moves rigidly
+    bpy.context.view_layer.update()
+    frame = np.linalg.solve(np.array(bar.matrix_world), np.array(arm.matrix_world))
+    pose, bone = arm.pose.bones["B0"], arm.data.bones["B0"]
+    motion = frame @ np.array(pose.matrix) @ np.linalg.inv(np.array(bone.matrix_local)) @ np.linalg.inv(frame)
+    expected = co @ motion[:3, :3].T + motion[:3, 3]
+    assert deformer.status == ""
+    assert np.abs(bl.evaluated_positions(bar) - expected).max() < 1e-5
+
+
+def test_convert_an_armature_modifier_and_back(bl):
+    bar = _bar(bl)
+    arm = _armature([0.0, 2.0, 4.0])
+    x = bl.rest_positions(bar)[:, 0].astype(np.float64)
+    _paint(bar, _ramp_weights(x, [1.0, 3.0], 2.0), ["B0", "B1"])
+    bar.modifiers.new("Wave", "WAVE").show_viewport = False  # a modifier above: the place must be kept
+    native = bar.modifiers.new("Armature", "ARMATURE")
+    native.object = arm
+    bar.modifiers.new("Smooth", "SMOOTH").show_viewport = False
+    pose = arm.pose.bones["B1"]
+    pose.rotation_mode = "XYZ"
+    pose.rotation_euler.z = math.radians(40.0)
+    bpy.context.view_layer.update()
+    theirs = bl.evaluated_positions(bar).astype(np.float64)
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert bpy.ops.object.affine_armature_convert(modifier="Armature") == {"FINISHED"}
+    deformer = bar.affine_deformers[0]
+    names = [m.name for m in bar.modifiers]
+    assert names[:2] == ["Wave", "Armature"] and names[3] == "Smooth", names
+    assert bar.modifiers[2].type == "NODES" and not native.show_viewport and not native.show_render
+    assert deformer.kind == "BONE" and deformer.armature == arm
+    assert [b.name for b in deformer.bones] == ["B0", "B1"]
+    assert deformer.weight_mode == "VERTEX_GROUPS" and deformer.status == ""
+    ours = bl.evaluated_positions(bar).astype(np.float64)
+    full = (x < 1.0) | (x > 3.0)  # one bone each: both are exact there
+    assert np.abs(ours[full] - theirs[full]).max() < 1e-5
+    assert np.abs(ours - theirs).max() < 0.05  # the blend region: linear blend vs ours
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert bpy.ops.object.affine_armature_restore(index=0) == {"FINISHED"}
+    assert len(bar.affine_deformers) == 0 and native.show_viewport and native.show_render
+    assert [m.name for m in bar.modifiers] == ["Wave", "Armature", "Smooth"]
+    assert np.array_equal(bl.evaluated_positions(bar), theirs.astype(np.float32))
+
+
+def test_convert_refuses_clearly(bl):
+    bar = _bar(bl)
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert not bpy.ops.object.affine_armature_convert.poll()
+    native = bar.modifiers.new("Armature", "ARMATURE")
+    native.object = _armature([0.0, 2.0, 4.0])
+    native.use_vertex_groups = False
+    with (bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]),
+          pytest.raises(RuntimeError, match="envelopes only")):
+        bpy.ops.object.affine_armature_convert()
+    assert len(bar.affine_deformers) == 0 and native.show_viewport
+
+
+def test_distance_weights_without_groups(bl):
+    bar = _bar(bl)
+    arm = _armature([0.0, 2.0, 4.0])
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar, arm]):
+        assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+    deformer = bar.affine_deformers[0]
+    assert deformer.weight_mode == "INVERSE_DISTANCE" and deformer.status == ""
+    pose = arm.pose.bones["B1"]
+    pose.rotation_mode = "XYZ"
+    pose.rotation_euler.z = math.radians(30.0)
+    bpy.context.view_layer.update()
+    rest = bl.rest_positions(bar)
+    moved = np.abs(bl.evaluated_positions(bar) - rest).max(axis=1)
+    x = rest[:, 0]
+    assert moved[x > 3.5].min() > moved[x < 0.5].max()  # the end follows B1, the root stays
