@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 import bpy
-from bpy.props import IntProperty
+from bpy.props import IntProperty, StringProperty
 
 from . import binding, evaluate, kinds, relations
 from .kinds import BindError, KindId
@@ -287,6 +287,91 @@ class AFFINE_OT_deformer_probe_remove(DeformerIndexed, bpy.types.Operator):
         return {"FINISHED"}
 
 
+def _bone_deformer(op: bpy.types.Operator, context: bpy.types.Context):
+    """(object, deformer) like `_deformer`, refusing (with a report) a deformer that is not a bone one."""
+    obj, deformer = _deformer(op, context)
+    if deformer is not None and deformer.kind != KindId.BONE:
+        op.report({"ERROR"}, f"'{deformer.name}' is not a bone deformer")
+        return None, None
+    return obj, deformer
+
+
+def _unlisted_bones(self, context: bpy.types.Context, _text: str) -> list[str]:
+    obj = active_target(context)
+    if obj is None or not 0 <= self.index < len(obj.affine_deformers):
+        return []
+    deformer = obj.affine_deformers[self.index]
+    listed = {item.name for item in deformer.bones}
+    armature = deformer.armature
+    return [b.name for b in armature.data.bones if b.name not in listed] if armature is not None else []
+
+
+class AFFINE_OT_deformer_bone_add(DeformerIndexed, bpy.types.Operator):
+    """Add a bone of the armature to the bone deformer's controls and recompute the weights"""
+
+    bl_idname = "object.affine_deformer_bone_add"
+    bl_label = "Add Bone"
+
+    bone: StringProperty(name="Bone", search=_unlisted_bones, description="Bone of the deformer's armature")
+
+    def invoke(self, context: bpy.types.Context, _event: bpy.types.Event) -> set[str]:
+        return context.window_manager.invoke_props_dialog(self)
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        obj, deformer = _bone_deformer(self, context)
+        if obj is None:
+            return {"CANCELLED"}
+        armature = deformer.armature
+        if armature is None or armature.data.bones.get(self.bone) is None:
+            self.report({"ERROR"}, f"The deformer's armature has no bone named '{self.bone}'")
+            return {"CANCELLED"}
+        if any(item.name == self.bone for item in deformer.bones):
+            self.report({"ERROR"}, f"'{self.bone}' is already a control of '{deformer.name}'")
+            return {"CANCELLED"}
+        with binding.quiet():
+            deformer.bones.add().name = self.bone
+        try:
+            binding.bind(obj, deformer, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
+            deformer.bones.remove(len(deformer.bones) - 1)
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _refresh(context, obj)
+        self.report({"INFO"}, f"Added bone '{self.bone}' to '{deformer.name}'")
+        return {"FINISHED"}
+
+
+class AFFINE_OT_deformer_bone_remove(DeformerIndexed, bpy.types.Operator):
+    """Remove a bone from the bone deformer's controls and recompute the weights"""
+
+    bl_idname = "object.affine_deformer_bone_remove"
+    bl_label = "Remove Bone"
+
+    bone_index: IntProperty(name="Bone", default=0, soft_min=0, description="Bone index in the deformer")
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        obj, deformer = _bone_deformer(self, context)
+        if obj is None:
+            return {"CANCELLED"}
+        if not 0 <= self.bone_index < len(deformer.bones):
+            self.report({"ERROR"}, f"'{deformer.name}' has no bone #{self.bone_index}")
+            return {"CANCELLED"}
+        if len(deformer.bones) == 1:
+            self.report({"ERROR"}, "Cannot remove the last bone: remove the deformer instead")
+            return {"CANCELLED"}
+        name = deformer.bones[self.bone_index].name
+        deformer.bones.remove(self.bone_index)
+        deformer.active_bone_index = min(deformer.active_bone_index, len(deformer.bones) - 1)
+        try:
+            binding.bind(obj, deformer, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        _refresh(context, obj)
+        self.report({"INFO"}, f"Removed bone '{name}' from '{deformer.name}'")
+        return {"FINISHED"}
+
+
 CLASSES = (
     *ADD_OPERATORS,
     AFFINE_OT_deformer_bind,
@@ -294,4 +379,6 @@ CLASSES = (
     AFFINE_OT_deformer_apply,
     AFFINE_OT_deformer_probe_add,
     AFFINE_OT_deformer_probe_remove,
+    AFFINE_OT_deformer_bone_add,
+    AFFINE_OT_deformer_bone_remove,
 )

@@ -252,6 +252,27 @@ def segment_distances(points: FloatArray, heads: FloatArray, tails: FloatArray) 
     return np.sqrt(np.einsum("nmi,nmi->nm", diff, diff))
 
 
+def _control_inputs(points: ArrayLike, centers: ArrayLike, tails: ArrayLike | None,
+                    scales: ArrayLike | None) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray]:
+    """`probe_weights`' inputs checked and as float64: (points, centers, tails or None, scales)."""
+    pts = np.asarray(points, dtype=np.float64)
+    ctr = np.asarray(centers, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+    if ctr.ndim != 2 or ctr.shape[1] != 3 or ctr.shape[0] < 1:
+        raise ValueError(f"centers must have shape (m, 3) with m ≥ 1, got {ctr.shape}")
+    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(ctr))):
+        raise ValueError("points or probe positions contain non-finite coordinates")
+    m = ctr.shape[0]
+    ends = None if tails is None else np.asarray(tails, dtype=np.float64)
+    if ends is not None and (ends.shape != ctr.shape or not np.all(np.isfinite(ends))):
+        raise ValueError(f"tails must be finite with the shape of centers {ctr.shape}, got {ends.shape}")
+    scale = np.ones(m) if scales is None else np.asarray(scales, dtype=np.float64)
+    if scale.shape != (m,) or not np.all(np.isfinite(scale)) or np.any(scale < 0.0):
+        raise ValueError(f"scales must be {m} finite non-negative numbers")
+    return pts, ctr, ends, scale
+
+
 def probe_weights(
     points: ArrayLike,
     centers: ArrayLike,
@@ -287,21 +308,8 @@ def probe_weights(
     weights are truncated continuously (`truncate`), painted ones keep their K largest values as
     painted. Returns (indices (N, K) int32, values (N, K)).
     """
-    pts = np.asarray(points, dtype=np.float64)
-    ctr = np.asarray(centers, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
-    if ctr.ndim != 2 or ctr.shape[1] != 3 or ctr.shape[0] < 1:
-        raise ValueError(f"centers must have shape (m, 3) with m ≥ 1, got {ctr.shape}")
-    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(ctr))):
-        raise ValueError("points or probe positions contain non-finite coordinates")
+    pts, ctr, ends, scale = _control_inputs(points, centers, tails, scales)
     m = ctr.shape[0]
-    ends = None if tails is None else np.asarray(tails, dtype=np.float64)
-    if ends is not None and (ends.shape != ctr.shape or not np.all(np.isfinite(ends))):
-        raise ValueError(f"tails must be finite with the shape of centers {ctr.shape}, got {ends.shape}")
-    scale = np.ones(m) if scales is None else np.asarray(scales, dtype=np.float64)
-    if scale.shape != (m,) or not np.all(np.isfinite(scale)) or np.any(scale < 0.0):
-        raise ValueError(f"scales must be {m} finite non-negative numbers")
 
     if mode == "VERTEX_GROUPS":
         if dense is None:

@@ -343,3 +343,39 @@ def test_distance_weights_without_groups(bl):
     moved = np.abs(bl.evaluated_positions(bar) - rest).max(axis=1)
     x = rest[:, 0]
     assert moved[x > 3.5].min() > moved[x < 0.5].max()  # the end follows B1, the root stays
+
+
+def test_a_chosen_set_of_bones(bl):
+    bar, arm, _native, deformer = _rig(bl, heads=(0.0, 1.0, 2.0, 3.0, 4.0))
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert bpy.ops.object.affine_deformer_bone_remove(index=0, bone_index=3) == {"FINISHED"}
+        assert [b.name for b in deformer.bones] == ["B0", "B1", "B2"]
+        pose = arm.pose.bones["B3"]
+        pose.rotation_mode = "XYZ"
+        pose.rotation_euler.z = 0.8  # not a control any more: its vertices follow B2 (normalised)
+        bpy.context.view_layer.update()
+        rest = bl.rest_positions(bar)
+        assert np.array_equal(bl.evaluated_positions(bar), rest)
+        assert bpy.ops.object.affine_deformer_bone_add(index=0, bone="B3") == {"FINISHED"}
+        assert np.abs(bl.evaluated_positions(bar) - rest).max() > 0.1
+        with pytest.raises(RuntimeError, match="no bone named 'Nope'"):
+            bpy.ops.object.affine_deformer_bone_add(index=0, bone="Nope")
+        with pytest.raises(RuntimeError, match="already a control"):
+            bpy.ops.object.affine_deformer_bone_add(index=0, bone="B3")
+    assert deformer.status == ""
+
+
+def test_bake_follows_the_bones(bl, tmp_path):
+    bar, arm, _native, deformer = _rig(bl)
+    _key_twist(arm, "B1", {1: 0.0, 5: 300.0})
+    live = {}
+    for frame in (1, 3, 5):
+        bpy.context.scene.frame_set(frame)
+        live[frame] = bl.evaluated_positions(bar).copy()
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert bpy.ops.object.affine_deformer_bake(index=0, mode="SHAPE_KEYS", frame_start=1,
+                                                   frame_end=5) == {"FINISHED"}
+    assert not deformer.show_viewport
+    for frame in (1, 3, 5):
+        bpy.context.scene.frame_set(frame)
+        assert np.abs(bl.evaluated_positions(bar) - live[frame]).max() < 1e-5, frame

@@ -299,7 +299,12 @@ class BoneKind:
 
     def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
         layout.label(text=f"Bones ({len(deformer.bones)})")
-        layout.template_list("AFFINE_UL_bones", "", deformer, "bones", deformer, "active_bone_index", rows=3)
+        row = layout.row()
+        row.template_list("AFFINE_UL_bones", "", deformer, "bones", deformer, "active_bone_index", rows=3)
+        col = row.column(align=True)
+        col.operator("object.affine_deformer_bone_add", icon="ADD", text="").index = index
+        op = col.operator("object.affine_deformer_bone_remove", icon="REMOVE", text="")
+        op.index, op.bone_index = index, deformer.active_bone_index
 
     def forget(self, key: tuple[int, str] | None = None) -> None:
         """Drop the per-bone memo (keyed on its inputs: shared by all deformers, `key` is ignored)."""
