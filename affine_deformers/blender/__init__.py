@@ -9,10 +9,10 @@ import traceback
 
 import bpy
 
-from . import armature_convert, bake, handlers, operators, panels, prefs, props, relations
+from . import armature_convert, bake, handlers, operators, panels, prefs, props, relations, weight_operators
 
 CLASSES = (*prefs.CLASSES, *props.CLASSES, *operators.CLASSES, *bake.CLASSES, *armature_convert.CLASSES,
-           *panels.CLASSES)
+           *weight_operators.CLASSES, *panels.CLASSES)
 
 
 def register() -> None:

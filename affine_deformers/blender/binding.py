@@ -12,7 +12,7 @@ import zlib
 import bpy
 import numpy as np
 
-from . import caches, kinds, nodes, relations, storage
+from . import caches, kinds, nodes, relations, storage, weight_preview
 from .kinds import BindError
 
 __all__ = ["BindError", "apply", "bind", "create", "mask_weights", "rebind_probe_safely", "rebind_safely",
@@ -198,6 +198,7 @@ def remove(obj: bpy.types.Object, index: int) -> None:
     """Remove deformer `index`: its modifier, its mesh attributes and the item (rest shape back)."""
     deformer = deformer_at(obj, index)
     uid = deformer.uid
+    weight_preview.release(obj, deformer)  # the deformer takes its weight preview with it
     relations.remove_modifier(obj, uid)
     if obj.type == "MESH" and obj.data.library is None:
         storage.remove_all(obj.data, uid)

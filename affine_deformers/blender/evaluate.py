@@ -19,7 +19,7 @@ import traceback
 import bpy
 import numpy as np
 
-from . import binding, blend, caches, outputs, snapshot, storage
+from . import binding, blend, caches, outputs, snapshot, storage, weight_groups
 from . import bound as bound_data
 from .caches import forget
 from .params import motions_to_params
@@ -43,6 +43,7 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         set_status(deformer, error)
         return error
     snap = snapshot.take(obj, deformer, depsgraph)
+    weight_groups.record_states(obj, deformer, snap.motions, snap.error, depsgraph)
     key = (obj.session_uid, deformer.uid)
     signature = snap.signature()
     if caches.signatures.get(key) == signature:
@@ -120,6 +121,7 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
         binding.separate_shared_ids(obj)  # linked duplicates must not share output attributes
     except Exception:  # never let it stop the evaluation; the ids stay shared and the next update retries
         traceback.print_exc()
+    weight_groups.before_evaluate(obj)  # renamed probes' groups, Weight Paint mode, the weight preview
     statuses = []
     for deformer in obj.affine_deformers:
         try:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import armature_convert, kinds
+from . import armature_convert, kinds, weight_operators, weight_preview
 from .bake import AFFINE_OT_deformer_bake, AFFINE_OT_deformer_unbake, bake_state
 
 
@@ -27,15 +27,11 @@ class AFFINE_UL_deformers(bpy.types.UIList):
 
 
 class AFFINE_UL_probes(bpy.types.UIList):
-    """The probes of a deformer: object and weight scale."""
+    """The probes of a deformer: object, state (at rest / moving / invalid / no group), weight scale
+    and a select button."""
 
     def draw_item(self, _context, layout, _data, item, _icon, _active_data, _active_prop, _index=0):
-        row = layout.row(align=True)
-        if item.object is None:
-            row.label(text=f"{item.name or '?'} (missing)", icon="ERROR")
-        else:
-            row.prop(item, "object", text="", emboss=False, icon="EMPTY_AXIS")
-        row.prop(item, "weight_scale", text="")
+        weight_operators.draw_probe_item(layout, item, _index)
 
 
 class AFFINE_UL_bones(bpy.types.UIList):
@@ -96,6 +92,8 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         kind = kinds.get(deformer.kind)
         if kind is None:
             return
+        weight_preview.draw(layout, context, deformer)
+        weight_operators.draw(layout, deformer, index)
         armature_convert.draw_restore(layout, deformer, index)
         col = layout.column()
         col.use_property_split = True
@@ -107,6 +105,7 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         sub.active = kind.branch_rule_active(deformer)
         sub.prop(deformer, "branch_rule")
         kind.draw_controls(layout, deformer, index)
+        weight_operators.draw_probe_details(layout, obj, deformer)
 
 
 def draw_bake(layout: bpy.types.UILayout, deformer, index: int) -> None:

@@ -21,7 +21,7 @@ from bpy.props import (
     StringProperty,
 )
 
-from . import binding, kinds, nodes, relations, storage
+from . import binding, kinds, nodes, relations, storage, weight_groups, weight_preview
 from .kinds import KindId
 
 IDENTITY16 = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
@@ -122,6 +122,21 @@ def _on_probe_object(self: AffineDeformerProbe, _context: bpy.types.Context) -> 
         relations.sync(obj, deformer)
 
 
+def _on_probe_group(self: AffineDeformerProbe, _context: bpy.types.Context) -> None:
+    # Another painted group: re-weight, but only when the weights are painted ones.
+    owner = _owner_deformer(self)
+    if owner is not None and owner[1].weight_mode == "VERTEX_GROUPS":
+        _reweight(owner[1])
+
+
+def _on_show_weights(self: AffineDeformer, _context: bpy.types.Context) -> None:
+    weight_preview.on_show_weights(self)
+
+
+def _on_preview_option(self: AffineDeformer, _context: bpy.types.Context) -> None:
+    weight_preview.on_option(self)
+
+
 class AffineDeformerProbe(bpy.types.PropertyGroup):
     """One probe: a control object and its rest pose in the target's local space (float32, as stored)."""
 
@@ -140,6 +155,13 @@ class AffineDeformerProbe(bpy.types.PropertyGroup):
     weight_scale: FloatProperty(
         name="Weight Scale", default=1.0, min=0.0, soft_max=4.0, update=_on_probe_weight_option,
         description="Multiplies this probe's raw weight before normalisation")
+    vertex_group: StringProperty(
+        name="Vertex Group", search=_search_vertex_groups, update=_on_probe_group,
+        description="Vertex group holding this probe's painted weights (Weights: Vertex Groups); empty: "
+                    "the group named after the probe. Renaming the probe renames its group with it")
+    state: EnumProperty(
+        name="State", items=weight_groups.PROBE_STATES, default="AT_REST",
+        description="What the probe does at the last update (set by the add-on)")
 
 
 class AffineDeformerBone(bpy.types.PropertyGroup):
@@ -198,13 +220,13 @@ class AffineDeformer(bpy.types.PropertyGroup):
     kind: EnumProperty(
         name="Kind", items=kinds.enum_items(), default=kinds.REGISTERED[0].id)
     probes: CollectionProperty(type=AffineDeformerProbe)
-    active_probe_index: IntProperty(name="Active Probe", default=0, min=0)
+    active_probe_index: IntProperty(name="Active Probe", default=0, min=0, update=_on_preview_option)
     armature: PointerProperty(
         name="Armature", type=bpy.types.Object, poll=_poll_armature, update=_on_armature,
         description="Armature whose pose bones drive the target (its deform bones, at their rest pose "
                     "in Edit Mode, are the rest)")
     bones: CollectionProperty(type=AffineDeformerBone)
-    active_bone_index: IntProperty(name="Active Bone", default=0, min=0)
+    active_bone_index: IntProperty(name="Active Bone", default=0, min=0, update=_on_preview_option)
     cage: PointerProperty(
         name="Cage", type=bpy.types.Object, poll=_poll_cage, update=_on_cage_object,
         description="Closed mesh with outward normals whose faces drive the target (a new pick is bound "
@@ -303,6 +325,26 @@ class AffineDeformer(bpy.types.PropertyGroup):
                     "vertex indices; empty in files bound before it was stored)")
     bind_generation: IntProperty(
         options={"HIDDEN"}, default=0, description="Bumped at every (re)weighting: evaluation cache key")
+    show_weights: BoolProperty(
+        name="Show Weights", default=False, update=_on_show_weights,
+        description="Show this deformer's weights as vertex colours in the viewport (Solid shading, "
+                    "Color: Attribute). Viewport only: renders and the deformation are unchanged, and "
+                    "turning it off removes every trace. One deformer per object at a time")
+    weight_preview: EnumProperty(
+        name="Weight Preview", default="ACTIVE", update=_on_preview_option,
+        items=[("ACTIVE", "Active Control",
+                "The weight of the active probe or bone (or of one cage face) on the weight-paint colours: "
+                "blue 0, green 0.5, red 1"),
+               ("ALL", "All Controls",
+                "Every control in its own colour, mixed by the weights (dark: a share no control moves)")])
+    weight_preview_face: IntProperty(
+        name="Preview Face", default=-1, min=-1, update=_on_preview_option,
+        description="Cage face whose weights the preview shows (-1: the cage mesh's active face, picked "
+                    "in its Edit Mode)")
+    weight_preview_fit: BoolProperty(
+        name="Fit Range", default=False, update=_on_preview_option,
+        description="Stretch the colours from 0 to the largest weight shown instead of 0 to 1 (one face "
+                    "of a cage, or a weak probe, is otherwise all blue)")
 
 
 CLASSES = (AffineDeformerProbe, AffineDeformerBone, AffineDeformer)

@@ -48,6 +48,10 @@ DECLARED = {
     "name": "a label", "uid": "names the attributes: part of the cache key itself",
     "active_probe_index": "interface only", "active_bone_index": "interface only",
     "status": "the update's output",
+    "show_weights": "the viewport preview (weight_preview.py): no input of the deformation",
+    "weight_preview": "the viewport preview: no input of the deformation",
+    "weight_preview_face": "the viewport preview: no input of the deformation",
+    "weight_preview_fit": "the viewport preview: no input of the deformation",
     "show_viewport": "the modifier's own toggle (Blender skips a disabled modifier)",
     "show_render": "the modifier's own toggle (Blender skips a disabled modifier)",
 }

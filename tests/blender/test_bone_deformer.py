@@ -379,3 +379,24 @@ def test_bake_follows_the_bones(bl, tmp_path):
     for frame in (1, 3, 5):
         bpy.context.scene.frame_set(frame)
         assert np.abs(bl.evaluated_positions(bar) - live[frame]).max() < 1e-5, frame
+
+
+def test_distance_weights_to_vertex_groups_keep_the_deformation(bl):
+    """Bones' automatic (distance) weights → groups named after the bones (the Armature modifier's
+    convention) → painted weights: the same deformation to 1e-6."""
+    bar = _bar(bl)
+    arm = _armature([0.0, 2.0, 4.0])
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar, arm]):
+        assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+    deformer = bar.affine_deformers[0]
+    pose = arm.pose.bones["B1"]
+    pose.rotation_mode = "XYZ"
+    pose.rotation_euler = (0.0, math.radians(200.0), math.radians(30.0))
+    bpy.context.view_layer.update()
+    before = bl.evaluated_positions(bar).astype(np.float64)
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert bpy.ops.object.affine_deformer_weights_to_groups(index=0) == {"FINISHED"}
+    assert deformer.weight_mode == "VERTEX_GROUPS" and {g.name for g in bar.vertex_groups} == {"B0", "B1"}
+    bpy.context.view_layer.update()
+    assert np.abs(bl.evaluated_positions(bar) - before).max() <= 1e-6
+    assert deformer.status == ""

@@ -68,6 +68,24 @@ def probe_label(item) -> str:
     return obj.name if obj is not None else (item.name or "?")
 
 
+def group_name(obj: bpy.types.Object, item) -> str:
+    """The vertex group holding the painted weights of probe `item`: its `vertex_group`, else the
+    group named after the probe — or after its former name (`item.name`) while only that exists,
+    i.e. the probe was renamed and weight_groups.follow_renames has not renamed the group yet."""
+    if item.vertex_group:
+        return item.vertex_group
+    label = probe_label(item)
+    groups = obj.vertex_groups
+    if groups.get(label) is None and item.name and item.name != label and groups.get(item.name) is not None:
+        return item.name
+    return label
+
+
+def group_names(obj: bpy.types.Object, deformer) -> list[str]:
+    """The painted-weight group of every probe of `deformer` (what 'VERTEX_GROUPS' reads)."""
+    return [group_name(obj, item) for item in deformer.probes]
+
+
 class ProbeKind:
     """Probes: any objects (normally Empties) whose motion drives the mesh."""
 
@@ -118,7 +136,7 @@ class ProbeKind:
         warning = ""
         dense = solved = None
         if deformer.weight_mode == "VERTEX_GROUPS":
-            names = [probe_label(item) for item in deformer.probes]
+            names = group_names(obj, deformer)  # a renamed probe keeps its painted group
             missing = [n for n in names if obj.vertex_groups.get(n) is None]
             if missing:
                 warning = ("No vertex group named " + ", ".join(f"'{n}'" for n in missing)
