@@ -59,6 +59,7 @@ __all__ = [
     "backend",
     "deform_points_params",
     "deform_points_params_rows",
+    "linear_maps",
     "set_enabled",
     "vertex_motions",
     "warm_up",
@@ -532,6 +533,17 @@ def vertex_motions(
         else:
             out[:, sel] = dst[:, sel]
     return out
+
+
+def linear_maps(params: ArrayLike) -> FloatArray:
+    """The linear parts M = R(ω) exp(Y) (n, 3, 3) of φ(P) for parameters (n, 12): `vertex_motions`
+    with one control per row at weight 1 (the compiled kernel when it is active)."""
+    table = np.ascontiguousarray(params, dtype=np.float64)
+    n = table.shape[0]
+    if n == 0:
+        return np.zeros((0, 3, 3))
+    columns = vertex_motions(table, np.arange(n, dtype=np.int32)[:, None], np.ones((n, 1)))
+    return np.ascontiguousarray(columns[:3].transpose(1, 2, 0))
 
 
 def _numpy_rows(

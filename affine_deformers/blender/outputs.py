@@ -125,36 +125,40 @@ def write_motions(mesh: bpy.types.Mesh, uid: str, result: np.ndarray, rows: np.n
         bound.motions_written = result
 
 
+#: The largest magnitude a float32 attribute holds: beyond it a value would be stored as ±inf.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def storable(values: np.ndarray) -> bool:
+    """Whether every entry of `values` is finite and within float32 range: two reductions (max and
+    min propagate NaN, and ±inf fails the bounds), no temporary array and no BLAS call (whose threads
+    wait for cores the kernel's threads hold)."""
+    if values.size == 0:
+        return True
+    return bool(values.max() <= FLOAT32_MAX and values.min() >= -FLOAT32_MAX)
+
+
 def finite_motions(result: np.ndarray, rows: np.ndarray | None) -> bool:
-    """Whether the motions (4, N, 3) are all finite, given that only `rows` changed (see `finite_offsets`)."""
-    # A float32 dot product (BLAS): it also overflows to inf for entries beyond ~1e19, which a float32
-    # position could not use either.
+    """Whether the motions (4, N, 3) are all finite, given that only `rows` changed (see
+    `finite_offsets`)."""
     if rows is not None:
         if len(rows) == 0:
             return True
         if 4 * len(rows) < result.shape[1]:
-            changed = np.take(result, rows, axis=1).reshape(-1)
-            return bool(np.isfinite(np.dot(changed, changed)))
-    flat = result.reshape(-1)
-    return bool(np.isfinite(np.dot(flat, flat)))
+            return storable(np.take(result, rows, axis=1))
+    return storable(result)
 
 
 def finite_offsets(offsets: np.ndarray, rows: np.ndarray | None) -> bool:
-    """Whether `offsets` (N, 3) float64 are all finite, given that only `rows` (None: any) changed since
-    they were last found finite (an incremental result starts from a checked one: a failed check
-    drops it, see evaluate_deformer).
-
-    One dot product x·x instead of a (N, 3) boolean array: NaN and ±inf propagate into it, and it only
-    overflows for some |x| > 1.3e154, which float32 storage would turn into ±inf anyway.
-    """
+    """Whether `offsets` (N, 3) float64 are all finite and storable as float32, given that only `rows`
+    (None: any) changed since they were last found so (an incremental result starts from a checked
+    one: a failed check drops it, see evaluate.evaluate_deformer)."""
     if rows is not None:
         if len(rows) == 0:
             return True
         if 4 * len(rows) < len(offsets):  # a gather of few rows costs less than a pass over all
-            changed = np.take(offsets, rows, axis=0).reshape(-1)
-            return bool(np.isfinite(np.dot(changed, changed)))
-    flat = offsets.reshape(-1)
-    return bool(np.isfinite(np.dot(flat, flat)))
+            return storable(np.take(offsets, rows, axis=0))
+    return storable(offsets)
 
 
 def write_offsets(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray, rows: np.ndarray | None,

@@ -523,11 +523,18 @@ def cut_node_weights(W: np.ndarray, cut: float = NODE_CUT) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------- blend
 
 
-def face_blend_terms(face_params: np.ndarray) -> np.ndarray:
+def linear_maps(params: np.ndarray) -> np.ndarray:
+    """The linear parts M = R(ω) exp(Y) (n, 3, 3) of φ(P) for parameters (n, 12) (the default `maps`
+    of `node_params`; a caller may pass a faster evaluation of the same map)."""
+    return matrices_from_params(params)[:, :3, :3]
+
+
+def face_blend_terms(face_params: np.ndarray, maps: Callable[[np.ndarray], np.ndarray] = linear_maps
+                     ) -> np.ndarray:
     """(F, 21): per face (ω, u, Y, B) with B = V(ω)⁻¹ (M − I) row-major — the quantities the
-    pivoted node blend is linear in (module docstring)."""
+    pivoted node blend is linear in (module docstring); `maps` gives M (see `linear_maps`)."""
     P = np.asarray(face_params, dtype=np.float64)
-    M = matrices_from_params(P)[:, :3, :3]
+    M = maps(P)
     B = left_jacobian_inv(P[:, 0:3]) @ (M - np.eye(3))
     return np.concatenate([P, B.reshape(-1, 9)], axis=1)
 
@@ -557,8 +564,12 @@ def _face_columns(W: np.ndarray, faces: np.ndarray | None, valid: np.ndarray | N
 
 
 def node_params(node_points: np.ndarray, node_weights: np.ndarray, face_params: np.ndarray, *,
-                faces: np.ndarray | None = None, valid: np.ndarray | None = None) -> np.ndarray:
+                faces: np.ndarray | None = None, valid: np.ndarray | None = None,
+                maps: Callable[[np.ndarray], np.ndarray] = linear_maps) -> np.ndarray:
     """Blend parameters (G, 12) of the nodes: the pivoted blend of the module docstring.
+
+    maps: evaluates the linear part of φ for a batch of parameters (`linear_maps`; the Blender layer
+    passes the compiled kernel's, the same map to ~1e-15).
 
     faces: the faces whose parameters may be non-zero (the others are skipped: their terms are 0);
     valid (F,) bool: faces to leave out, their weight going to the node's other faces (rows are
@@ -568,11 +579,11 @@ def node_params(node_points: np.ndarray, node_weights: np.ndarray, face_params: 
     x = np.asarray(node_points, dtype=np.float64)
     P = np.asarray(face_params, dtype=np.float64)
     faces = np.arange(W.shape[1]) if faces is None else np.asarray(faces, dtype=np.intp)
-    blend = _face_columns(W, faces, valid, face_blend_terms(P[faces]))
+    blend = _face_columns(W, faces, valid, face_blend_terms(P[faces], maps))
     omega, Y = blend[:, 0:3], blend[:, 6:12]
     u = blend[:, 3:6] + np.einsum("gij,gj->gi", blend[:, 12:21].reshape(-1, 3, 3), x)
     linear = np.concatenate([omega, np.zeros_like(omega), Y], axis=1)
-    M = matrices_from_params(linear)[:, :3, :3]
+    M = maps(linear)
     u += np.einsum("gij,gj->gi", left_jacobian_inv(omega), x - np.einsum("gij,gj->gi", M, x))
     return np.concatenate([omega, u, Y], axis=1)
 

@@ -142,7 +142,7 @@ def test_finiteness_check_of_changed_rows(installed):
     offsets = np.zeros((100, 3))
     assert outputs.finite_offsets(offsets, None)
     assert outputs.finite_offsets(offsets, np.array([], dtype=np.intp))
-    for bad in (np.nan, np.inf, -np.inf, 1e200):
+    for bad in (np.nan, np.inf, -np.inf, 1e200, 1e39):  # 1e39: beyond float32, stored as inf
         offsets[37, 1] = bad
         assert not outputs.finite_offsets(offsets, None)
         assert not outputs.finite_offsets(offsets, np.array([3, 37]))  # few rows: gathered

@@ -58,7 +58,8 @@ class Motions:
     Optional parts, each None when a kind has no use for it:
     turns: the rotation channels of controls that have them (probes), for the branch of ψ;
     params (m, 12): blend parameters used instead of ψ(matrices), for controls whose parameters are
-      not ψ of one matrix (a cage face averages its corner tetrahedra; matrices then hold φ(params));
+      not ψ of one matrix (a cage face averages its corner tetrahedra; matrices then hold φ(params)
+      for the 'LINEAR' blend, the only reader of them, and may stay the identity otherwise);
     valid (m,) bool: False marks a control to skip — its weight goes to the vertex's other controls;
     outer (4, 4): a motion applied after the blend, v' = outer · blend(v) (a cage object's motion);
     outer_reference (3,) and outer_pivot (3,): the reference rotation vector and current origin of

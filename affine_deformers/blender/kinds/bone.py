@@ -35,7 +35,7 @@ from ...core import aff3, unwrap, weights
 from .. import nodes
 from .base import Adopted, BindError, ChannelTurns, Motions, ignored_note
 from .probe import harmonic_surface_weights, surface_warning
-from .transforms import finite_transform, frame_rotation, in_a_scene, rotation_channels
+from .transforms import finite_transform, frame_rotation, in_a_scene, inverse3, rotation_channels
 
 REST_SEGMENTS = "bone_rest_segments"  # ID property: (m, 2, 3) float64 heads and tails, target space
 #: Max Influences of a new bone deformer (painted weights keep their K largest: as many bones as a
@@ -105,7 +105,7 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
                         "Bone '{bone}' has a non-finite pose (NaN or infinity): the mesh shows its input")
     try:
         with np.errstate(all="ignore"):
-            local = pose @ np.linalg.inv(rest)
+            local = pose @ _inverse_affine(rest)
     except np.linalg.LinAlgError:
         return _BoneRow(identity, False, mode, rotation, np.eye(3), pivot, np.zeros(3),
                         "Bone '{bone}' has a zero-length rest: fix it in Edit Mode")
@@ -250,7 +250,7 @@ class BoneKind:
             return Motions.invalid(m, f"{problem}: the mesh shows its input")
         try:
             frame = _frame_matrix(obj, armature, depsgraph)
-            frame_inverse = np.linalg.inv(frame)
+            frame_inverse = _inverse_affine(frame)
         except np.linalg.LinAlgError:
             return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' is scaled to zero: the "
                                    "mesh shows its input")
@@ -316,8 +316,18 @@ def _frame_matrix(obj: bpy.types.Object, armature: bpy.types.Object,
     """P = target_world⁻¹ · armature_world (evaluated, float64); LinAlgError for a singular target."""
     target_world = np.array(obj.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
     armature_world = np.array(armature.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
-    out = np.linalg.solve(target_world, armature_world)
+    out = _inverse_affine(target_world) @ armature_world
     out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def _inverse_affine(matrix: np.ndarray) -> np.ndarray:
+    """The inverse (4, 4) of an affine matrix (bottom row 0 0 0 1): [[M⁻¹, −M⁻¹ t], [0, 1]];
+    LinAlgError when M is singular."""
+    linear = inverse3(matrix[:3, :3])
+    out = np.eye(4)
+    out[:3, :3] = linear
+    out[:3, 3] = -linear @ matrix[:3, 3]
     return out
 
 

@@ -57,6 +57,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
+from ... import accel
 from ...core import aff3
 from ...core.cage import (
     CageTopology,
@@ -423,7 +424,7 @@ class CageKind:
             except BindError as exc:
                 return Motions.invalid(F, str(exc))
         # Every depsgraph update re-evaluates; the motions are a pure function of these inputs.
-        linear = nodes is not None and deformer.blend_mode == "LINEAR"
+        linear = deformer.blend_mode == "LINEAR"
         key = (rest.tobytes(), loops.tobytes(), start.tobytes(), total.tobytes(), stored.tobytes(),
                state.points.tobytes(), None if nodes is None else deformer.bind_generation, linear)
         cached = _last_motions.get((obj.session_uid, deformer.uid))
@@ -439,7 +440,7 @@ class CageKind:
                                               "current shape (its volume is not positive): the mesh shows "
                                               "its rest shape")
             else:
-                controls = _face_motions(rest, current, topology)
+                controls = _face_motions(rest, current, topology, linear)
                 if nodes is not None:
                     controls = _node_motions(controls, *nodes, linear=linear)
             _last_motions[(obj.session_uid, deformer.uid)] = (key, controls)
@@ -472,9 +473,12 @@ def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgra
     return outer, reference, matrix[:3, 3].astype(np.float64)
 
 
-def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology) -> Motions:
+def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
+                  linear: bool) -> Motions:
     """Motions of the faces the cage's shape change can reach (core.cage.affected_faces); all other
-    faces are exactly at rest (zero parameters, so the vertices they alone drive stay bit-for-bit)."""
+    faces are exactly at rest (zero parameters, so the vertices they alone drive stay bit-for-bit).
+    The matrices φ(P_f) are formed only for the 'LINEAR' blend (`linear`), the only reader of them;
+    otherwise they stay the identity and the parameters carry the motion."""
     F = topology.n_faces
     face_moved = affected_faces(rest, current, topology)
     at_rest = ~face_moved
@@ -488,7 +492,7 @@ def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology)
         if motion.messages:
             warning = "; ".join(motion.messages) + f" ({_COLLAPSE_NOTE})"
     matrices = np.broadcast_to(np.eye(4), (F, 4, 4)).copy()
-    if np.any(face_moved):
+    if linear and np.any(face_moved):
         matrices[face_moved] = aff3.matrices_from_params(params[face_moved])
     return Motions(matrices, at_rest, "", params=params, valid=valid, warning=warning)
 
@@ -511,6 +515,7 @@ def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndar
     matrices = np.broadcast_to(np.eye(4), (G, 4, 4)).copy()
     if rows.size:
         params[rows] = node_params(node_points[rows], node_weights[rows], faces.params, faces=moved,
+                                   maps=accel.linear_maps,
                                    valid=valid)
         if linear:
             matrices[rows] = node_matrices_linear(node_weights[rows], faces.matrices, faces=moved,

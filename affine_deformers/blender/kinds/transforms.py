@@ -29,13 +29,32 @@ def local_matrix(target_world: np.ndarray, control_world: np.ndarray) -> np.ndar
     return local_solve(target_world, control_world)[0]
 
 
+def inverse3(matrix: np.ndarray) -> np.ndarray:
+    """M⁻¹ (3, 3) float64 of a 3×3 matrix by its adjugate, adj(M)/det M; LinAlgError when det M = 0
+    (non-finite entries give non-finite results, which callers check).
+
+    Closed form rather than LAPACK: a per-control, per-update call of np.linalg.solve cost ~0.4 ms
+    (LAPACK's threads wait for cores the kernel's threads hold), this costs microseconds; the
+    matrices are transforms (float32 data), for which the adjugate is as accurate as the data."""
+    (a, b, c), (d, e, f), (g, h, i) = matrix.tolist()
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * A + b * B + c * C
+    if det == 0.0:
+        raise np.linalg.LinAlgError("singular matrix")
+    with np.errstate(all="ignore"):
+        adjugate = np.array([[A, c * h - b * i, b * f - c * e],
+                             [B, a * i - c * g, c * d - a * f],
+                             [C, b * g - a * h, a * e - b * d]])
+        return adjugate / det
+
+
 def local_solve(target_world: np.ndarray, control_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(`local_matrix`, the float64 3×4 solve it was rounded from): the channel frame reuses the
-    solve's linear part (target_world⁻¹ · control_world's 3×3), so one LAPACK call serves both."""
+    solve's linear part (target_world⁻¹ · control_world's 3×3), so one solve serves both."""
     out = np.zeros((4, 4), dtype=np.float64)
     rhs = control_world[:3, :].copy()
     rhs[:, 3] -= target_world[:3, 3]
-    solved = np.linalg.solve(target_world[:3, :3], rhs)
+    solved = inverse3(target_world[:3, :3]) @ rhs
     out[:3, :] = solved
     out[3, 3] = 1.0
     return out.astype(np.float32), solved
@@ -44,7 +63,7 @@ def local_solve(target_world: np.ndarray, control_world: np.ndarray) -> tuple[np
 def relative_motion(current: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """A = current · rest⁻¹ for affine 4×4 matrices, with an exact (0, 0, 0, 1) bottom row."""
     out = np.eye(4)
-    lin = np.linalg.solve(rest[:3, :3].T, current[:3, :3].T).T
+    lin = current[:3, :3] @ inverse3(rest[:3, :3])
     out[:3, :3] = lin
     out[:3, 3] = current[:3, 3] - lin @ rest[:3, 3]
     return out
@@ -80,7 +99,7 @@ def channel_frame(evaluated: bpy.types.Object, target_world: np.ndarray) -> np.n
     world = np.array(evaluated.matrix_world, dtype=np.float64)
     try:
         with np.errstate(all="ignore"):
-            linear = np.linalg.solve(target_world[:3, :3], world[:3, :3])
+            linear = inverse3(target_world[:3, :3]) @ world[:3, :3]
     except np.linalg.LinAlgError:
         return np.eye(3)
     scale = (*evaluated.scale, *evaluated.delta_scale)
