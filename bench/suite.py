@@ -17,6 +17,7 @@ from pathlib import Path
 import common
 import native
 import ours
+import playback
 from common import Samples, Table, fmt_ms, fmt_ratio
 
 
@@ -32,6 +33,7 @@ class Plan:
     c_probes: tuple[int, ...]
     radius: float = 1.0  # falloff radius on the unit sphere; the same for every method and probe count
     cage_radius: float = 1.25
+    p_frames: int = 48  # (p) playback: keyed frames
 
 
 FULL = Plan(
@@ -55,6 +57,7 @@ QUICK = Plan(
     precision=4,
     c_verts=(2_000, 8_000),
     c_probes=(1, 8),
+    p_frames=6,
 )
 
 STAGES = (
@@ -505,7 +508,7 @@ def run(ns: argparse.Namespace) -> int:
 
     report = Report()
     t0 = time.perf_counter()
-    for part, fn in (("a", part_a), ("b", part_b), ("c", part_c)):
+    for part, fn in (("a", part_a), ("b", part_b), ("c", part_c), ("p", playback.part_p)):
         if part in ns.parts:
             fn(plan, have_ours, report)
     if report.split_rows:

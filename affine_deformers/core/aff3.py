@@ -53,6 +53,7 @@ FloatArray = NDArray[np.float64]
 
 __all__ = [
     "hat",
+    "inverse3",
     "left_jacobian",
     "left_jacobian_inv",
     "matrices_from_params",
@@ -110,6 +111,19 @@ _PREV = np.array([2, 0, 1])
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     """a × b over the last axis: (a₁b₂ − a₂b₁, a₂b₀ − a₀b₂, a₀b₁ − a₁b₀), each entry rounded as written."""
     return a.take(_NEXT, axis=-1) * b.take(_PREV, axis=-1) - a.take(_PREV, axis=-1) * b.take(_NEXT, axis=-1)
+
+
+def inverse3(M: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(M⁻¹, det M) for matrices (..., 3, 3): the adjugate over the determinant, adj(M)/det M, whose
+    columns are cross products of M's rows (M⁻¹ = [r₁×r₂, r₂×r₀, r₀×r₁]/det, det = r₀·(r₁×r₂)).
+    Rows with det M = 0 give non-finite inverses (callers mask them). Vectorised, no LAPACK: batched
+    np.linalg.solve costs microseconds per matrix and waits for cores other threads hold."""
+    M = np.asarray(M, dtype=np.float64)
+    r0, r1, r2 = M[..., 0, :], M[..., 1, :], M[..., 2, :]
+    adjugate = np.stack([_cross(r1, r2), _cross(r2, r0), _cross(r0, r1)], axis=-1)
+    det = np.einsum("...i,...i->...", r0, adjugate[..., :, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return adjugate / det[..., None, None], det
 
 
 def _horner(coeffs: tuple[float, ...], z: FloatArray) -> FloatArray:

@@ -68,7 +68,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from .aff3 import params_from_matrices
+from .aff3 import inverse3, params_from_matrices
 from .deform import default_threads
 from .unwrap import lift_params
 from .weights import normalize, truncate
@@ -557,12 +557,11 @@ def corner_matrices(
     ok &= np.isfinite(c_rest).all(axis=1) & np.isfinite(c_cur).all(axis=1)
     A = np.broadcast_to(np.eye(4), (triples.shape[0], 4, 4)).copy()
     if np.any(ok):
-        # M E_rest = E_cur  <=>  E_restᵀ Mᵀ = E_curᵀ
-        Mt = np.linalg.solve(np.swapaxes(E_rest[ok], 1, 2), np.swapaxes(E_cur[ok], 1, 2))
-        M = np.swapaxes(Mt, 1, 2)
+        # M E_rest = E_cur (the rest frames are well conditioned: sin of the corner > COLLAPSED_SIN)
+        M = E_cur[ok] @ inverse3(E_rest[ok])[0]
         A[ok, :3, :3] = M
         A[ok, :3, 3] = c_cur[ok] - np.einsum("tij,tj->ti", M, c_rest[ok])
-    good = np.isfinite(A).all(axis=(1, 2)) & (np.linalg.det(A[:, :3, :3]) > 0.0)
+    good = np.isfinite(A).all(axis=(1, 2)) & (inverse3(A[:, :3, :3])[1] > 0.0)
     ok &= good
     A[~ok] = np.eye(4)
     return A, ok

@@ -464,3 +464,18 @@ def test_property_rigid_and_common_motion_blends(ps: list[np.ndarray], data: st.
     common = aff3.matrices_from_params(w @ np.broadcast_to(P[0], P.shape))
     A0 = aff3.matrices_from_params(P[0])
     assert rel(common, A0) <= 1e-13
+
+
+def test_inverse3_matches_numpy_and_flags_singular_matrices():
+    from affine_deformers.core.aff3 import inverse3
+
+    rng = np.random.default_rng(3)
+    M = rng.normal(size=(500, 3, 3))
+    M[0] = np.diag([1e3, 1.0, 1e-3])  # anisotropic
+    M[1, 2] = M[1, 0] + M[1, 1]  # singular
+    inv, det = inverse3(M)
+    np.testing.assert_allclose(det, np.linalg.det(M), rtol=1e-10, atol=1e-12)
+    good = np.abs(det) > 1e-9
+    np.testing.assert_allclose(inv[good] @ M[good], np.broadcast_to(np.eye(3), (good.sum(), 3, 3)),
+                               atol=1e-9)
+    assert abs(det[1]) < 1e-12 and not good[1]

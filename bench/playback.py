@@ -1,0 +1,185 @@
+"""(p) Playback: frames per second over a keyed range with every control animated — the figure an
+animator feels — ours vs Hooks, Armature (Preserve Volume) and Mesh Deform on the same meshes.
+
+Every control is keyed at every frame (a different small translation + rotation each, from
+common.wiggle), so no frame repeats the one before; one timed frame is `scene.frame_set(f)` plus a
+depsgraph settle (our frame handler writes the output, the second pass applies it). The cage rows key
+a shape key of the cage (its top half bulging), so Mesh Deform and ours both follow a changing cage.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+
+import bpy
+import common
+import native
+import numpy as np
+import ours
+from common import Samples, Table, fmt_ms, fmt_ratio
+from mathutils import Vector
+
+
+def _key_objects(objects: list, frames: int) -> None:
+    """Key location and rotation of every object at frames 1..frames, each with its own path."""
+    for j, ob in enumerate(objects):
+        base, base_rot = Vector(ob.location), Vector(ob.rotation_euler)
+        for f in range(1, frames + 1):
+            dt, dr = common.wiggle(f * len(objects) + j)
+            ob.location = base + Vector(dt)
+            ob.rotation_euler = base_rot + Vector(dr)
+            ob.keyframe_insert("location", frame=f)
+            ob.keyframe_insert("rotation_euler", frame=f)
+
+
+def _key_pose_bones(arm: bpy.types.Object, frames: int) -> None:
+    bones = list(arm.pose.bones)
+    for j, pose_bone in enumerate(bones):
+        pose_bone.rotation_mode = "XYZ"
+        for f in range(1, frames + 1):
+            dt, dr = common.wiggle(f * len(bones) + j)
+            pose_bone.location = dt
+            pose_bone.rotation_euler = dr
+            pose_bone.keyframe_insert("location", frame=f)
+            pose_bone.keyframe_insert("rotation_euler", frame=f)
+
+
+def _key_cage_bulge(cage: bpy.types.Object, frames: int) -> None:
+    """A shape key pushing the cage's top half outward, its value keyed differently at every frame."""
+    cage.shape_key_add(name="Basis", from_mix=False)
+    key = cage.shape_key_add(name="Bulge", from_mix=False)
+    co = np.empty(len(cage.data.vertices) * 3, dtype=np.float32)
+    key.data.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, :2] *= np.where(co[:, 2:3] > 0.0, 1.0 + 0.3 * co[:, 2:3], 1.0)
+    key.data.foreach_set("co", co.ravel())
+    for f in range(1, frames + 1):
+        key.value = 0.5 + 0.5 * np.sin(0.9 * f)
+        key.keyframe_insert("value", frame=f)
+
+
+def time_playback(target: bpy.types.Object, frames: int) -> Samples:
+    """Seconds per frame of frame_set(f) + settle over frames 1..frames (after one untimed pass);
+    a frame whose evaluated positions equal the previous frame's counts as stale."""
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, frames
+    for f in (1, 2, 1):  # warm-up: caches and the compiled kernel
+        scene.frame_set(f)
+        common.settle()
+    out = Samples()
+    prev = common.evaluated_positions(target)
+    for f in range(2, frames + 1):
+        t0 = time.perf_counter()
+        scene.frame_set(f)
+        common.settle()
+        out.seconds.append(time.perf_counter() - t0)
+        cur = common.evaluated_positions(target)
+        if np.array_equal(cur, prev):
+            out.stale += 1
+        prev = cur
+    return out
+
+
+def _row(label: str, build, frames: int, report) -> Samples | None:
+    try:
+        target = build()
+        samples = time_playback(target, frames)
+        status = [d.status for d in getattr(target, "affine_deformers", ()) if d.status]
+        if status:
+            report.notes.append(f"(p) {label}: the deformer reported “{status[0]}”")
+        if samples.stale:
+            report.problems.append(f"(p) {label}: {samples.stale} frames changed nothing")
+        print(f"  {label:<44} {fmt_ms(samples.median):>9} per frame", flush=True)
+        return samples
+    except Exception as exc:  # one broken row must not hide the others
+        traceback.print_exc()
+        report.problems.append(f"(p) {label}: {type(exc).__name__}: {exc}")
+        return None
+    finally:
+        common.clear_scene()
+
+
+def part_p(plan, have_ours: bool, report) -> None:
+    m, frames, n_target = 8, plan.p_frames, plan.a_verts
+    n = n_target  # the sphere is built for this many vertices (common.sphere_grid_for)
+    print(f"(p) playback of {frames} keyed frames, {m} controls all animated, ~{n:,} vertices", flush=True)
+    sites = common.probe_sites(m)
+
+    def ours_probes():
+        target = common.sphere_object("Target", n_target)
+        empties = native.add_empties(sites)
+        ours.probe_rig(target, empties, plan.radius)
+        _key_objects(empties, frames)
+        return target
+
+    def hooks():
+        target = common.sphere_object("Target", n_target)
+        empties = native.add_empties(sites)
+        native.hooks(target, empties, plan.radius)
+        _key_objects(empties, frames)
+        return target
+
+    def armature():
+        target = common.sphere_object("Target", n_target)
+        weights = common.smooth_falloff(common.rest_positions(target), sites, plan.radius)
+        native.armature(target, sites, weights)
+        _key_pose_bones(bpy.data.objects["Rig"], frames)
+        return target
+
+    def cage_scene():
+        target = common.sphere_object("Target", n_target)
+        segments, rings = plan.cage_grid
+        cage = common.link_object("Cage", common.uv_sphere_mesh("Cage", segments, rings, plan.cage_radius))
+        return target, cage
+
+    def ours_cage():
+        target, cage = cage_scene()
+        ours.cage_rig(target, cage)
+        _key_cage_bulge(cage, frames)
+        return target
+
+    def mesh_deform():
+        target, cage = cage_scene()
+        native.mesh_deform(target, cage, plan.precision)
+        _key_cage_bulge(cage, frames)
+        return target
+
+    hook_label, arm_label = f"Hook ×{m}, Smooth, same radius", f"Armature ×{m}, Preserve Volume"
+    md_label = f"Mesh Deform, precision {plan.precision}"
+    rows = []
+    if have_ours and ours.operator_exists(ours.PROBE_OP):
+        rows.append((f"Affine probes (ours), {m} keyed", _row(f"ours: {m} probes", ours_probes, frames,
+                                                               report)))
+    rows.append((hook_label, _row(f"Hook ×{m}", hooks, frames, report)))
+    rows.append((arm_label, _row(arm_label, armature, frames, report)))
+    if have_ours and ours.operator_exists(ours.CAGE_OP):
+        rows.append(("Affine cage (ours), keyed shape key", _row("ours: cage", ours_cage, frames, report)))
+    rows.append((md_label, _row("Mesh Deform", mesh_deform, frames, report)))
+
+    t = Table(f"(p) playback: {frames} keyed frames, every control animated, ~{n:,} vertices",
+              ["method", "per frame", "frames/s", "ours ÷ native", "check"])
+    probe = next((s for label, s in rows if label.startswith("Affine probes")), None)
+    cage = next((s for label, s in rows if label.startswith("Affine cage")), None)
+    for label, s in rows:
+        if s is None:
+            continue
+        mine = cage if label.startswith(("Mesh Deform", "Affine cage")) else probe
+        native_row = mine is not None and not label.startswith("Affine")
+        ratio = fmt_ratio(mine.median, s.median) if native_row else "1.00×"
+        check = f"{s.stale} stale" if s.stale else ""
+        t.add(label, fmt_ms(s.median), f"{1.0 / s.median:.1f}", ratio, check)
+    t.notes.append("frames/s = 1 / median seconds per frame (frame_set + settle); ratio column: ours ÷ "
+                   "native, probes vs Hooks and Armature, cage vs Mesh Deform (below 1: ours is faster)")
+    report.tables.append(t)
+    by = dict(rows)
+    hook_s, arm_s, md_s = by.get(hook_label), by.get(arm_label), by.get(md_label)
+    if probe is not None and hook_s is not None and arm_s is not None:
+        line = (f"(p) playback, {m} keyed controls on ~{n:,} vertices: ours {1.0 / probe.median:.1f} "
+                f"frames/s, Hooks {1.0 / hook_s.median:.1f} ({fmt_ratio(probe.median, hook_s.median)}), "
+                f"Armature with Preserve Volume {1.0 / arm_s.median:.1f} "
+                f"({fmt_ratio(probe.median, arm_s.median)})")
+        if cage is not None and md_s is not None:
+            line += (f"; cage ours {1.0 / cage.median:.1f} vs Mesh Deform {1.0 / md_s.median:.1f} frames/s "
+                     f"({fmt_ratio(cage.median, md_s.median)})")
+        report.summary.append(line + ".")
