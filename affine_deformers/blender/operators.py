@@ -81,7 +81,7 @@ def _bind_new(op: bpy.types.Operator, context: bpy.types.Context, target: bpy.ty
     return True
 
 
-def _deformer(op: bpy.types.Operator, context: bpy.types.Context):
+def addressed_deformer(op: bpy.types.Operator, context: bpy.types.Context):
     """(object, deformer) addressed by op.index on the active object, or (None, None) after a report."""
     obj = active_target(context)
     problem = binding.target_problem(obj)
@@ -153,7 +153,7 @@ class AFFINE_OT_deformer_bind(DeformerIndexed, bpy.types.Operator):
     bl_label = "Bind Affine Deformer"
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        obj, deformer = _deformer(self, context)
+        obj, deformer = addressed_deformer(self, context)
         if obj is None:
             return {"CANCELLED"}
         try:
@@ -196,7 +196,7 @@ class AFFINE_OT_deformer_apply(DeformerIndexed, bpy.types.Operator):
     bl_label = "Apply Affine Deformer"
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        obj, deformer = _deformer(self, context)
+        obj, deformer = addressed_deformer(self, context)
         if obj is None:
             return {"CANCELLED"}
         evaluate.forget(obj, deformer.uid)
@@ -223,7 +223,7 @@ class AFFINE_OT_deformer_probe_add(DeformerIndexed, bpy.types.Operator):
     bl_label = "Add Probes"
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        obj, deformer = _deformer(self, context)
+        obj, deformer = addressed_deformer(self, context)
         if obj is None:
             return {"CANCELLED"}
         if deformer.kind != KindId.PROBE:
@@ -265,7 +265,7 @@ class AFFINE_OT_deformer_probe_remove(DeformerIndexed, bpy.types.Operator):
     probe_index: IntProperty(name="Probe", default=0, soft_min=0, description="Probe index in the deformer")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        obj, deformer = _deformer(self, context)
+        obj, deformer = addressed_deformer(self, context)
         if obj is None:
             return {"CANCELLED"}
         if not 0 <= self.probe_index < len(deformer.probes):
@@ -288,8 +288,8 @@ class AFFINE_OT_deformer_probe_remove(DeformerIndexed, bpy.types.Operator):
 
 
 def _bone_deformer(op: bpy.types.Operator, context: bpy.types.Context):
-    """(object, deformer) like `_deformer`, refusing (with a report) a deformer that is not a bone one."""
-    obj, deformer = _deformer(op, context)
+    """(object, deformer) like `addressed_deformer`, refusing (reported) a deformer that is not a bone one."""
+    obj, deformer = addressed_deformer(op, context)
     if deformer is not None and deformer.kind != KindId.BONE:
         op.report({"ERROR"}, f"'{deformer.name}' is not a bone deformer")
         return None, None

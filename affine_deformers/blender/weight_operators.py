@@ -9,7 +9,7 @@ from bpy.props import BoolProperty, IntProperty
 from . import binding, evaluate, storage
 from .kinds import BindError, KindId
 from .kinds.probe import group_name, probe_label
-from .operators import DeformerIndexed, active_target
+from .operators import DeformerIndexed, active_target, addressed_deformer
 from .weight_groups import (
     STATE_ICONS,
     STATE_TEXT,
@@ -26,19 +26,6 @@ def _active_deformer(context: bpy.types.Context):
         return obj, None
     index = obj.affine_deformers_active_index
     return obj, (obj.affine_deformers[index] if 0 <= index < len(obj.affine_deformers) else None)
-
-
-def _indexed(op: bpy.types.Operator, context: bpy.types.Context):
-    """(object, deformer) addressed by op.index, or (None, None) after an error report."""
-    obj = active_target(context)
-    if obj is None:
-        op.report({"ERROR"}, "No active object")
-        return None, None
-    try:
-        return obj, binding.deformer_at(obj, op.index)
-    except LookupError as exc:
-        op.report({"ERROR"}, str(exc))
-        return None, None
 
 
 class AFFINE_OT_deformer_weights_to_groups(DeformerIndexed, bpy.types.Operator):
@@ -65,7 +52,7 @@ class AFFINE_OT_deformer_weights_to_groups(DeformerIndexed, bpy.types.Operator):
 
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         # From the panel: groups of those names are replaced only once the artist confirms it.
-        obj, deformer = _indexed(self, context)
+        obj, deformer = addressed_deformer(self, context)
         if obj is None:
             return {"CANCELLED"}
         existing = [name for name in group_targets(deformer) if obj.vertex_groups.get(name) is not None]
@@ -78,7 +65,7 @@ class AFFINE_OT_deformer_weights_to_groups(DeformerIndexed, bpy.types.Operator):
                     + " with the deformer's weights?", confirm_text="Replace", icon="WARNING")
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        obj, deformer = _indexed(self, context)
+        obj, deformer = addressed_deformer(self, context)
         if obj is None:
             return {"CANCELLED"}
         try:
@@ -113,7 +100,7 @@ class AFFINE_OT_deformer_weights_update(DeformerIndexed, bpy.types.Operator):
         return not problem
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        obj, deformer = _indexed(self, context)
+        obj, deformer = addressed_deformer(self, context)
         if obj is None:
             return {"CANCELLED"}
         try:
@@ -163,7 +150,7 @@ class AFFINE_OT_deformer_probe_select(DeformerIndexed, bpy.types.Operator):
         return self.execute(context)
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        obj, deformer = _indexed(self, context)
+        obj, deformer = addressed_deformer(self, context)
         if obj is None:
             return {"CANCELLED"}
         if deformer.kind != KindId.PROBE or not 0 <= self.probe_index < len(deformer.probes):

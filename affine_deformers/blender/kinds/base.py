@@ -103,6 +103,31 @@ class Adopted:
     warning: str = ""
 
 
+def draw_weight_options(layout: bpy.types.UILayout, deformer) -> None:
+    """The weight options of kinds weighted by distance, surface or painted groups (probes, bones):
+    radius only where it is a length scale, exponent where it sharpens."""
+    layout.prop(deformer, "weight_mode")
+    if deformer.weight_mode in ("INVERSE_DISTANCE", "FALLOFF"):
+        layout.prop(deformer, "radius")
+    if deformer.weight_mode in ("INVERSE_DISTANCE", "SURFACE"):
+        layout.prop(deformer, "exponent")
+    layout.prop(deformer, "normalize")
+    layout.prop(deformer, "max_influences")
+
+
+def single_selected(context: bpy.types.Context, target: bpy.types.Object, kind: str,
+                    what: str) -> tuple[bpy.types.Object, list]:
+    """(the one selected object of type `kind` other than `target`, the other selected objects);
+    BindError naming `what` when there is not exactly one."""
+    selected = list(getattr(context, "selected_objects", None) or [])
+    found = [o for o in selected if o != target and o.type == kind]
+    if len(found) != 1:
+        names = ", ".join(f"'{o.name}'" for o in found)
+        raise BindError(f"Select exactly one {what}, with the mesh to deform active "
+                        + (f"(selected: {names})" if found else "(none selected)"))
+    return found[0], [o for o in selected if o not in (target, found[0])]
+
+
 def ignored_note(what: str, objects: list) -> str:
     """'Ignored selected <what> objects: A, B' ('' when there are none), for an add report."""
     return f"Ignored selected {what} objects: " + ", ".join(o.name for o in objects) if objects else ""

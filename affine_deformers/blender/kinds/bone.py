@@ -31,11 +31,26 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from ...core import aff3, unwrap, weights
+from ...core import unwrap, weights
 from .. import nodes
-from .base import Adopted, BindError, ChannelTurns, Motions, ignored_note
+from .base import (
+    Adopted,
+    BindError,
+    ChannelTurns,
+    Motions,
+    draw_weight_options,
+    ignored_note,
+    single_selected,
+)
 from .probe import harmonic_surface_weights, surface_warning
-from .transforms import finite_transform, frame_rotation, in_a_scene, inverse3, rotation_channels
+from .transforms import (
+    finite_transform,
+    frame_rotation,
+    in_a_scene,
+    inverse3,
+    motion_problem,
+    rotation_channels,
+)
 
 REST_SEGMENTS = "bone_rest_segments"  # ID property: (m, 2, 3) float64 heads and tails, target space
 #: Max Influences of a new bone deformer (painted weights keep their K largest: as many bones as a
@@ -123,15 +138,8 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
     with np.errstate(all="ignore"):
         matrix = frame_matrix @ local @ frame_inverse
     matrix[3] = (0.0, 0.0, 0.0, 1.0)
-    try:
-        aff3.validate_affine(matrix)
-    except ValueError:
-        if not np.all(np.isfinite(matrix)):
-            reason = "has a non-finite pose (NaN or infinity)"
-        elif np.linalg.det(matrix[:3, :3]) < 0.0:
-            reason = "is mirrored (negative scale)"
-        else:
-            reason = "is scaled to zero"
+    reason = motion_problem(matrix, "has a non-finite pose (NaN or infinity)")
+    if reason:
         return _BoneRow(identity, False, mode, rotation, frame, pivot, turn,
                         "Bone '{bone}' " + reason + ": the mesh shows its input")
     return _BoneRow(matrix, False, mode, rotation, frame, pivot, turn)
@@ -151,16 +159,10 @@ class BoneKind:
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
         """The one selected armature."""
-        selected = list(getattr(context, "selected_objects", None) or [])
-        armatures = [o for o in selected if o != target and o.type == "ARMATURE"]
-        if len(armatures) != 1:
-            found = ", ".join(f"'{o.name}'" for o in armatures)
-            raise BindError("Select exactly one armature, with the mesh to deform active "
-                            + (f"(selected: {found})" if armatures else "(none selected)"))
-        if not deform_bones(armatures[0]):
-            raise BindError(f"Armature '{armatures[0].name}' has no deform bones")
-        ignored = [o for o in selected if o not in (target, armatures[0])]
-        return Adopted(armatures, [], ignored_note("non-armature", ignored))
+        armature, ignored = single_selected(context, target, "ARMATURE", "armature")
+        if not deform_bones(armature):
+            raise BindError(f"Armature '{armature.name}' has no deform bones")
+        return Adopted([armature], [], ignored_note("non-armature", ignored))
 
     def set_up(self, deformer, adopted: Adopted) -> None:
         armature = adopted.controls[0]
@@ -286,13 +288,7 @@ class BoneKind:
 
     def draw_settings(self, layout: bpy.types.UILayout, deformer) -> None:
         layout.prop(deformer, "armature")
-        layout.prop(deformer, "weight_mode")
-        if deformer.weight_mode in ("INVERSE_DISTANCE", "FALLOFF"):
-            layout.prop(deformer, "radius")
-        if deformer.weight_mode in ("INVERSE_DISTANCE", "SURFACE"):
-            layout.prop(deformer, "exponent")
-        layout.prop(deformer, "normalize")
-        layout.prop(deformer, "max_influences")
+        draw_weight_options(layout, deformer)
 
     def branch_rule_active(self, deformer) -> bool:
         return deformer.blend_mode == "AFFINE_LOG"

@@ -69,7 +69,7 @@ from ...core.cage import (
 )
 from ...core.cage_harmonic import harmonic_weights, node_matrices_linear, node_params
 from .. import nodes, storage
-from .base import Adopted, BindError, Motions, ignored_note
+from .base import Adopted, BindError, Motions, ignored_note, single_selected
 from .transforms import (
     channel_frame,
     finite_transform,
@@ -269,14 +269,8 @@ class CageKind:
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
         """The one other selected mesh (the cage)."""
-        selected = list(getattr(context, "selected_objects", None) or [])
-        cages = [o for o in selected if o != target and o.type == "MESH"]
-        if len(cages) != 1:
-            found = ", ".join(f"'{o.name}'" for o in cages)
-            raise BindError("Select exactly one other mesh as the cage, with the target active "
-                            + (f"(selected: {found})" if cages else "(none selected)"))
-        ignored = [o for o in selected if o not in (target, cages[0])]
-        return Adopted(cages, [], ignored_note("non-mesh", ignored))
+        cage, ignored = single_selected(context, target, "MESH", "other mesh as the cage")
+        return Adopted([cage], [], ignored_note("non-mesh", ignored))
 
     def set_up(self, deformer, adopted: Adopted) -> None:
         deformer.cage = adopted.controls[0]

@@ -16,15 +16,16 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from ...core import aff3, surface, weights
+from ...core import surface, weights
 from .. import nodes
-from .base import Adopted, BindError, ChannelTurns, Motions, ignored_note
+from .base import Adopted, BindError, ChannelTurns, Motions, draw_weight_options, ignored_note
 from .transforms import (
     finite_transform,
     frame_rotation,
     in_a_scene,
     local_matrix,
     local_solve,
+    motion_problem,
     relative_motion,
     rotation_channels,
     world_matrix,
@@ -226,14 +227,7 @@ class ProbeKind:
         return sorted(probes, key=lambda o: o.name_full)
 
     def draw_settings(self, layout: bpy.types.UILayout, deformer) -> None:
-        layout.prop(deformer, "weight_mode")
-        # Surface weights have no length scale (radius): their exponent sharpens them
-        if deformer.weight_mode in ("INVERSE_DISTANCE", "FALLOFF"):
-            layout.prop(deformer, "radius")
-        if deformer.weight_mode in ("INVERSE_DISTANCE", "SURFACE"):
-            layout.prop(deformer, "exponent")
-        layout.prop(deformer, "normalize")
-        layout.prop(deformer, "max_influences")
+        draw_weight_options(layout, deformer)
 
     def branch_rule_active(self, deformer) -> bool:
         """A linear blend of probes has no rotation branches."""
@@ -367,15 +361,8 @@ def _probe_row(target_world: np.ndarray, world: np.ndarray, channels: tuple[floa
     except np.linalg.LinAlgError:
         return _ProbeRow(identity, False, mode, rotation, frame, pivot,
                          "Probe '{probe}' has a singular rest matrix: rebind")
-    try:
-        aff3.validate_affine(matrix)
-    except ValueError:
-        if not np.all(np.isfinite(matrix)):
-            reason = "has a non-finite transform (NaN or infinity)"
-        elif np.linalg.det(matrix[:3, :3]) < 0.0:
-            reason = "is mirrored (negative scale)"
-        else:
-            reason = "is scaled to zero"
+    reason = motion_problem(matrix)
+    if reason:
         return _ProbeRow(identity, False, mode, rotation, frame, pivot,
                          "Probe '{probe}' " + reason + ": the mesh shows its rest shape")
     return _ProbeRow(matrix, False, mode, rotation, frame, pivot)

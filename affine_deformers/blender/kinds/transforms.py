@@ -181,6 +181,21 @@ def in_a_scene(obj: bpy.types.Object) -> bool:
 MAX_COORDINATE = 1e30
 
 
+def motion_problem(matrix: np.ndarray,
+                   non_finite: str = "has a non-finite transform (NaN or infinity)") -> str:
+    """Why the motion `matrix` (4, 4) is not in Aff+(3), as the end of a sentence about its control
+    ('is mirrored (negative scale)', 'is scaled to zero', `non_finite`), or '' when it is."""
+    try:
+        aff3.validate_affine(matrix)
+    except ValueError:
+        if not np.all(np.isfinite(matrix)):
+            return non_finite
+        if np.linalg.det(matrix[:3, :3]) < 0.0:
+            return "is mirrored (negative scale)"
+        return "is scaled to zero"
+    return ""
+
+
 def finite_transform(matrix: np.ndarray) -> bool:
     """Whether every entry of `matrix` is finite and below MAX_COORDINATE in magnitude (NaN fails too)."""
     return bool(np.all(np.abs(matrix) < MAX_COORDINATE))
