@@ -105,6 +105,18 @@ def smooth_falloff(points: np.ndarray, centers: np.ndarray, radius: float) -> np
     return f * f * (3.0 - 2.0 * f)
 
 
+def chain_weights(t: np.ndarray, m: int, reach: float = 1.5) -> np.ndarray:
+    """(N, m) skin weights of a chain of m equal bones over t ∈ [0, 1]: bone i's weight is a smoothstep
+    bump, 1 at its centre (i + ½)/m and 0 at `reach` bone lengths from it (1 before the first centre and
+    after the last), normalised to sum to 1 — two or three bones per point, as a painted skin has."""
+    centers = (np.arange(m) + 0.5) / m
+    f = np.clip(1.0 - np.abs(t[:, None] - centers[None, :]) * m / reach, 0.0, 1.0)
+    bumps = f * f * (3.0 - 2.0 * f)
+    bumps[t <= centers[0], 0] = 1.0
+    bumps[t >= centers[-1], -1] = 1.0
+    return bumps / bumps.sum(axis=1, keepdims=True)
+
+
 def rest_positions(ob: bpy.types.Object) -> np.ndarray:
     buf = np.empty(len(ob.data.vertices) * 3, np.float32)
     ob.data.vertices.foreach_get("co", buf)

@@ -1,4 +1,5 @@
-"""Blender's own deformers set up like ours: Hook (smooth falloff), Armature (Preserve Volume), Mesh Deform.
+"""Blender's own deformers set up like ours: Hook (smooth falloff), Armature (Preserve Volume), Mesh Deform,
+and a chain of bones skinning the target through vertex groups (for the Armature modifier and ours).
 
 Each builder takes a target mesh object that is already in the scene, adds the controls and the modifier(s)
 and returns a `Rig`: the object to read back and a `move(i)` that changes one control differently for every
@@ -13,7 +14,7 @@ from dataclasses import dataclass
 
 import bpy
 import numpy as np
-from common import link_object, wiggle
+from common import chain_weights, link_object, rest_positions, wiggle
 from mathutils import Vector
 
 # Vertex-group weights are written one distinct value at a time (VertexGroup.add takes a list of
@@ -139,6 +140,57 @@ def armature(
         pose_bone.rotation_euler = dr
 
     return Rig(target, move, time.perf_counter() - t0)
+
+
+def bone_chain(target: bpy.types.Object, m: int, with_modifier: bool, preserve_volume: bool = True
+               ) -> bpy.types.Object:
+    """An armature with a chain of `m` connected bones Chain.000, … up the target's Z axis (−1 to 1, the
+    unit sphere's poles) and vertex groups named after them holding `common.chain_weights` of the
+    height; with `with_modifier` an Armature modifier (vertex groups, Preserve Volume or not) skins the
+    target with it. Returns the armature object."""
+    arm_data = bpy.data.armatures.new("Chain")
+    arm = link_object("Chain", arm_data)
+    previous_active = bpy.context.view_layer.objects.active
+    bpy.context.view_layer.objects.active = arm
+    bpy.context.view_layer.update()
+    heads = np.linspace(-1.0, 1.0, m + 1)
+    with bpy.context.temp_override(active_object=arm, object=arm, selected_objects=[arm]):
+        bpy.ops.object.mode_set(mode="EDIT")
+        parent = None
+        for i in range(m):
+            bone = arm_data.edit_bones.new(f"Chain.{i:03d}")
+            bone.head, bone.tail = (0.0, 0.0, float(heads[i])), (0.0, 0.0, float(heads[i + 1]))
+            if parent is not None:
+                bone.parent, bone.use_connect = parent, True
+            parent = bone
+        bpy.ops.object.mode_set(mode="OBJECT")
+    bpy.context.view_layer.objects.active = previous_active
+    weights = chain_weights(0.5 * (rest_positions(target)[:, 2] + 1.0), m)
+    for i in range(m):
+        assign_vertex_group(target, f"Chain.{i:03d}", weights[:, i])
+    if with_modifier:
+        mod = target.modifiers.new("Armature", "ARMATURE")
+        mod.object = arm
+        mod.use_vertex_groups = True
+        mod.use_bone_envelopes = False
+        mod.use_deform_preserve_volume = preserve_volume
+    for pose_bone in arm.pose.bones:
+        pose_bone.rotation_mode = "XYZ"
+    bpy.context.view_layer.update()
+    return arm
+
+
+def move_bones(arm: bpy.types.Object, which: list[int]) -> Callable[[int], None]:
+    """move(i): give each pose bone of `which` its own new small rotation (the bones are connected, so
+    a pose location would be ignored); a bone's children follow it, as in any chain."""
+    bones = [arm.pose.bones[k] for k in which]
+
+    def move(i: int) -> None:
+        for j, pose_bone in enumerate(bones):
+            _, dr = wiggle(i * len(bones) + j)
+            pose_bone.rotation_euler = dr
+
+    return move
 
 
 def move_cage_vertex(cage: bpy.types.Object, index: int = 0) -> Callable[[int], None]:

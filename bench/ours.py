@@ -34,6 +34,7 @@ INNER = f"{PKG}.affine_deformers"
 
 PROBE_OP = "object.affine_probe_deformer_add"
 CAGE_OP = "object.affine_cage_deformer_add"
+BONE_OP = "object.affine_bone_deformer_add"
 BIND_OP = "object.affine_deformer_bind"
 
 # Where the stages of our handler live, for the split when the layer keeps no counters of its own:
@@ -219,6 +220,22 @@ def cage_rig(target: bpy.types.Object, cage: bpy.types.Object) -> OurRig:
     return OurRig(
         target, move_cage_vertex(cage), time.perf_counter() - t0, bind_seconds=bind, deformer_index=index
     )
+
+
+def bone_rig(target: bpy.types.Object, arm: bpy.types.Object, move: Callable[[int], None]) -> OurRig:
+    """Our bone deformer on `target` driven by `arm`'s bones through the vertex groups named after them
+    (what the add operator picks when the groups exist); bind_seconds = the add operator (it binds)."""
+    t0 = time.perf_counter()
+    call_operator(BONE_OP, target, [target, arm])
+    bind = time.perf_counter() - t0
+    bpy.context.view_layer.update()
+    index = len(target.affine_deformers) - 1
+    deformer = target.affine_deformers[index]
+    if deformer.weight_mode != "VERTEX_GROUPS":
+        raise RuntimeError(f"the bone deformer weights by {deformer.weight_mode}, not the vertex groups")
+    settings = {k: getattr(deformer, k) for k in ("weight_mode", "normalize", "max_influences", "blend_mode")}
+    return OurRig(target, move, time.perf_counter() - t0, bind_seconds=bind, deformer_index=index,
+                  settings=settings)
 
 
 _BIND_ATTR = re.compile(r"^\.affdef_(?P<uid>.+)_(?P<kind>idx|w)(?P<k>\d+)$")

@@ -1,4 +1,5 @@
-"""The benchmark cases (a) probes vs Hook/Armature, (b) cage vs Mesh Deform, (c) scaling — and the report.
+"""The benchmark cases (a) probes vs Hook/Armature, (b) cage vs Mesh Deform, (c) scaling, (d) bones vs the
+Armature modifier — and the report.
 
 Imported by run.py once bpy is up. Every method runs alone in a fresh scene on the same procedural mesh;
 see common.time_updates for what one timed update contains.
@@ -33,6 +34,8 @@ class Plan:
     c_probes: tuple[int, ...]
     radius: float = 1.0  # falloff radius on the unit sphere; the same for every method and probe count
     cage_radius: float = 1.25
+    d_verts: tuple[int, ...] = (10_000, 130_000)  # (d): the sphere of (a) and a small one
+    d_bones: int = 8
     p_frames: int = 48  # (p) playback: keyed frames
 
 
@@ -57,6 +60,7 @@ QUICK = Plan(
     precision=4,
     c_verts=(2_000, 8_000),
     c_probes=(1, 8),
+    d_verts=(2_000,),
     p_frames=6,
 )
 
@@ -471,6 +475,89 @@ def part_c(plan: Plan, have_ours: bool, report: Report) -> None:
     report.tables.append(t)
 
 
+def _bone_case(plan: Plan, n_target: int, which: list[int], method: str, label: str,
+               report: Report) -> tuple[Samples | None, dict[str, object]]:
+    """(samples, our deformer's settings or {}) of one (d) case: the sphere skinned by a chain of
+    plan.d_bones bones through the same vertex groups, by `method` ('ours', 'PRESERVE_VOLUME' or
+    'LINEAR': the Armature modifier with and without Preserve Volume); each update turns the bones
+    `which`. The scene is cleared after."""
+    try:
+        ours.forget_caches()
+        target = common.sphere_object("Target", n_target)
+        arm = native.bone_chain(target, plan.d_bones, with_modifier=method != "ours",
+                                preserve_volume=method == "PRESERVE_VOLUME")
+        move = native.move_bones(arm, which)
+        if method != "ours":
+            return measure(native.Rig(target, move, 0.0), plan, label, report), {}
+        rig = ours.bone_rig(target, arm, move)
+        with ours.Instrument() as inst:
+            samples = measure(rig, plan, label, report, inst)
+        status = target.affine_deformers[rig.deformer_index].status
+        if status:
+            report.notes.append(f"{label}: the deformer reported “{status}”")
+        return samples, rig.settings
+    except Exception as exc:  # a broken layer must not hide the other numbers
+        traceback.print_exc()
+        report.problems.append(f"{label}: {type(exc).__name__}: {exc}")
+        return None, {}
+    finally:
+        common.clear_scene()
+
+
+def part_d(plan: Plan, have_ours: bool, report: Report) -> None:
+    m = plan.d_bones
+    have = have_ours and ours.operator_exists(ours.BONE_OP)
+    t = Table(
+        f"(d) {m} bones skinning a UV sphere through the same vertex groups: one update (ours vs the "
+        "Armature modifier)",
+        ["vertices", "bones turned", "ours", "IQR", "Armature, Preserve Volume", "ours ÷ PV",
+         "Armature, linear", "ours ÷ linear", "check"],
+    )
+    print(f"(d) {m} bones", flush=True)
+    moves = (("tip bone", [m - 1]), (f"all {m}", list(range(m))))
+    lines = []
+    settings: dict[str, object] = {}
+    for n_target in plan.d_verts:
+        n = n_vertices(n_target)
+        for moved, which in moves:
+            mine = None
+            if have:
+                mine, settings = _bone_case(plan, n_target, which, "ours",
+                                            f"ours: {m} bones, {n:,} verts, {moved}", report)
+                if mine is not None:
+                    report.split_rows.append((f"(d) {m} bones, {moved} turned, {n:,} verts", mine))
+            pv, _ = _bone_case(plan, n_target, which, "PRESERVE_VOLUME",
+                               f"Armature PV: {n:,} verts, {moved}", report)
+            linear, _ = _bone_case(plan, n_target, which, "LINEAR",
+                                   f"Armature linear: {n:,} verts, {moved}", report)
+            t.add(f"{n:,}", moved, fmt_ms(_median(mine)), _iqr(mine), fmt_ms(_median(pv)),
+                  fmt_ratio(_median(mine), _median(pv)), fmt_ms(_median(linear)),
+                  fmt_ratio(_median(mine), _median(linear)),
+                  "; ".join(x for x in (validity(mine), validity(pv), validity(linear)) if x))
+            if mine is not None and pv is not None:
+                lines.append(f"{n:,} vertices, {moved} turned: ours {fmt_ms(mine.median)} "
+                             f"({fmt_ratio(mine.median, pv.median)} Preserve Volume, "
+                             f"{fmt_ratio(mine.median, _median(linear))} linear)")
+    t.notes.append(
+        f"a chain of {m} connected bones up the sphere's axis (pole to pole); vertex groups named after "
+        f"them, smooth in height (two or three bones per vertex), quantised to 1/{native.WEIGHT_LEVELS}: "
+        "the Armature modifier and our bone deformer (weight mode Vertex Groups, as the add operator "
+        "sets it) read the same groups"
+    )
+    t.notes.append(
+        "tip bone: only the last bone turns (a bone's children follow it, so this is the only one-bone "
+        f"move of a chain); all {m}: every bone turns, each differently. Ours recomputes only vertices a "
+        "moved bone influences; the Armature modifier recomputes every vertex either way"
+    )
+    if settings:
+        t.notes.append("ours: " + ", ".join(f"{k} {v}" for k, v in settings.items()))
+    if not have:
+        t.notes.append(f"`{ours.BONE_OP}` is not registered: only the Armature side was timed")
+    report.tables.append(t)
+    if lines:
+        report.summary.append(f"(d) {m} bones: " + "; ".join(lines) + ".")
+
+
 def split_table(rows: list[tuple[str, Samples]]) -> Table:
     present = {k for _, s in rows for k in s.extra}
     stages = [(k, label) for k, label in STAGES if k in present]
@@ -508,7 +595,7 @@ def run(ns: argparse.Namespace) -> int:
 
     report = Report()
     t0 = time.perf_counter()
-    for part, fn in (("a", part_a), ("b", part_b), ("c", part_c), ("p", playback.part_p)):
+    for part, fn in (("a", part_a), ("b", part_b), ("c", part_c), ("d", part_d), ("p", playback.part_p)):
         if part in ns.parts:
             fn(plan, have_ours, report)
     if report.split_rows:

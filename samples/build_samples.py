@@ -13,6 +13,10 @@ bound to the Affine Deformers extension, so it plays in Blender with no further 
 - comparison      the same end twist of a bar (±90°, then ±150°): 'LINEAR' blend (candy-wrapper
                   collapse), Blender's Armature with Preserve Volume (dual quaternions: no collapse, but
                   the short way round past 180° of twist) and the Aff+(3) log blend
+- stack           a production stack: shape key → Armature → Affine probes → Subdivision
+- bone_tail       a six-bone tail (wave, a non-uniformly scaled bone, then its tip twisting 0° → 450°):
+                  Blender's Armature with Preserve Volume (the short way round past 180°) and our bone
+                  deformer converted from the same Armature modifier, on the same mesh and vertex groups
 
 The extension is installed from the built .zip into an isolated Blender user directory, so the
 artist's own Blender configuration is never touched. `bpy` must not be imported before
@@ -230,12 +234,17 @@ def checker_material(
     color2: Sequence[float],
     scale: Sequence[float],
     polar: bool = False,
+    polar_axis: str = "Z",
 ) -> object:
     """A checker on the rest coordinates (point attribute REST_ATTRIBUTE), so it sticks to the surface.
 
     With polar=True the checker runs on (angle/2π, radius, z) of the rest position: sectors and rings,
-    which make a swirl easy to read.
+    which make a swirl easy to read. polar_axis='X' measures the angle about the X axis instead
+    (atan2(z, y)) and runs the third coordinate along x: stripes along a limb lying on X, which make a
+    twist about it easy to read.
     """
+    if polar_axis not in ("X", "Z"):
+        raise ValueError(f"polar_axis must be 'X' or 'Z', not {polar_axis!r}")
     import bpy
 
     material = bpy.data.materials.new(name)
@@ -251,8 +260,10 @@ def checker_material(
         links.new(coordinates, split.inputs[0])
         angle = nodes.new("ShaderNodeMath")
         angle.operation = "ARCTAN2"
-        links.new(split.outputs["Y"], angle.inputs[0])
-        links.new(split.outputs["X"], angle.inputs[1])
+        # atan2(second, first) of the two coordinates across the axis.
+        across = ("Y", "X") if polar_axis == "Z" else ("Z", "Y")
+        links.new(split.outputs[across[0]], angle.inputs[0])
+        links.new(split.outputs[across[1]], angle.inputs[1])
         turns = nodes.new("ShaderNodeMath")
         turns.operation = "DIVIDE"
         links.new(angle.outputs[0], turns.inputs[0])
@@ -263,7 +274,7 @@ def checker_material(
         combine = nodes.new("ShaderNodeCombineXYZ")
         links.new(turns.outputs[0], combine.inputs["X"])
         links.new(radius.outputs["Value"], combine.inputs["Y"])
-        links.new(split.outputs["Z"], combine.inputs["Z"])
+        links.new(split.outputs[polar_axis], combine.inputs["Z"])
         coordinates = combine.outputs[0]
     # A small offset keeps checker cell borders off the flat faces at integer coordinates.
     mapping = nodes.new("ShaderNodeMapping")
@@ -924,12 +935,178 @@ def build_stack() -> SampleInfo:
     return SampleInfo(key_frames=[1, 24, 48, 72], todo=todo)
 
 
+TAIL_LENGTH = 5.0
+TAIL_BONES = 6
+#: Frames 1 → 21: the chain swings into a wave (each bone but the root and the tip turns about its own
+#: X axis, degrees; + curls up) and the middle bone scales non-uniformly (its X is the tail's depth,
+#: its Z the height); by frame 41 the tail is straight again and the tip starts to twist about its own
+#: axis at constant speed, 10° a frame up to 450° at frame 86: the key frames 56, 68 and 86 show 150°,
+#: 270° and 450°, and the tip passes 180° at frame 59. The twist runs on a straight chain: with the
+#: parent chain bent, the log blend of a multi-turn twist leaves the bone's axis (README, Bones).
+TAIL_WAVE = {1: (0.0, 0.0, 0.0, 0.0), 21: (10.0, 10.0, -10.0, -10.0), 41: (0.0, 0.0, 0.0, 0.0)}
+TAIL_SCALE = {1: (1.0, 1.0, 1.0), 21: (1.2, 1.0, 1.7)}
+TAIL_TWIST = {1: 0.0, 41: 0.0, 86: 450.0}
+TAIL_SCALED_BONE = 2
+
+
+def tail_mesh(name: str, length: float, rings: int, segments: int) -> object:
+    """A tapering tail along +X from 0 to `length`: an elliptical tube (twice as tall as it is deep, so
+    a twist shows in its silhouette), `rings` + 1 rings of `segments` vertices, a flat cap at the root
+    and a pointed one at the tip."""
+    import bpy
+
+    x = length * np.arange(rings + 1) / rings
+    height = 0.45 * (1.0 - 0.5 * x / length)  # half-height; the half-depth is half of it
+    angles = 2.0 * np.pi * np.arange(segments) / segments
+    ring = np.stack([np.broadcast_to(x[:, None], (rings + 1, segments)),
+                     0.5 * height[:, None] * np.cos(angles)[None],
+                     height[:, None] * np.sin(angles)[None]], axis=-1).reshape(-1, 3)
+    root, tip = ring.shape[0], ring.shape[0] + 1
+    vertices = np.concatenate([ring, [[0.0, 0.0, 0.0], [length + 0.8 * height[-1], 0.0, 0.0]]])
+    j = np.arange(segments)
+    j_next = (j + 1) % segments
+    k = np.arange(rings)[:, None] * segments
+    # Winding chosen so that every face's normal points out of the tail.
+    quads = np.stack([k + j, k + j_next, k + segments + j_next, k + segments + j], axis=-1).reshape(-1, 4)
+    root_fan = np.stack([np.full(segments, root), j_next, j], axis=1)
+    last = rings * segments
+    tip_fan = np.stack([np.full(segments, tip), last + j, last + j_next], axis=1)
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(vertices.tolist(), [], [*root_fan.tolist(), *quads.tolist(), *tip_fan.tolist()])
+    mesh.validate()
+    return mesh
+
+
+def chain_weights(x: np.ndarray, heads: np.ndarray, reach: float = 1.5) -> np.ndarray:
+    """(N, m) skin weights of a chain of bones heads[i] → heads[i + 1] along x, smooth (C¹) in x:
+    bone i's raw weight is a smoothstep bump that is 1 at the bone's centre and 0 at `reach` bone
+    lengths from it (1 before the first centre and after the last, so the ends are held by the end
+    bones alone); the bumps are normalised to sum to 1. With reach 1.5 a point is shared by two or
+    three bones, as a painted skin is."""
+    centers = 0.5 * (heads[:-1] + heads[1:])
+    lengths = np.diff(heads)
+    f = np.clip(1.0 - np.abs(x[:, None] - centers[None, :]) / (reach * lengths[None, :]), 0.0, 1.0)
+    bumps = f * f * (3.0 - 2.0 * f)  # flat at the centre, so the end clamps below keep it C¹
+    bumps[x <= centers[0], 0] = 1.0
+    bumps[x >= centers[-1], -1] = 1.0
+    return bumps / bumps.sum(axis=1, keepdims=True)
+
+
+def paint_groups(obj: object, names: Sequence[str], weights: np.ndarray) -> None:
+    """Vertex groups `names` with the weights (N, m); zeros are left out of a group. VertexGroup.add
+    takes one weight for a list of indices, so the vertices are added per distinct weight value."""
+    for column, name in enumerate(names):
+        group = obj.vertex_groups.new(name=name)
+        for value in np.unique(weights[:, column]):
+            if value > 0.0:
+                group.add(np.flatnonzero(weights[:, column] == value).tolist(), float(value), "REPLACE")
+
+
+def add_bone_chain(name: str, heads: np.ndarray, location: Sequence[float]) -> object:
+    """An armature object at `location` with a chain of connected bones Tail.0, Tail.1, … along +X
+    (roll 0: a bone's Y axis is +X, its X axis −Y, its Z axis +Z). The bone after the scaled one does
+    not inherit scale, so the scale stays on that bone."""
+    import bpy
+
+    armature = bpy.data.armatures.new(name)
+    rig = link(bpy.data.objects.new(name, armature))
+    rig.location = location
+    bpy.context.view_layer.objects.active = rig
+    bpy.ops.object.mode_set(mode="EDIT")
+    previous = None
+    for i in range(len(heads) - 1):
+        bone = armature.edit_bones.new(f"Tail.{i}")
+        bone.head, bone.tail, bone.roll = (float(heads[i]), 0.0, 0.0), (float(heads[i + 1]), 0.0, 0.0), 0.0
+        if previous is not None:
+            bone.parent, bone.use_connect = previous, True
+        if i == TAIL_SCALED_BONE + 1:
+            bone.inherit_scale = "NONE"
+        previous = bone
+    bpy.ops.object.mode_set(mode="OBJECT")
+    armature.display_type = "STICK"
+    return rig
+
+
+def key_tail(rig: object) -> None:
+    """Keyframe the tail's wave, the middle bone's scale and the tip's constant-speed twist."""
+    bones = rig.pose.bones
+    for pose_bone in bones:
+        pose_bone.rotation_mode = "XYZ"
+    for i in range(1, TAIL_BONES - 1):
+        key_transforms(bones[i], {f: {"rotation_euler": (a[i - 1], 0, 0)} for f, a in TAIL_WAVE.items()})
+    key_transforms(bones[TAIL_SCALED_BONE], {f: {"scale": s} for f, s in TAIL_SCALE.items()})
+    tip = bones[TAIL_BONES - 1]
+    # A bone's own axis is its local Y.
+    key_transforms(tip, {f: {"rotation_euler": (0, a, 0)} for f, a in TAIL_TWIST.items()})
+    for curve in fcurves(rig):  # constant speed (the twist's first two keys are both 0°)
+        if curve.data_path.startswith(f'pose.bones["{tip.name}"]'):
+            for point in curve.keyframe_points:
+                point.interpolation = "LINEAR"
+
+
+def build_bone_tail() -> SampleInfo:
+    """A six-bone tail that swings into a wave and scales its middle bone non-uniformly, then twists
+    its tip 0° → 450°: the same mesh and vertex groups skinned by Blender's Armature modifier with
+    Preserve Volume (top) and by our bone deformer, converted from an identical Armature modifier
+    (bottom)."""
+    import bpy
+
+    todo: list[str] = []
+    scene = new_scene("bone_tail", frame_end=max(TAIL_TWIST))
+    heads = np.linspace(0.0, TAIL_LENGTH, TAIL_BONES + 1)
+    names = [f"Tail.{i}" for i in range(TAIL_BONES)]
+    rows = [
+        ("DQS", "Armature modifier, Preserve Volume", 1.05, (0.15, 0.45, 0.15)),
+        ("AFFINE_LOG", "Affine bone deformer (ours)", -0.95, (0.1, 0.3, 0.75)),
+    ]
+    for method, caption, z, color in rows:
+        rig = add_bone_chain(f"Rig.{method}", heads, (-0.5 * TAIL_LENGTH, 0.0, z))
+        key_tail(rig)
+        tail = add_mesh_object(
+            f"Tail.{method}",
+            tail_mesh(f"Tail.{method}", TAIL_LENGTH, rings=150, segments=32),
+            checker_material(f"Tail.{method}", color, (0.95, 0.93, 0.88), scale=(8.0, 0.0, 2.4), polar=True,
+                             polar_axis="X"),
+        )
+        tail.data.polygons.foreach_set("use_smooth", np.ones(len(tail.data.polygons), dtype=bool))
+        tail.parent = rig  # the rig's origin is the tail's: both see the bones where the mesh is
+        x = np.empty(len(tail.data.vertices) * 3)
+        tail.data.vertices.foreach_get("co", x)
+        paint_groups(tail, names, chain_weights(x.reshape(-1, 3)[:, 0], heads))
+        # Below the tail's root half: the wave lifts the tail, the bulge is above and below its middle.
+        add_label(caption, (-0.5 * TAIL_LENGTH, 0.0, z - 0.74), size=0.24, align="LEFT")
+        mark_target(tail, method)
+        modifier = tail.modifiers.new("Armature", "ARMATURE")
+        modifier.object = rig
+        modifier.use_deform_preserve_volume = True
+        modifier.use_vertex_groups = True
+        modifier.use_bone_envelopes = False
+        if method == "DQS":
+            continue
+        # Ours replaces an identical Armature modifier, which stays in the stack (disabled): toggle the
+        # two to compare on the same object.
+        scene.frame_set(1)
+        if not operator_available("OBJECT_OT_affine_armature_convert"):
+            todo.append(f"{tail.name}: armature convert operator missing; saved WITHOUT a deformer (TODO)")
+            continue
+        select_only(tail, [])
+        with bpy.context.temp_override(active_object=tail, object=tail, selected_objects=[tail],
+                                       selected_editable_objects=[tail]):
+            result = bpy.ops.object.affine_armature_convert(modifier=modifier.name)
+        if "FINISHED" not in result:
+            raise RuntimeError(f"affine_armature_convert on {tail.name} returned {result}")
+    add_camera((0.25, -9.2, 0.3), (0.25, 0.0, -0.12), lens=50.0)
+    add_lights()
+    return SampleInfo(key_frames=[1, 21, 56, 68, 86], todo=todo)
+
+
 SAMPLES: dict[str, Callable[[], SampleInfo]] = {
     "probe_bend": build_probe_bend,
     "probe_vortex": build_probe_vortex,
     "cage_deform": build_cage_deform,
     "comparison": build_comparison,
     "stack": build_stack,
+    "bone_tail": build_bone_tail,
 }
 
 
