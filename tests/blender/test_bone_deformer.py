@@ -204,6 +204,16 @@ def test_moving_the_armature_object_alone_does_not_move_the_mesh(bl):
     assert deformer.status == ""
 
 
+def test_a_bone_name_with_braces_is_named_in_the_status(bl):
+    bar, arm, _native, deformer = _rig(bl)
+    arm.data.bones["B1"].name = "Tail{0}"
+    deformer.bones[1].name = "Tail{0}"
+    arm.pose.bones["Tail{0}"].scale = (0.0, 0.0, 0.0)
+    bpy.context.view_layer.update()
+    assert "Bone 'Tail{0}' is scaled to zero" in deformer.status
+    assert np.array_equal(bl.evaluated_positions(bar), bl.rest_positions(bar))
+
+
 def test_bad_inputs_get_a_message_and_the_input_passes_through(bl):
     bar, arm, _native, deformer = _rig(bl)
     rest = bl.rest_positions(bar)

@@ -264,7 +264,9 @@ class BoneKind:
         for item in deformer.bones:
             error = _chain_rows(item.name, pose, frame, frame_inverse, rows)
             if error:
-                return Motions.invalid(m, error.format(bone=item.name, armature=armature.name))
+                # replace, not format: a bone name may hold braces
+                message = error.replace("{armature}", armature.name).replace("{bone}", item.name)
+                return Motions.invalid(m, message)
         chosen = [rows[item.name] for item in deformer.bones]
         if m == 0:
             return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool))
