@@ -941,8 +941,9 @@ TAIL_BONES = 6
 #: X axis, degrees; + curls up) and the middle bone scales non-uniformly (its X is the tail's depth,
 #: its Z the height); by frame 41 the tail is straight again and the tip starts to twist about its own
 #: axis at constant speed, 10° a frame up to 450° at frame 86: the key frames 56, 68 and 86 show 150°,
-#: 270° and 450°, and the tip passes 180° at frame 59. The twist runs on a straight chain: with the
-#: parent chain bent, the log blend of a multi-turn twist leaves the bone's axis (README, Bones).
+#: 270° and 450°, and the tip passes 180° at frame 59. The twist runs on a straight chain so that its
+#: cross-sections compare directly with the Armature modifier's (a bent chain twists as cleanly: the
+#: bar test of tests/blender/test_bone_deformer.py measures that).
 TAIL_WAVE = {1: (0.0, 0.0, 0.0, 0.0), 21: (10.0, 10.0, -10.0, -10.0), 41: (0.0, 0.0, 0.0, 0.0)}
 TAIL_SCALE = {1: (1.0, 1.0, 1.0), 21: (1.2, 1.0, 1.7)}
 TAIL_TWIST = {1: 0.0, 41: 0.0, 86: 450.0}

@@ -3,7 +3,8 @@ the rest shape (OFFSET path) or as affine motions (MOTION path), recomputing onl
 result can change.
 
 v' = φ(Σ_k w_vk P_idx(v,k)) v (the affine blend, MATH.md §5), or the linear blend
-v' = (I + Σ_k w_vk (A_idx(v,k) − I)) v, followed by the kind's outer motion when it has one.
+v' = (I + Σ_k w_vk (A_idx(v,k) − I)) v, followed by the kind's outer motion when it has one. Controls
+in a hierarchy (Motions.chain: bones) blend down it instead, v' = F_0 ⋯ F_D v (MATH.md §14).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import accel
-from ..core import deform
+from ..core import deform, hierarchy
 from . import params as parameters
 from .bound import BoundData
 from .kinds import Motions
@@ -54,8 +55,9 @@ def blend_offsets(deformer, motions: Motions, bound: BoundData,
     if np.all(motions.at_rest):
         bound.forget_result()
         deformed = points.copy()
-    elif (deformer.blend_mode != "LINEAR" and outer is None
-          and (motions.valid is None or np.all(motions.valid))):
+    elif _plain_affine(deformer, motions, outer):
+        if motions.chain is not None:
+            return _offsets_chain(deformer, motions, bound, state)
         return _offsets_affine(deformer, motions, bound, state)
     else:
         bound.forget_result()
@@ -122,11 +124,13 @@ def blend_motions(deformer, motions: Motions, bound: BoundData,
     identity when every control is at rest. The array may be the cache's own: do not modify it."""
     outer = parameters.outer_at_strength(motions, deformer.strength, deformer.branch_rule)
     n = len(bound.points)
-    if (deformer.blend_mode != "LINEAR" and outer is None
-            and (motions.valid is None or np.all(motions.valid))):
+    at_rest = deformer.strength == 0.0 or len(motions.matrices) == 0 or np.all(motions.at_rest)
+    if _plain_affine(deformer, motions, outer) and not (at_rest and motions.chain is not None):
+        if motions.chain is not None:
+            return _motions_chain(deformer, motions, bound, state)
         return _motions_affine(deformer, motions, bound, state)
     bound.forget_result()
-    if deformer.strength == 0.0 or len(motions.matrices) == 0 or np.all(motions.at_rest):
+    if at_rest:
         result = _identity_motions(n)
     else:
         indices, values = bound.indices, _values(deformer, motions, bound)
@@ -140,11 +144,14 @@ def blend_motions(deformer, motions: Motions, bound: BoundData,
     return np.ascontiguousarray(result, dtype=np.float32), None
 
 
-def _identity_motions(n: int) -> np.ndarray:
-    result = np.zeros((4, n, 3))
-    for c in range(3):
-        result[c, :, c] = 1.0
-    return result
+_identity_motions = hierarchy.identity_motions
+
+
+def _plain_affine(deformer, motions: Motions, outer: np.ndarray | None) -> bool:
+    """Whether the update is the plain affine blend (no outer motion, no skipped control), the one
+    with incremental updates."""
+    return (deformer.blend_mode != "LINEAR" and outer is None
+            and (motions.valid is None or bool(np.all(motions.valid))))
 
 
 def _linear_motions(matrices: np.ndarray, indices: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -181,4 +188,66 @@ def _motions_affine(deformer, motions: Motions, bound: BoundData,
     result = accel.vertex_motions(params, bound.indices, values,
                                   out=np.empty((4, len(bound.points), 3), dtype=np.float32), key=key)
     bound.state, bound.params, bound.motions = state, params, result
+    return result, None
+
+
+def _chain_inputs(deformer, motions: Motions, bound: BoundData, state: tuple
+                  ) -> tuple[np.ndarray, np.ndarray, hierarchy.ChainLayout, tuple, np.ndarray | None]:
+    """(ψ(L_i), the motions A_i (m, 4, 4), the weights' layout down the hierarchy, the result state,
+    the rows to recompute or None for all): as `_changed_rows`, a vertex is recomputed when a control
+    it reads changed bitwise — in its parameters (a factor) or in its full motion (a prefix)."""
+    chain = motions.chain
+    params = parameters.chain_params(motions, deformer.branch_rule)
+    matrices = np.ascontiguousarray(motions.matrices, dtype=np.float64)
+    layout = bound.chain_layout(chain.parents, deformer.strength)
+    state = (state, chain.parents.tobytes())
+    previous = bound.motions if bound.offsets is None else bound.offsets
+    if (previous is None or bound.state != state or bound.params is None or bound.matrices is None
+            or bound.params.shape != params.shape):
+        return params, matrices, layout, state, None
+    before = bound.matrices.reshape(-1, 16).view(np.int64)
+    changed = ((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1)
+               | (matrices.reshape(-1, 16).view(np.int64) != before).any(axis=1))
+    rows = layout.affected_rows(np.flatnonzero(changed))
+    few = len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points)
+    return params, matrices, layout, state, rows if few else None
+
+
+def _offsets_chain(deformer, motions: Motions, bound: BoundData,
+                   state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
+    """`blend_offsets` down a hierarchy (core.hierarchy.chain_points), recomputing only the vertices
+    that read a changed control (rows are independent: bit-identical to a full recompute)."""
+    params, matrices, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    points = bound.points
+    if rows is not None and bound.offsets is not None:
+        offsets = bound.offsets
+        if len(rows):
+            offsets[rows] = hierarchy.chain_points(points, params, matrices, layout, rows,
+                                                   kernel=accel.deform_points_params) - points[rows]
+            written = bound.written
+            if written is not None and written.shape == offsets.shape:
+                written[rows] = offsets[rows]  # the cast outputs.write_offsets would make
+        bound.params, bound.matrices = params, matrices
+        return offsets, rows
+    bound.forget_result()
+    offsets = hierarchy.chain_points(points, params, matrices, layout, kernel=accel.deform_points_params)
+    offsets -= points
+    bound.state, bound.params, bound.matrices, bound.offsets = state, params, matrices, offsets
+    return offsets, None
+
+
+def _motions_chain(deformer, motions: Motions, bound: BoundData,
+                   state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
+    """`blend_motions` down a hierarchy (core.hierarchy.chain_motions), incremental as `_offsets_chain`."""
+    params, matrices, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    if rows is not None and bound.motions is not None:
+        result = bound.motions
+        if len(rows):
+            result[:, rows] = hierarchy.chain_motions(params, matrices, layout, rows,
+                                                      kernel=accel.vertex_motions)
+        bound.params, bound.matrices = params, matrices
+        return result, rows
+    bound.forget_result()
+    result = hierarchy.chain_motions(params, matrices, layout, kernel=accel.vertex_motions).astype(np.float32)
+    bound.state, bound.params, bound.matrices, bound.motions = state, params, matrices, result
     return result, None

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
+from ..core import hierarchy
 from . import storage
 
 _bound: dict[tuple[int, str], BoundData] = {}
@@ -49,6 +50,8 @@ class BoundData:
     written: np.ndarray | None = None  # (N, 3) float32 the offset attribute holds (None = unknown)
     motions: np.ndarray | None = None  # (4, N, 3) float32 last motions (motion path)
     motions_written: np.ndarray | None = None  # (4, N, 3) float32 the motion attributes hold (None = unknown)
+    matrices: np.ndarray | None = None  # (m, 4, 4) the controls' motions of the last result (hierarchy)
+    layout: tuple[tuple, hierarchy.ChainLayout] | None = None  # ((parents, strength), layout)
 
     def scaled_values(self, strength: float) -> np.ndarray:
         if self.scaled is None or self.scaled[0] != strength:
@@ -74,8 +77,16 @@ class BoundData:
             mask[rows[ptr[i] : ptr[i + 1]]] = True
         return np.flatnonzero(mask)
 
+    def chain_layout(self, parents: np.ndarray, strength: float) -> hierarchy.ChainLayout:
+        """The weights at `strength` laid out down the hierarchy `parents` (core.hierarchy), kept
+        while the same parents and strength come back."""
+        key = (parents.tobytes(), strength)
+        if self.layout is None or self.layout[0] != key:
+            self.layout = (key, hierarchy.chain_layout(self.indices, self.scaled_values(strength), parents))
+        return self.layout[1]
+
     def forget_result(self) -> None:
-        self.state = self.params = self.offsets = self.motions = None
+        self.state = self.params = self.offsets = self.motions = self.matrices = None
 
 
 def forget(key: tuple[int, str] | None = None) -> None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core import aff3, unwrap
-from .kinds import Motions
+from .kinds import ChannelTurns, Motions
 from .kinds.transforms import reference_rotvecs
 
 # Branch lift tolerances for Blender's float32 matrices (relative noise ~1e-7); core.unwrap's defaults
@@ -87,6 +87,21 @@ def motions_to_params(motions: Motions, branch_rule: str) -> np.ndarray:
         for i in missing:
             _param_rows[keys[i]] = params[i].copy()
     return params
+
+
+def chain_params(motions: Motions, branch_rule: str) -> np.ndarray:
+    """Blend parameters (m, 12) of the local motions of a hierarchy (Motions.chain, MATH.md §14):
+    ψ(L_i) as `motions_to_params` gives it (exactly zero at rest, memoised per row), the rotation
+    log lifted with 'CHANNELS' to the branch nearest the control's own turn about its rest pivot."""
+    chain = motions.chain
+    m = len(chain.locals)
+    turns = None
+    if chain.references is not None:
+        modes = [""] * m  # the references are given: the channel fields are not read
+        unused = np.zeros((m, 4))
+        turns = ChannelTurns(modes, unused, modes, unused, np.broadcast_to(np.eye(3), (m, 3, 3)),
+                             chain.pivots, chain.references)
+    return motions_to_params(Motions(chain.locals, chain.at_rest, turns=turns), branch_rule)
 
 
 def _param_keys(motions: Motions, lift: bool) -> list[tuple]:

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import enum
 
-from .base import BindError, ChannelTurns, DeformerKind, Motions
+from .base import BindError, Chain, ChannelTurns, DeformerKind, Motions
 from .bone import BoneKind
 from .cage import CageKind
 from .probe import ProbeKind
 
-__all__ = ["KINDS", "REGISTERED", "BindError", "ChannelTurns", "DeformerKind", "KindId", "Motions",
+__all__ = ["KINDS", "REGISTERED", "BindError", "Chain", "ChannelTurns", "DeformerKind", "KindId", "Motions",
            "add_operator_id", "enum_items", "forget", "get"]
 
 #: Every kind, in the order the interface lists them (the first is the default). Append new kinds at

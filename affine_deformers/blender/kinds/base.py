@@ -47,6 +47,27 @@ class ChannelTurns:
 
 
 @dataclass
+class Chain:
+    """The controls' hierarchy, for blending down it (MATH.md §14, core.hierarchy; bones).
+
+    parents (m,) intp: the nearest ancestor among the controls (−1: none); locals (m, 4, 4) float64:
+    L_i = A_parent⁻¹ A_i (A_i for a root), exactly the identity where at_rest (m,) bool; references
+    (m, 3) and pivots (m, 3), or None: L_i's reference rotation vector (the control's own turn, in
+    the target's rest space) and the rest point it turns about, for the branch of ψ(L_i).
+    """
+
+    parents: np.ndarray
+    locals: np.ndarray
+    at_rest: np.ndarray
+    references: np.ndarray | None = None
+    pivots: np.ndarray | None = None
+
+    def key(self) -> tuple:
+        return tuple(None if a is None else a.tobytes()
+                     for a in (self.parents, self.locals, self.at_rest, self.references, self.pivots))
+
+
+@dataclass
 class Motions:
     """Current motions of a deformer's controls: the common core every kind fills.
 
@@ -63,7 +84,8 @@ class Motions:
     valid (m,) bool: False marks a control to skip — its weight goes to the vertex's other controls;
     outer (4, 4): a motion applied after the blend, v' = outer · blend(v) (a cage object's motion);
     outer_reference (3,) and outer_pivot (3,): the reference rotation vector and current origin of
-      the object `outer` belongs to, for the branch of ψ(outer) when it is scaled by a strength.
+      the object `outer` belongs to, for the branch of ψ(outer) when it is scaled by a strength;
+    chain: the controls' hierarchy — the affine blend then goes down it (bones) and `turns` is unused.
     """
 
     matrices: np.ndarray
@@ -76,6 +98,7 @@ class Motions:
     outer: np.ndarray | None = None
     outer_reference: np.ndarray | None = None
     outer_pivot: np.ndarray | None = None
+    chain: Chain | None = None
 
     @classmethod
     def invalid(cls, m: int, error: str) -> Motions:
@@ -90,7 +113,8 @@ class Motions:
                                             turns.frames.tobytes(), turns.pivots.tobytes(),
                                             None if turns.references is None else turns.references.tobytes()),
                 *(None if a is None else np.asarray(a).tobytes()
-                  for a in (self.params, self.valid, self.outer, self.outer_reference, self.outer_pivot)))
+                  for a in (self.params, self.valid, self.outer, self.outer_reference, self.outer_pivot)),
+                None if self.chain is None else self.chain.key())
 
 
 @dataclass

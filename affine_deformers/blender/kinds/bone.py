@@ -8,14 +8,20 @@ rest matrix R_i (`Bone.matrix_local`, Edit Mode's rest, both in armature space),
 
 so moving the armature object alone does not move the mesh (as with the Armature modifier), and a
 bone's full affine motion — scale and the shear a scaled parent gives its children included, which
-the Armature modifier's linear and dual-quaternion blends drop or distort — is blended by ψ/φ like
-every other control. Bendy-bone segments are not followed (a bendy bone moves as a straight bone).
+the Armature modifier's linear and dual-quaternion blends drop or distort — is followed exactly
+where a vertex belongs to one bone. Bendy-bone segments are not followed (a bendy bone moves as a
+straight bone).
 
-Rotation-log branch (MATH.md §8): a bone's own turn since rest is read from its pose channels (its
-rest channels are the identity), carried into the target's space by its channel frame
-Q_i = rot(P · B_i · S_i⁻¹ · R(channels_i)⁻¹) (the bone's frame before its own rotation), and added up
-along its parent chain — a twist spread over a chain of bones turns the last one by the sum, which
-no single bone's channels show. Deterministic: it depends on the current frame's channels only.
+Blend (MATH.md §14, core.hierarchy): down the bone hierarchy. Each bone's local motion
+L_i = A_parent⁻¹ A_i (its parent: the nearest ancestor among the deformer's bones) is weighted by
+the vertex's weight on it and on every bone below it, and the factors φ(Σ W ψ(L)) multiply from the
+roots down: a vertex between a forearm and its upper arm gets the upper arm's motion and part of
+the forearm's own turn about the elbow, however far the upper arm has moved.
+
+Rotation-log branch (MATH.md §8): L_i's log is taken on the branch nearest the bone's own turn, read
+from its pose channels (its rest channels are the identity) and carried into the target's rest space
+by its rest frame rot(P · R_i), about its rest head; bones between it and its parent that do not drive
+the mesh add their turns. Deterministic: it depends on the current frame's channels only.
 
 Weights: the vertex groups named after the bones ('VERTEX_GROUPS', what the Armature modifier
 reads), or from the bones' rest segments head → tail stored in the target's space at bind
@@ -31,12 +37,12 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from ...core import unwrap, weights
+from ...core import hierarchy, unwrap, weights
 from .. import nodes
 from .base import (
     Adopted,
     BindError,
-    ChannelTurns,
+    Chain,
     Motions,
     draw_weight_options,
     ignored_note,
@@ -90,11 +96,9 @@ class _BoneRow:
 
     matrix: np.ndarray  # (4, 4) A_i (identity at rest)
     at_rest: bool
-    mode: str
-    rotation: tuple[float, ...]  # the pose channels (4,)
-    frame: np.ndarray  # (3, 3) Q_i
-    pivot: np.ndarray  # (3,) the bone's head now, target space
-    turn: np.ndarray  # (3,) Q_i · the channels' rotation vector (its own turn, target space)
+    unturned: bool  # its rotation channels are the identity
+    turn: np.ndarray  # (3,) rot(P · R_i) · the channels' rotation vector: its own turn, target rest space
+    head: np.ndarray  # (3,) its rest head, target space: the point its own turn is about
     error: str = ""
 
 
@@ -108,41 +112,41 @@ def _bits(values: tuple[float, ...]) -> bytes:
 
 
 def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndarray, rest: np.ndarray,
-              mode: str, channels: tuple[float, ...], scale: tuple[float, ...]) -> _BoneRow:
+              mode: str, channels: tuple[float, ...]) -> _BoneRow:
     """The `_BoneRow` of one pose bone: `frame_matrix` P and its inverse, its pose matrix B and rest
-    matrix R (armature space, float64), its rotation mode, channels and scale."""
+    matrix R (armature space, float64), its rotation mode and channels."""
     identity = np.eye(4)
     rotation = tuple(float(c) for c in channels) + (0.0,) * (4 - len(channels))
-    posed = frame_matrix @ pose
-    pivot = posed[:3, 3].copy()
-    if not (finite_transform(pose) and finite_transform(posed)):
-        return _BoneRow(identity, False, mode, rotation, np.eye(3), np.zeros(3), np.zeros(3),
+    rested = frame_matrix @ rest
+    head = rested[:3, 3].copy()
+    if not (finite_transform(pose) and finite_transform(frame_matrix @ pose)):
+        return _BoneRow(identity, False, False, np.zeros(3), np.zeros(3),
                         "Bone '{bone}' has a non-finite pose (NaN or infinity): the mesh shows its input")
     try:
         with np.errstate(all="ignore"):
             local = pose @ _inverse_affine(rest)
     except np.linalg.LinAlgError:
-        return _BoneRow(identity, False, mode, rotation, np.eye(3), pivot, np.zeros(3),
+        return _BoneRow(identity, False, False, np.zeros(3), head,
                         "Bone '{bone}' has a zero-length rest: fix it in Edit Mode")
-    frame = frame_rotation(posed[:3, :3], mode, channels, scale)
     width = 4 if mode in ("QUATERNION", "AXIS_ANGLE") else 3
+    rest_frame = frame_rotation(rested[:3, :3], "XYZ", (0.0, 0.0, 0.0), (1.0,) * 6)
     try:
-        turn = frame @ unwrap.channel_rotvec(mode, np.array(identity_channels(mode)[:width]),
-                                             np.array(rotation[:width], dtype=np.float64))
+        turn = rest_frame @ unwrap.channel_rotvec(mode, np.array(identity_channels(mode)[:width]),
+                                                  np.array(rotation[:width], dtype=np.float64))
     except ValueError:
         turn = np.full(3, np.nan)  # reported only when the branch rule needs it (see current_motions)
     # At rest = the rest matrix AND identity channels (a full turn changes only the channels).
     unturned = np.array_equal(np.float32(rotation[:width]), np.float32(identity_channels(mode)[:width]))
     if unturned and np.max(np.abs(local - identity)) <= AT_REST_TOL:
-        return _BoneRow(identity, True, mode, rotation, frame, pivot, turn)
+        return _BoneRow(identity, True, True, turn, head)
     with np.errstate(all="ignore"):
         matrix = frame_matrix @ local @ frame_inverse
     matrix[3] = (0.0, 0.0, 0.0, 1.0)
     reason = motion_problem(matrix, "has a non-finite pose (NaN or infinity)")
     if reason:
-        return _BoneRow(identity, False, mode, rotation, frame, pivot, turn,
+        return _BoneRow(identity, False, unturned, turn, head,
                         "Bone '{bone}' " + reason + ": the mesh shows its input")
-    return _BoneRow(matrix, False, mode, rotation, frame, pivot, turn)
+    return _BoneRow(matrix, False, unturned, turn, head)
 
 
 class BoneKind:
@@ -270,19 +274,15 @@ class BoneKind:
         chosen = [rows[item.name] for item in deformer.bones]
         if m == 0:
             return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool))
-        turns = None
-        if deformer.branch_rule == "CHANNELS":
-            references = np.stack([_chain_turn(item.name, pose, rows) for item in deformer.bones])
-            if not np.all(np.isfinite(references)):
-                bad = deformer.bones[int(np.flatnonzero(~np.isfinite(references).all(axis=1))[0])].name
-                return Motions.invalid(m, f"The rotation channels of bone '{bad}' (or of a parent) cannot be "
-                                       "unwrapped (non-finite or too many turns): the mesh shows its input")
-            modes = [r.mode for r in chosen]
-            turns = ChannelTurns(modes, np.array([identity_channels(mode) for mode in modes]), modes,
-                                 np.array([r.rotation for r in chosen]), np.stack([r.frame for r in chosen]),
-                                 np.stack([r.pivot for r in chosen]), references)
-        return Motions(np.stack([r.matrix for r in chosen]), np.array([r.at_rest for r in chosen]),
-                       turns=turns)
+        matrices = np.stack([r.matrix for r in chosen])
+        chain = _hierarchy([item.name for item in deformer.bones], pose, rows, matrices)
+        if deformer.branch_rule == "CHANNELS" and not np.all(np.isfinite(chain.references)):
+            bad = deformer.bones[int(np.flatnonzero(~np.isfinite(chain.references).all(axis=1))[0])].name
+            return Motions.invalid(m, f"The rotation channels of bone '{bad}' (or of a parent) cannot be "
+                                   "unwrapped (non-finite or too many turns): the mesh shows its input")
+        if deformer.branch_rule != "CHANNELS":
+            chain.references = chain.pivots = None
+        return Motions(matrices, np.array([r.at_rest for r in chosen]), chain=chain)
 
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
         armature = deformer.armature
@@ -342,11 +342,10 @@ def _chain_rows(name: str, pose, frame: np.ndarray, frame_inverse: np.ndarray,
         rest = np.array(pose_bone.bone.matrix_local, dtype=np.float64)
         mode = pose_bone.rotation_mode
         channels = rotation_channels(pose_bone, mode)
-        scale = (*pose_bone.scale, 1.0, 1.0, 1.0)
-        key = (frame.tobytes(), posed.tobytes(), rest.tobytes(), mode, _bits(channels + scale))
+        key = (frame.tobytes(), posed.tobytes(), rest.tobytes(), mode, _bits(channels))
         row = _rows.get(key)
         if row is None:
-            row = _bone_row(frame, frame_inverse, posed, rest, mode, channels, scale)
+            row = _bone_row(frame, frame_inverse, posed, rest, mode, channels)
             if len(_rows) >= ROW_MEMO_SIZE:
                 _rows.clear()
             _rows[key] = row
@@ -358,12 +357,30 @@ def _chain_rows(name: str, pose, frame: np.ndarray, frame_inverse: np.ndarray,
     return ""
 
 
-def _chain_turn(name: str, pose, rows: dict[str, _BoneRow]) -> np.ndarray:
-    """Σ over bone `name` and its parents of their own turns Q_b · rotvec(channels_b): the reference
-    rotation vector of the bone's motion in the target's space."""
-    total = np.zeros(3)
-    while name:
-        total = total + rows[name].turn
-        parent = pose.bones[name].parent
-        name = parent.name if parent is not None else ""
-    return total
+def _hierarchy(names: list[str], pose, rows: dict[str, _BoneRow], matrices: np.ndarray) -> Chain:
+    """The deformer's bones as a hierarchy (MATH.md §14): each bone's parent is its nearest ancestor
+    among `names` (bones in between, not driving the mesh, count as part of its own motion), and its
+    local motion L_i = A_parent⁻¹ A_i turns by its own channels and those of the bones in between:
+    that sum, in the target's rest space, is L_i's reference rotation vector, about its rest head.
+    A bone whose local motion is within AT_REST_TOL of the identity and which (with the bones in
+    between) is unturned has L_i = I exactly, so a rigid chain moves rigidly."""
+    index = {name: i for i, name in enumerate(names)}
+    m = len(names)
+    parents = np.full(m, -1, dtype=np.intp)
+    references = np.zeros((m, 3))
+    unturned = np.ones(m, dtype=bool)
+    for i, name in enumerate(names):  # a pass per bone and its ancestors, never per vertex
+        bone = name
+        while bone:
+            references[i] += rows[bone].turn
+            unturned[i] &= rows[bone].unturned
+            parent = pose.bones[bone].parent
+            bone = parent.name if parent is not None else ""
+            if bone in index:
+                parents[i] = index[bone]
+                break
+    locals_ = hierarchy.local_motions(matrices, parents)
+    still = unturned & (np.abs(locals_ - np.eye(4)).reshape(m, 16).max(axis=1, initial=0.0) <= AT_REST_TOL)
+    locals_[still] = np.eye(4)
+    pivots = np.stack([rows[name].head for name in names])
+    return Chain(parents, locals_, still, references, pivots)

@@ -1,0 +1,285 @@
+"""Blending down a hierarchy of controls (MATH.md §14): what a bone deformer's vertices blend.
+
+Controls form a forest: parents[i] is the nearest ancestor of control i among the controls (−1 for a
+root). With their motions A_i (rest → now, in Aff+(3)) each control has a local motion
+
+    L_i = A_parent(i)⁻¹ A_i   (L_i = A_i for a root),
+
+its motion relative to its parent's. A vertex with weights w_j gets cumulative weights
+W_i = Σ_{j in the subtree of i} w_j (the weight of i and all that hangs below it) and goes to
+
+    v' = F_0 F_1 ⋯ F_D v,   F_d = φ(Σ_{depth(i) = d} W_i ψ(L_i)),
+
+the factors in depth order from the roots. A vertex between a bone and its parent (w_p + w_c = 1)
+gets A_p φ(w_c ψ(L_c)): the parent's full motion, then part of the child's turn about the joint, so
+a twist of the child past 180° under a turned parent stays on the child's axis (blending ψ(A_c), the
+screw of the parent's turn and the twist together, leaves it). W is continuous in the weights, so the
+field has no seam where a vertex's set of bones changes; a vertex fully weighted to one control gets
+exactly its motion (all W on its chain are 1, the rest 0: L_root ⋯ L_i = A_i).
+
+Evaluation: the leading factors whose single W is 1 multiply to the full motion of the deepest of
+them (the vertex's `prefix`), so a vertex computes A_prefix and only the factors below it — one
+kernel pass per depth level present, over the vertices that have that level. Rows are independent,
+so a subset of vertices computes bit for bit what the whole set gives them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .aff3 import inverse3
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: A cumulative weight within this of 1 counts as 1 (stored weights are float32: a vertex's weights
+#: sum to 1 within ~1e-7), so its factor is the control's exact local motion and joins the prefix.
+FULL_TOL = 1e-5
+
+PointKernel = Callable[[FloatArray, FloatArray, NDArray[np.int32], FloatArray], FloatArray]
+MotionKernel = Callable[[FloatArray, NDArray[np.int32], FloatArray], np.ndarray]
+
+
+def depths(parents: ArrayLike) -> IntArray:
+    """The depth of every control (0 for a root) from `parents` (m,) in [-1, m); ValueError when
+    an entry is out of range or the parents form a cycle."""
+    parents = np.asarray(parents)
+    if parents.ndim != 1 or not np.issubdtype(parents.dtype, np.integer):
+        raise ValueError(f"parents must be a 1-D integer array, got shape {parents.shape} {parents.dtype}")
+    m = len(parents)
+    if m and (parents.min() < -1 or parents.max() >= m):
+        raise ValueError("parents must be in [-1, m)")
+    depth = np.zeros(m, dtype=np.intp)
+    above = parents.astype(np.intp)
+    for _ in range(m + 1):  # a pass per level: one more than the deepest chain ends it
+        rooted = above < 0
+        if rooted.all():
+            return depth
+        depth += ~rooted
+        above = np.where(rooted, -1, parents[np.maximum(above, 0)])
+    raise ValueError("parents form a cycle")
+
+
+def local_motions(matrices: ArrayLike, parents: ArrayLike) -> FloatArray:
+    """L_i = A_parent(i)⁻¹ A_i (A_i for a root) for motions (m, 4, 4) with bottom rows 0 0 0 1; rows
+    with a singular parent are non-finite (callers check)."""
+    A = np.asarray(matrices, dtype=np.float64)
+    parents = np.asarray(parents, dtype=np.intp)
+    out = A.copy()
+    child = np.flatnonzero(parents >= 0)
+    if len(child):
+        P = A[parents[child]]
+        with np.errstate(all="ignore"):
+            inv, _ = inverse3(P[:, :3, :3])
+            out[child, :3, :3] = inv @ A[child, :3, :3]
+            out[child, :3, 3] = np.einsum("nij,nj->ni", inv, A[child, :3, 3] - P[:, :3, 3])
+    return out
+
+
+@dataclass(frozen=True)
+class ChainLevel:
+    """The factors F_d of one depth d below the vertices' prefixes: `rows` (n,) the vertices that have
+    one (sorted), `indices` (n, k) the controls at depth d, `values` (n, k) their cumulative weights
+    (padding: index 0, value 0)."""
+
+    depth: int
+    rows: IntArray
+    indices: NDArray[np.int32]
+    values: FloatArray
+
+
+@dataclass(frozen=True)
+class ChainLayout:
+    """Every vertex's product F_0 ⋯ F_D in evaluation form: `prefix` (N,) the control whose full motion
+    the vertex starts from (−1: none), `levels` the factors below it by increasing depth, and per
+    control the vertices that read it (`ptr`, `readers`: CSR, sorted) for incremental updates."""
+
+    prefix: NDArray[np.int32]
+    levels: tuple[ChainLevel, ...]
+    ptr: IntArray
+    readers: IntArray
+
+    def affected_rows(self, controls: ArrayLike) -> IntArray:
+        """Sorted vertices whose result reads any of `controls` (as prefix or in a factor)."""
+        controls = np.asarray(controls, dtype=np.intp)
+        if len(controls) == 1:
+            c = int(controls[0])
+            return self.readers[self.ptr[c] : self.ptr[c + 1]]
+        mask = np.zeros(len(self.prefix), dtype=bool)
+        for c in controls:  # a pass per control, not per vertex
+            mask[self.readers[self.ptr[c] : self.ptr[c + 1]]] = True
+        return np.flatnonzero(mask)
+
+
+def _closure(indices: np.ndarray, values: np.ndarray, parents: IntArray,
+             depth: IntArray) -> tuple[IntArray, IntArray, IntArray, FloatArray]:
+    """(vertex, depth, control, W) of every non-zero cumulative weight, sorted by vertex, depth and
+    control: each weight added to its control and to every ancestor of it."""
+    r, s = np.nonzero(values)
+    b = indices[r, s].astype(np.intp)
+    w = values[r, s]
+    parts_r, parts_b, parts_w = [r], [b], [w]
+    up = parents[b]
+    while len(up):  # a pass per level of the deepest chain
+        keep = up >= 0
+        r, up, w = r[keep], up[keep], w[keep]
+        parts_r.append(r)
+        parts_b.append(up)
+        parts_w.append(w)
+        up = parents[up]
+    R, B, W = np.concatenate(parts_r), np.concatenate(parts_b), np.concatenate(parts_w)
+    m = len(parents)
+    levels = int(depth.max(initial=0)) + 1
+    key = (R.astype(np.int64) * levels + depth[B]) * m + B
+    unique, inverse = np.unique(key, return_inverse=True)
+    total = np.bincount(inverse.ravel(), weights=W, minlength=len(unique))
+    vertex, rest = np.divmod(unique, levels * m)
+    d, control = np.divmod(rest, m)
+    return vertex.astype(np.intp), d.astype(np.intp), control.astype(np.intp), total
+
+
+def _group_starts(first: np.ndarray) -> IntArray:
+    """For runs marked by `first` (True at each run's first entry): the index of each entry's run start."""
+    return np.maximum.accumulate(np.where(first, np.arange(len(first)), 0))
+
+
+def chain_layout(indices: ArrayLike, values: ArrayLike, parents: ArrayLike,
+                 full_tol: float = FULL_TOL) -> ChainLayout:
+    """The `ChainLayout` of sparse weights (indices (N, K), values (N, K)) over controls with `parents`.
+
+    A vertex's prefix is the deepest control of its leading run of depths 0, 1, … each held by one
+    control with W within `full_tol` of 1; every other cumulative weight goes to its depth's level.
+    """
+    indices = np.asarray(indices)
+    values = np.asarray(values, dtype=np.float64)
+    parents = np.asarray(parents, dtype=np.intp)
+    depth = depths(parents)
+    n, m = len(indices), len(parents)
+    vertex, d, control, W = _closure(indices, values, parents, depth)
+    e = len(vertex)
+    new_vertex = np.ones(e, dtype=bool)
+    new_vertex[1:] = vertex[1:] != vertex[:-1]
+    position = np.arange(e) - _group_starts(new_vertex)
+    new_level = new_vertex.copy()
+    new_level[1:] |= d[1:] != d[:-1]
+    alone = new_level.copy()  # the only control of its (vertex, depth)
+    alone[:-1] &= new_level[1:]
+    ok = (d == position) & alone & (np.abs(W - 1.0) <= full_tol)
+    bad = np.cumsum(~ok)
+    leading = bad == (bad - ~ok)[_group_starts(new_vertex)]
+    last = leading.copy()
+    last[:-1] &= ~(leading[1:] & ~new_vertex[1:])
+    prefix = np.full(n, -1, dtype=np.int32)
+    prefix[vertex[last]] = control[last]
+    levels = []
+    below = ~leading
+    slot_all = np.arange(e) - _group_starts(new_level)
+    for level in np.unique(d[below]):
+        sel = below & (d == level)
+        rows, at = np.unique(vertex[sel], return_inverse=True)
+        slot = slot_all[sel]
+        width = int(slot.max()) + 1
+        idx = np.zeros((len(rows), width), dtype=np.int32)
+        val = np.zeros((len(rows), width))
+        idx[at, slot] = control[sel]
+        val[at, slot] = W[sel]
+        levels.append(ChainLevel(int(level), rows.astype(np.intp), idx, val))
+    has = prefix >= 0
+    pair_v = np.concatenate([np.flatnonzero(has), vertex[below]])
+    pair_c = np.concatenate([prefix[has].astype(np.intp), control[below]])
+    order = np.lexsort((pair_v, pair_c))
+    ptr = np.zeros(m + 1, dtype=np.intp)
+    np.cumsum(np.bincount(pair_c, minlength=m), out=ptr[1:])
+    return ChainLayout(prefix, tuple(levels), ptr, pair_v[order].astype(np.intp))
+
+
+def _positions(level_rows: IntArray, rows: IntArray | None) -> tuple[IntArray, IntArray]:
+    """(positions in the level's arrays, positions in `rows`) of the vertices both hold (`rows`
+    sorted; None: all vertices, positions = the vertex numbers)."""
+    if rows is None:
+        return np.arange(len(level_rows)), level_rows
+    at = np.searchsorted(level_rows, rows)
+    inside = at < len(level_rows)
+    inside[inside] = level_rows[at[inside]] == rows[inside]
+    return at[inside], np.flatnonzero(inside)
+
+
+def _affine_apply(M: FloatArray, x: FloatArray) -> FloatArray:
+    """M[:, :3, :3] x + M[:, :3, 3] per row, as plain elementwise products (a row's bits do not depend
+    on the batch it is in)."""
+    return (M[:, :3, 0] * x[:, 0:1] + M[:, :3, 1] * x[:, 1:2]) + (M[:, :3, 2] * x[:, 2:3] + M[:, :3, 3])
+
+
+def _prefix_rows(layout: ChainLayout, rows: IntArray | None) -> tuple[IntArray, NDArray[np.int32]]:
+    """(positions in the evaluated rows with a prefix, their prefix controls)."""
+    prefix = layout.prefix if rows is None else layout.prefix[rows]
+    at = np.flatnonzero(prefix >= 0)
+    return at, prefix[at]
+
+
+def chain_points(points: ArrayLike, params: ArrayLike, matrices: ArrayLike, layout: ChainLayout,
+                 rows: ArrayLike | None = None, kernel: PointKernel | None = None) -> FloatArray:
+    """v' = A_prefix F_(prefix depth + 1) ⋯ F_D v for the vertices `rows` (sorted; None: all) of
+    `points` (N, 3): params (m, 12) ψ(L_i), matrices (m, 4, 4) A_i. Returns (len(rows), 3) float64.
+    `kernel(points, params, indices, values)` is the blend map v ↦ φ(Σ w P) v (default: the numpy one).
+    """
+    if kernel is None:
+        from .deform import deform_points_params as kernel
+    points = np.asarray(points, dtype=np.float64)
+    sel = None if rows is None else np.asarray(rows, dtype=np.intp)
+    x = points.copy() if sel is None else points[sel]
+    table = np.ascontiguousarray(params, dtype=np.float64)
+    for level in reversed(layout.levels):  # the deepest factor acts first
+        at, into = _positions(level.rows, sel)
+        if len(at):
+            x[into] = kernel(x[into], table, level.indices[at], level.values[at])
+    into, controls = _prefix_rows(layout, sel)
+    if len(into):
+        x[into] = _affine_apply(np.asarray(matrices, dtype=np.float64)[controls], x[into])
+    return x
+
+
+def _compose(G: np.ndarray, H: np.ndarray) -> FloatArray:
+    """G ∘ H for motions in column form (4, n, 3) (M e_x, M e_y, M e_z, t): columns G_M (H e_c) and
+    G_M t_H + t_G, elementwise."""
+    out = np.empty(np.shape(H), dtype=np.float64)
+    for c in range(4):
+        out[c] = G[0] * H[c][:, 0:1] + G[1] * H[c][:, 1:2] + G[2] * H[c][:, 2:3]
+    out[3] += G[3]
+    return out
+
+
+def identity_motions(n: int) -> FloatArray:
+    """n identity motions in column form (4, n, 3)."""
+    out = np.zeros((4, n, 3))
+    for c in range(3):
+        out[c, :, c] = 1.0
+    return out
+
+
+def chain_motions(params: ArrayLike, matrices: ArrayLike, layout: ChainLayout,
+                  rows: ArrayLike | None = None, kernel: MotionKernel | None = None) -> FloatArray:
+    """The motions x ↦ A_prefix F_(prefix depth + 1) ⋯ F_D x of the vertices `rows` (sorted; None:
+    all) in column form (4, len(rows), 3) float64. `kernel(params, indices, values)` gives the
+    columns of φ(Σ w P) per row (default: the numpy one)."""
+    if kernel is None:
+        from .deform import vertex_motions as kernel
+    sel = None if rows is None else np.asarray(rows, dtype=np.intp)
+    n = len(layout.prefix) if sel is None else len(sel)
+    out = identity_motions(n)
+    table = np.ascontiguousarray(params, dtype=np.float64)
+    for level in layout.levels:  # F_0 first: out = F_0 ⋯ F_d after level d
+        at, into = _positions(level.rows, sel)
+        if len(at):
+            factor = np.asarray(kernel(table, level.indices[at], level.values[at]), dtype=np.float64)
+            out[:, into] = _compose(out[:, into], factor)
+    into, controls = _prefix_rows(layout, sel)
+    if len(into):
+        A = np.asarray(matrices, dtype=np.float64)[controls]
+        G = np.concatenate([A[:, :3, :].transpose(2, 0, 1)], axis=0)  # (4, n, 3): columns and t
+        out[:, into] = _compose(G, out[:, into])
+    return out

@@ -1,0 +1,213 @@
+"""core.hierarchy: blending down a forest of controls (MATH.md §14), against a direct evaluation of
+v' = F_0 ⋯ F_D v with dense cumulative weights and aff3's φ / ψ, vertex by vertex."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from affine_deformers import accel
+from affine_deformers.core import aff3, hierarchy, unwrap
+
+# A forest: 0 → 1 → 2 → 3 (a chain), 1 → 4 (a sibling of 2), 5 → 6 (a second root).
+PARENTS = np.array([-1, 0, 1, 2, 1, -1, 5])
+
+
+def _motion(rng: np.random.Generator, turn: float = 1.0, affine: bool = True) -> np.ndarray:
+    A = np.eye(4)
+    w = rng.normal(size=3)
+    w *= turn / np.linalg.norm(w)
+    S = np.eye(3) + (0.2 * rng.normal(size=(3, 3)) if affine else 0.0)
+    A[:3, :3] = aff3.so3_exp(w) @ (S if np.linalg.det(S) > 0 else np.eye(3))
+    A[:3, 3] = rng.normal(size=3)
+    return A
+
+
+def _weights(rng: np.random.Generator, n: int, m: int, k: int, normalise: bool = True):
+    indices = np.stack([rng.choice(m, size=k, replace=False) for _ in range(n)]).astype(np.int32)
+    values = rng.random((n, k))
+    values[rng.random((n, k)) < 0.3] = 0.0
+    if normalise:
+        sums = values.sum(axis=1, keepdims=True)
+        values = np.divide(values, sums, out=np.zeros_like(values), where=sums > 0)
+    return indices, values
+
+
+def _reference(points, locals_, indices, values, parents) -> np.ndarray:
+    """F_0 ⋯ F_D v, every factor evaluated (no prefix shortcut), one vertex at a time."""
+    m = len(parents)
+    depth = hierarchy.depths(parents)
+    ancestor = np.eye(m, dtype=bool)  # ancestor[a, j]: a is j or above it
+    for j in range(m):
+        a = parents[j]
+        while a >= 0:
+            ancestor[a, j] = True
+            a = parents[a]
+    psi = aff3.params_from_matrices(locals_)
+    out = np.empty_like(points)
+    for v in range(len(points)):
+        w = np.zeros(m)
+        np.add.at(w, indices[v], values[v])
+        W = ancestor.astype(float) @ w
+        x = np.append(points[v], 1.0)
+        for d in range(int(depth.max()), -1, -1):
+            p = (W[depth == d, None] * psi[depth == d]).sum(axis=0)
+            x = aff3.matrices_from_params(p[None])[0] @ x
+        out[v] = x[:3]
+    return out
+
+
+def _case(seed: int, n: int = 150, normalise: bool = True, turn: float = 1.0):
+    rng = np.random.default_rng(seed)
+    m = len(PARENTS)
+    locals_ = np.stack([_motion(rng, turn) for _ in range(m)])
+    matrices = locals_.copy()
+    for i in np.argsort(hierarchy.depths(PARENTS), kind="stable"):
+        if PARENTS[i] >= 0:
+            matrices[i] = matrices[PARENTS[i]] @ locals_[i]
+    indices, values = _weights(rng, n, m, 3, normalise)
+    points = rng.normal(size=(n, 3))
+    return points, locals_, matrices, indices, values
+
+
+def test_depths_and_cycles():
+    assert hierarchy.depths(PARENTS).tolist() == [0, 1, 2, 3, 2, 0, 1]
+    assert hierarchy.depths(np.zeros(0, dtype=int)).tolist() == []
+    with pytest.raises(ValueError, match="cycle"):
+        hierarchy.depths(np.array([1, 0, -1]))
+    with pytest.raises(ValueError, match=r"\[-1"):
+        hierarchy.depths(np.array([-1, 5]))
+
+
+def test_local_motions_compose_back_to_the_full_motions():
+    _, locals_, matrices, *_ = _case(0)
+    got = hierarchy.local_motions(matrices, PARENTS)
+    assert np.allclose(got, locals_, atol=1e-12)
+
+
+@pytest.mark.parametrize("normalise", [True, False])
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_points_match_the_direct_product(seed, normalise):
+    points, locals_, matrices, indices, values = _case(seed, normalise=normalise)
+    layout = hierarchy.chain_layout(indices, values, PARENTS)
+    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
+    got = hierarchy.chain_points(points, params, matrices, layout)
+    want = _reference(points, locals_, indices, values, PARENTS)
+    assert np.max(np.abs(got - want)) < 1e-10
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_motions_match_points_and_both_kernels_agree(seed):
+    points, _, matrices, indices, values = _case(seed)
+    layout = hierarchy.chain_layout(indices, values, PARENTS)
+    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
+    moved = hierarchy.chain_points(points, params, matrices, layout)
+    columns = hierarchy.chain_motions(params, matrices, layout)
+    applied = (columns[0] * points[:, 0:1] + columns[1] * points[:, 1:2] + columns[2] * points[:, 2:3]
+               + columns[3])
+    assert np.max(np.abs(applied - moved)) < 1e-12
+    compiled = hierarchy.chain_points(points, params, matrices, layout, kernel=accel.deform_points_params)
+    assert np.max(np.abs(compiled - moved)) < 1e-12
+    compiled_m = hierarchy.chain_motions(params, matrices, layout, kernel=accel.vertex_motions)
+    assert np.max(np.abs(compiled_m - columns)) < 1e-12
+
+
+def test_a_subset_of_rows_gives_the_same_bits():
+    points, _, matrices, indices, values = _case(6, n=400)
+    layout = hierarchy.chain_layout(indices, values, PARENTS)
+    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
+    full = hierarchy.chain_points(points, params, matrices, layout)
+    full_m = hierarchy.chain_motions(params, matrices, layout)
+    rows = np.sort(np.random.default_rng(0).choice(len(points), 57, replace=False))
+    part = hierarchy.chain_points(points, params, matrices, layout, rows)
+    part_m = hierarchy.chain_motions(params, matrices, layout, rows)
+    assert np.array_equal(part.view(np.int64), full[rows].view(np.int64))
+    assert np.array_equal(part_m.view(np.int64), full_m[:, rows].view(np.int64))
+
+
+def test_fully_weighted_vertices_follow_their_control_exactly_and_use_the_prefix():
+    points, _, matrices, _, _ = _case(7, n=len(PARENTS))
+    indices = np.arange(len(PARENTS), dtype=np.int32)[:, None]
+    values = np.ones((len(PARENTS), 1)) * (1.0 + 3e-8)  # float32-stored weights are this close to 1
+    layout = hierarchy.chain_layout(indices, values, PARENTS)
+    assert layout.prefix.tolist() == list(range(len(PARENTS)))
+    assert layout.levels == ()
+    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
+    got = hierarchy.chain_points(points, params, matrices, layout)
+    want = np.einsum("nij,nj->ni", matrices[:, :3, :3], points) + matrices[:, :3, 3]
+    assert np.max(np.abs(got - want)) < 1e-12
+
+
+def test_the_prefix_stops_where_weight_splits():
+    # vertex 0: half on 2, half on 4 (siblings under 1): prefix 1, one level of two controls;
+    # vertex 1: half on 0 and 3: prefix 0, levels 1..3 each at 0.5; vertex 2: on roots 0 and 5.
+    # vertex 3 (weights not normalised): all of 0 and half of 5 — two roots, so no prefix either.
+    indices = np.array([[2, 4], [0, 3], [0, 5], [0, 5]], dtype=np.int32)
+    values = np.array([[0.5, 0.5], [0.5, 0.5], [0.5, 0.5], [1.0, 0.5]])
+    layout = hierarchy.chain_layout(indices, values, PARENTS)
+    assert layout.prefix.tolist() == [1, 0, -1, -1]
+    by_depth = {level.depth: level for level in layout.levels}
+    assert sorted(by_depth) == [0, 1, 2, 3]
+    assert by_depth[0].rows.tolist() == [2, 3]
+    assert sorted(by_depth[0].indices[0].tolist()) == [0, 5]
+    assert by_depth[2].rows.tolist() == [0, 1]
+    pairs = zip(by_depth[2].indices[0].tolist(), by_depth[2].values[0].tolist(), strict=True)
+    assert sorted(pairs) == [(2, 0.5), (4, 0.5)]
+    assert by_depth[1].values[by_depth[1].rows.tolist().index(1)].max() == 0.5
+    # readers: control 1 is read by vertex 0 (its prefix) and vertex 1 (its level 1)
+    assert layout.affected_rows([1]).tolist() == [0, 1]
+    assert layout.affected_rows([5, 4]).tolist() == [0, 2, 3]
+
+
+def test_affected_rows_hold_every_vertex_a_control_moves():
+    points, _, matrices, indices, values = _case(8, n=300)
+    layout = hierarchy.chain_layout(indices, values, PARENTS)
+    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
+    before = hierarchy.chain_points(points, params, matrices, layout)
+    for c in range(len(PARENTS)):
+        changed_params, changed_matrices = params.copy(), matrices.copy()
+        changed_params[c, 0] += 0.1
+        changed_matrices[c, 0, 3] += 0.1
+        after = hierarchy.chain_points(points, changed_params, changed_matrices, layout)
+        moved = np.flatnonzero(np.any(after != before, axis=1))
+        assert set(moved) <= set(layout.affected_rows([c]).tolist())
+        assert len(moved) > 0
+
+
+def test_weights_moving_across_bones_give_a_continuous_field():
+    # A vertex slides from (0.5 on 1, 0.5 on 2) to (0.5 on 2, 0.5 on 3): the bone set changes at t = ½.
+    _, _, matrices, _, _ = _case(9)
+    t = np.linspace(0.0, 1.0, 2001)
+    values = np.stack([np.clip(1 - 2 * t, 0, 1) * 0.5, 0.5 + 0 * t, np.clip(2 * t - 1, 0, 1) * 0.5], axis=1)
+    values[:, 1] = 1.0 - values[:, 0] - values[:, 2]
+    indices = np.tile(np.array([1, 2, 3], dtype=np.int32), (len(t), 1))
+    layout = hierarchy.chain_layout(indices, values, PARENTS)
+    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
+    x = hierarchy.chain_points(np.tile([[0.3, -0.2, 0.7]], (len(t), 1)), params, matrices, layout)
+    steps = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    assert steps.max() < 5 * np.median(steps) + 1e-9
+
+
+def test_a_child_twisted_past_half_a_turn_under_a_turned_parent_stays_on_its_axis():
+    # Bar along x: parent 0 at the origin turned 10° about z, child 1 at x = 1 twisted 270° about x.
+    parents = np.array([-1, 0])
+    parent = np.eye(4)
+    parent[:3, :3] = aff3.so3_exp(np.array([0.0, 0.0, np.radians(10.0)]))
+    twist = np.eye(4)
+    twist[:3, :3] = aff3.so3_exp(np.array([np.radians(270.0), 0.0, 0.0]))
+    joint = np.eye(4)
+    joint[0, 3] = 1.0
+    local = joint @ twist @ np.linalg.inv(joint)
+    matrices = np.stack([parent, parent @ local])
+    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, parents))
+    params = unwrap.lift_params(params, np.array([[0.0, 0.0, 0.0], [np.radians(270.0), 0.0, 0.0]]),
+                                np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))  # the 270° branch
+    assert np.isclose(np.linalg.norm(params[1, :3]), np.radians(270.0))
+    ring = np.array([[1.0, 0.2 * np.cos(a), 0.2 * np.sin(a)] for a in np.linspace(0, 2 * np.pi, 12)])
+    layout = hierarchy.chain_layout(np.array([[0, 1]] * len(ring)), np.full((len(ring), 2), 0.5), parents)
+    got = hierarchy.chain_points(ring, params, matrices, layout)
+    back = (got - parent[:3, 3]) @ parent[:3, :3]  # undo the parent's turn: the child's local frame
+    assert np.allclose(back[:, 0], 1.0, atol=1e-12)  # on the joint's plane
+    assert np.allclose(np.hypot(back[:, 1], back[:, 2]), 0.2, atol=1e-12)  # at the ring's radius
+    angle = np.degrees(np.arctan2(back[0, 2], back[0, 1]))
+    assert np.isclose(angle % 360.0, 135.0, atol=1e-9)
