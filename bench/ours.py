@@ -45,6 +45,7 @@ STAGE_POINTS = (
     ("blender.storage", "read_positions", "read mesh"),
     ("blender.storage", "read_weights", "read mesh"),
     ("blender.params", "motions_to_params", "psi"),
+    ("blender.params", "chain_params", "psi"),  # bones: ψ of the local motions
     ("core.aff3", "params_from_matrices", "psi"),
     ("core.aff3", "matrices_from_params", "psi"),
     ("core.cage", "affected_faces", "psi"),  # cage: which faces moved, then their tetrahedra → params
@@ -59,6 +60,8 @@ STAGE_POINTS = (
     ("accel", "deform_points_params_rows", "kernel"),
     ("core.deform", "vertex_motions", "kernel"),
     ("accel", "vertex_motions", "kernel"),
+    ("accel", "chain_points", "kernel"),  # bones: the blend down the hierarchy
+    ("accel", "chain_motions", "kernel"),
     ("blender.storage", "write_offsets", "write"),
     ("blender.storage", "write_motions", "write"),
     ("blender.storage", "write_offsets_unchecked", "write"),

@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..core import deform as _np_kernel
+from ..core import hierarchy as _np_hierarchy
 from ..core.checks import (
     check_given_out,
     check_indices,
@@ -57,6 +58,8 @@ __all__ = [
     "ACCEL_ENV",
     "active",
     "backend",
+    "chain_motions",
+    "chain_points",
     "deform_points_params",
     "deform_points_params_rows",
     "linear_maps",
@@ -81,6 +84,7 @@ class _State:
         self.lock = threading.RLock()
         self.checked_key: Hashable | None = None  # names checked points, indices and values
         self.checked_weights_key: Hashable | None = None  # names checked indices and values only
+        self.checked_chain_key: Hashable | None = None  # names checked pass indices and values
         self.enabled = True
         self.warming: threading.Thread | None = None  # the thread compiling in `warm_up`
         self.spin: tuple | bool | None = None  # `_spin`'s measurement (False: unavailable)
@@ -131,6 +135,8 @@ def warm_up() -> str:
     try:
         deform_points_params(pts, params, idx, val)  # deform_points_entry
         vertex_motions(params, idx, val)  # motion_params
+        chain_points(pts, params, idx[None], val[None])  # chain_points_entry
+        chain_motions(params, idx[None], val[None])  # chain_motion_entry
         module = _load()
         if module is not None:
             with _state.lock:
@@ -544,6 +550,127 @@ def linear_maps(params: ArrayLike) -> FloatArray:
         return np.zeros((0, 3, 3))
     columns = vertex_motions(table, np.arange(n, dtype=np.int32)[:, None], np.ones((n, 1)))
     return np.ascontiguousarray(columns[:3].transpose(1, 2, 0))
+
+
+def _chain_inputs(table: ArrayLike, indices: ArrayLike, values: ArrayLike, n: int | None,
+                  key: Hashable | None) -> tuple[FloatArray, NDArray[np.int32], FloatArray]:
+    """Checked table (m, 12), pass indices (P, N, K) in [0, m) and values (P, N, K) for `chain_points`
+    / `chain_motions` (N = n when given). With the key of the previous checked call only the shapes
+    are checked (as `_inputs`: the kernel clamps indices, so memory stays safe)."""
+    table = check_table(table, 12, "table")
+    idx = np.asarray(indices)
+    val = np.asarray(values, dtype=np.float64)
+    if idx.ndim != 3 or idx.shape != val.shape or not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(f"indices and values must be (P, N, K) of one shape, got {idx.shape}, {val.shape}")
+    if n is not None and idx.shape[1] != n:
+        raise ValueError(f"indices must have shape (P, {n}, K), got {idx.shape}")
+    if key is not None and key == _state.checked_chain_key:
+        return table, idx, val
+    if idx.size and (idx.min() < 0 or idx.max() >= table.shape[0]):
+        raise ValueError(f"indices must be in [0, {table.shape[0]})")
+    if not np.isfinite(val).all():
+        raise ValueError("values must be finite")
+    if key is not None:
+        _state.checked_chain_key = key
+    return table, idx, val
+
+
+def _chain_layout(indices: NDArray[np.int32], values: FloatArray) -> _np_hierarchy.ChainLayout:
+    """The passes alone as a ChainLayout (what the numpy evaluation reads)."""
+    n = indices.shape[1]
+    return _np_hierarchy.ChainLayout(np.full(n, -1, dtype=np.int32), indices, values,
+                                     np.zeros(1, dtype=np.intp), np.zeros(0, dtype=np.intp))
+
+
+def chain_points(
+    points: ArrayLike,
+    table: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    rows: ArrayLike | None = None,
+    out: FloatArray | None = None,
+    *,
+    offsets: bool = False,
+    out32: NDArray[np.float32] | None = None,
+    key: Hashable | None = None,
+) -> FloatArray:
+    """A product of blends per vertex (core.hierarchy): out[v] = F_(P−1) ⋯ F_0 points[v] with
+    F_p = φ(Σ_k values[p, v, k] · table[indices[p, v, k]]) (minus points[v] when `offsets`), for every
+    vertex or for v in `rows` (the others of `out` left as they are; `out` (N, 3) float64 then
+    required). `out32`: as in `deform_points_params_rows`. Each written row is bit-identical to the
+    same row of a full call with the same backend; the numpy backend is core.hierarchy.chain_points.
+    `key`: a hashable token naming these exact points, indices and values (as in
+    `deform_points_params`): a call with the key of the previous checked call skips re-validating them."""
+    if key is not None and key == _state.checked_chain_key:
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            pts = check_points(points)
+    else:
+        pts = check_points(points)
+    tab, idx, val = _chain_inputs(table, indices, values, pts.shape[0], key)
+    sel = None if rows is None else _c(check_rows(rows, pts.shape[0]), np.intp)
+    if out is None:
+        if sel is not None:
+            raise ValueError("out is required with rows")
+        out = np.empty(pts.shape)
+    check_given_out(out, pts)
+    if out32 is not None:
+        _check_out32(out32, pts.shape)
+    n = pts.shape[0] if sel is None else sel.shape[0]
+    p = _c(pts, np.float64)
+    dst = out if out.flags.c_contiguous and not np.may_share_memory(out, p) else np.empty_like(p)
+    args = (p, _c(tab, np.float64), _c(idx, np.int32), _c(val, np.float64), _NO_ROWS if sel is None else sel,
+            sel is not None, bool(offsets), dst, _NO_OUT32 if out32 is None else out32, out32 is not None)
+    if _usable() is None or not _run("chain_points_entry", n, *args):
+        moved = _np_hierarchy.chain_points(p, tab, _chain_layout(idx, val), sel)
+        target = slice(None) if sel is None else sel
+        dst[target] = moved - p[target] if offsets else moved
+        if out32 is not None:
+            with np.errstate(over="ignore"):
+                out32[target] = dst[target]
+    if dst is not out:
+        if sel is None:
+            np.copyto(out, dst)
+        else:
+            out[sel] = dst[sel]
+    return out
+
+
+def chain_motions(
+    table: ArrayLike,
+    indices: ArrayLike,
+    values: ArrayLike,
+    out: FloatArray | NDArray[np.float32] | None = None,
+    *,
+    rows: ArrayLike | None = None,
+    key: Hashable | None = None,
+) -> FloatArray | NDArray[np.float32]:
+    """The motions F_(P−1) ∘ ⋯ ∘ F_0 of `chain_points` per vertex, in the column form of
+    `vertex_motions` (out (4, N, 3) float64 or float32; `rows`: only those written, bit-identical
+    to a full call's with the same backend); the numpy backend is core.hierarchy.chain_motions.
+    `key`: as in `chain_points` (naming the indices and values)."""
+    tab, idx, val = _chain_inputs(table, indices, values, None, key)
+    n = idx.shape[1]
+    out = check_motion_out(out, n)
+    if not out.flags.writeable:
+        raise ValueError("out must be writable")
+    sel = None if rows is None else _c(check_rows(rows, n), np.intp)
+    dst = out if out.flags.c_contiguous else np.ascontiguousarray(out)
+    use32 = dst.dtype == np.float32
+    args = (_c(tab, np.float64), _c(idx, np.int32), _c(val, np.float64), _NO_ROWS if sel is None else sel,
+            sel is not None, _NO_MOTIONS if use32 else dst, dst if use32 else _NO_MOTIONS32, bool(use32))
+    if _usable() is None or not _run("chain_motion_entry", n if sel is None else sel.shape[0], *args):
+        motions = _np_hierarchy.chain_motions(tab, _chain_layout(idx, val), sel)
+        if sel is None:
+            dst[...] = motions
+        else:
+            dst[:, sel] = motions
+    if dst is not out:
+        if sel is None:
+            np.copyto(out, dst)
+        else:
+            out[:, sel] = dst[:, sel]
+    return out
 
 
 def _numpy_rows(

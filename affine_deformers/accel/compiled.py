@@ -96,7 +96,8 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["CHUNK", "ENTRIES", "deform_points_entry", "motion_params", "spin_wait"]
+__all__ = ["CHUNK", "ENTRIES", "chain_motion_entry", "chain_points_entry", "deform_points_entry",
+           "motion_params", "spin_wait"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -107,8 +108,10 @@ CHUNK = 2048
 _STRIDE = CHUNK + 8
 _N_SCRATCH = 18  # 12 parameters, 3 point coordinates, 3 results
 _N_MOTION_SCRATCH = 24  # 12 parameters, 12 results (M e_x, M e_y, M e_z, t)
+_N_CHAIN_SCRATCH = 21  # as _N_SCRATCH, plus the original point (offsets)
+_N_CHAIN_MOTION_SCRATCH = 36  # as _N_MOTION_SCRATCH, plus the product so far
 #: The compiled kernel entries, one specialisation each (`warm_up` runs exactly these and `spin_wait`).
-ENTRIES = ("deform_points_entry", "motion_params")
+ENTRIES = ("deform_points_entry", "motion_params", "chain_points_entry", "chain_motion_entry")
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -716,6 +719,151 @@ def motion_params(
             break
         a = c * CHUNK
         _motion_chunk(W, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)
+
+
+# ---------------------------------------------------------------------------------------------
+# a product of blends per vertex (core.hierarchy: bones blending down their hierarchy), one chunk at
+# a time: the passes run on the scratch in turn, so nothing goes back to memory between them
+
+
+@_inline
+def _chain_chunk(
+    W: np.ndarray, points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray,
+    a: int, n: int, use_rows: bool, offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool,
+) -> None:
+    """Rows a … a+n−1 of the work list: x = points[r], then for each pass p = 0 … P−1 in turn
+    x ← φ(Σ_k val[p, r, k] table[idx[p, r, k]]) x, stored as `_chunk` stores (minus the point when
+    offsets). W: _N_CHAIN_SCRATCH rows of _STRIDE (rows 18–20 keep the original point)."""
+    S = _STRIDE
+    T, Pf = table.reshape(-1), points.reshape(-1)
+    n_pass, K = idx.shape[0], idx.shape[2]
+    stride = idx.shape[1] * K
+    I, V = idx.reshape(-1), val.reshape(-1)
+    last = np.uint64(table.shape[0] - 1)
+    for j in range(n):
+        r = rows[a + j] if use_rows else a + j
+        for t in range(3):
+            W[(12 + t) * S + j] = Pf[3 * r + t]
+            W[(18 + t) * S + j] = Pf[3 * r + t]
+    for c in range(12, 15):  # φ(0) 0 = 0 in the unused columns (see `_map`)
+        W[c * S + n : c * S + CHUNK] = 0.0
+    for p in range(n_pass):
+        Ip, Vp = I[p * stride : (p + 1) * stride], V[p * stride : (p + 1) * stride]
+        for j in range(n):
+            _blend_params(T, Ip, Vp, K, last, W, j, rows[a + j] if use_rows else a + j)
+        for c in range(12):
+            W[c * S + n : c * S + CHUNK] = 0.0
+        if _map(W) > 0:
+            _fixup(W, n)
+        for t in range(3):  # the result is the next pass's point (all columns: see `_map`)
+            W[(12 + t) * S : (12 + t) * S + CHUNK] = W[(15 + t) * S : (15 + t) * S + CHUNK]
+    for j in range(n):
+        r = rows[a + j] if use_rows else a + j
+        for t in range(3):
+            res = W[(12 + t) * S + j]
+            res = res - W[(18 + t) * S + j] if offsets else res
+            out[r, t] = res
+            if use32:
+                out32[r, t] = np.float32(res)
+
+
+@_inline
+def _compose_store(W: np.ndarray) -> None:
+    """Rows 24–35 (the product so far, columns M e_x, M e_y, M e_z, t) ← product ∘ rows 12–23 (the
+    factor just mapped), for every column of the scratch (constant trip count, as `_map`)."""
+    S = _STRIDE
+    for j in range(CHUNK):
+        g0, g1, g2 = W[24 * S + j], W[25 * S + j], W[26 * S + j]
+        g3, g4, g5 = W[27 * S + j], W[28 * S + j], W[29 * S + j]
+        g6, g7, g8 = W[30 * S + j], W[31 * S + j], W[32 * S + j]
+        g9, g10, g11 = W[33 * S + j], W[34 * S + j], W[35 * S + j]
+        for c in range(4):
+            h0, h1, h2 = W[(12 + 3 * c) * S + j], W[(13 + 3 * c) * S + j], W[(14 + 3 * c) * S + j]
+            o0 = g0 * h0 + g3 * h1 + g6 * h2
+            o1 = g1 * h0 + g4 * h1 + g7 * h2
+            o2 = g2 * h0 + g5 * h1 + g8 * h2
+            if c == 3:
+                o0, o1, o2 = o0 + g9, o1 + g10, o2 + g11
+            W[(24 + 3 * c) * S + j] = o0
+            W[(25 + 3 * c) * S + j] = o1
+            W[(26 + 3 * c) * S + j] = o2
+
+
+@_inline
+def _chain_motion_chunk(
+    W: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, a: int, n: int,
+    use_rows: bool, out: np.ndarray, out32: np.ndarray, use32: bool,
+) -> None:
+    """Rows a … a+n−1 of the work list: the motion F_(P−1) ∘ ⋯ ∘ F_0 with F_p = φ(Σ_k val[p, r, k]
+    table[idx[p, r, k]]), stored as `_motion_chunk` stores. W: _N_CHAIN_MOTION_SCRATCH rows of
+    _STRIDE (rows 24–35 hold the product, built from the last pass down)."""
+    S = _STRIDE
+    T = table.reshape(-1)
+    n_pass, K = idx.shape[0], idx.shape[2]
+    stride = idx.shape[1] * K
+    I, V = idx.reshape(-1), val.reshape(-1)
+    last = np.uint64(table.shape[0] - 1)
+    W[24 * S : 36 * S] = 0.0
+    for c in range(3):  # the identity
+        W[(24 + 4 * c) * S : (24 + 4 * c) * S + CHUNK] = 1.0
+    for q in range(n_pass):
+        p = n_pass - 1 - q
+        Ip, Vp = I[p * stride : (p + 1) * stride], V[p * stride : (p + 1) * stride]
+        for j in range(n):
+            _blend_params(T, Ip, Vp, K, last, W, j, rows[a + j] if use_rows else a + j)
+        for c in range(12):
+            W[c * S + n : c * S + CHUNK] = 0.0
+        if _map_motion(W) > 0:
+            _fixup_motion(W, n)
+        _compose_store(W)
+    for j in range(n):
+        r = rows[a + j] if use_rows else a + j
+        for c in range(4):
+            for t in range(3):
+                res = W[(24 + 3 * c + t) * S + j]
+                if use32:
+                    out32[c, r, t] = np.float32(res)
+                else:
+                    out[c, r, t] = res
+
+
+@_entry
+def chain_points_entry(
+    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool,
+    offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool, counter: np.ndarray,
+) -> None:
+    """`deform_points_entry` for a product of P blends per vertex (core.hierarchy.chain_points):
+    idx (P, N, K) int32 and val (P, N, K) f64 hold pass p's weights of every vertex (a zero row is
+    φ(0) = identity); pass 0 acts first. Other arguments, threads and rows as `deform_points_entry`,
+    but out must not share memory with points."""
+    n = rows.shape[0] if use_rows else points.shape[0]
+    n_chunks = (n + CHUNK - 1) // CHUNK
+    W = np.empty(_N_CHAIN_SCRATCH * _STRIDE)
+    while True:
+        c = _claim(counter)
+        if c >= n_chunks:
+            break
+        a = c * CHUNK
+        _chain_chunk(W, points, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, offsets, out, out32,
+                     use32)
+
+
+@_entry
+def chain_motion_entry(
+    table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool, out: np.ndarray,
+    out32: np.ndarray, use32: bool, counter: np.ndarray,
+) -> None:
+    """`motion_params` for a product of P blends per vertex: the motion F_(P−1) ∘ ⋯ ∘ F_0 (idx, val as
+    `chain_points_entry`); other arguments as `motion_params`."""
+    n = rows.shape[0] if use_rows else idx.shape[1]
+    n_chunks = (n + CHUNK - 1) // CHUNK
+    W = np.empty(_N_CHAIN_MOTION_SCRATCH * _STRIDE)
+    while True:
+        c = _claim(counter)
+        if c >= n_chunks:
+            break
+        a = c * CHUNK
+        _chain_motion_chunk(W, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)
 
 
 @_entry

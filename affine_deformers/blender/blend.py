@@ -193,61 +193,69 @@ def _motions_affine(deformer, motions: Motions, bound: BoundData,
 
 def _chain_inputs(deformer, motions: Motions, bound: BoundData, state: tuple
                   ) -> tuple[np.ndarray, np.ndarray, hierarchy.ChainLayout, tuple, np.ndarray | None]:
-    """(ψ(L_i), the motions A_i (m, 4, 4), the weights' layout down the hierarchy, the result state,
-    the rows to recompute or None for all): as `_changed_rows`, a vertex is recomputed when a control
-    it reads changed bitwise — in its parameters (a factor) or in its full motion (a prefix)."""
+    """(ψ(L_i), ψ(A_i), the weights' layout down the hierarchy, the result state, the rows to
+    recompute or None for all): as `_changed_rows`, a vertex is recomputed when a control it reads
+    changed bitwise — in its local parameters (a factor) or in those of its full motion (a prefix)."""
     chain = motions.chain
     params = parameters.chain_params(motions, deformer.branch_rule)
-    matrices = np.ascontiguousarray(motions.matrices, dtype=np.float64)
+    whole = parameters.motions_to_params(motions, "SHORTEST")
     layout = bound.chain_layout(chain.parents, deformer.strength)
     state = (state, chain.parents.tobytes())
     previous = bound.motions if bound.offsets is None else bound.offsets
-    if (previous is None or bound.state != state or bound.params is None or bound.matrices is None
+    if (previous is None or bound.state != state or bound.params is None or bound.whole_params is None
             or bound.params.shape != params.shape):
-        return params, matrices, layout, state, None
-    before = bound.matrices.reshape(-1, 16).view(np.int64)
+        return params, whole, layout, state, None
     changed = ((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1)
-               | (matrices.reshape(-1, 16).view(np.int64) != before).any(axis=1))
+               | (whole.view(np.int64) != bound.whole_params.view(np.int64)).any(axis=1))
     rows = layout.affected_rows(np.flatnonzero(changed))
     few = len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points)
-    return params, matrices, layout, state, rows if few else None
+    return params, whole, layout, state, rows if few else None
+
+
+def _chain_key(bound: BoundData, layout: hierarchy.ChainLayout) -> tuple:
+    """Names the bound points and the layout's passes for the kernel's argument checks: a layout is
+    a pure function of the bound weights (`bound.serial`) and its cache key (parents, strength)."""
+    return ("chain", bound.serial, bound.layout[0] if bound.layout is not None else None)
 
 
 def _offsets_chain(deformer, motions: Motions, bound: BoundData,
                    state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
-    """`blend_offsets` down a hierarchy (core.hierarchy.chain_points), recomputing only the vertices
-    that read a changed control (rows are independent: bit-identical to a full recompute)."""
-    params, matrices, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    """`blend_offsets` down a hierarchy (accel.chain_points), recomputing only the vertices that read
+    a changed control (rows are independent: bit-identical to a full recompute)."""
+    params, whole, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    table = hierarchy.chain_table(params, whole)
     points = bound.points
     if rows is not None and bound.offsets is not None:
         offsets = bound.offsets
         if len(rows):
-            offsets[rows] = hierarchy.chain_points(points, params, matrices, layout, rows,
-                                                   kernel=accel.deform_points_params) - points[rows]
+            # The kernel rounds the rows it computes into the attribute's copy too, as in _offsets_affine.
             written = bound.written
-            if written is not None and written.shape == offsets.shape:
-                written[rows] = offsets[rows]  # the cast outputs.write_offsets would make
-        bound.params, bound.matrices = params, matrices
+            out32 = written if written is not None and written.shape == offsets.shape else None
+            accel.chain_points(points, table, layout.indices, layout.values, rows, offsets, offsets=True,
+                               out32=out32, key=_chain_key(bound, layout))
+        bound.params, bound.whole_params = params, whole
         return offsets, rows
     bound.forget_result()
-    offsets = hierarchy.chain_points(points, params, matrices, layout, kernel=accel.deform_points_params)
-    offsets -= points
-    bound.state, bound.params, bound.matrices, bound.offsets = state, params, matrices, offsets
+    offsets = accel.chain_points(points, table, layout.indices, layout.values, offsets=True,
+                                 key=_chain_key(bound, layout))
+    bound.state, bound.params, bound.whole_params, bound.offsets = state, params, whole, offsets
     return offsets, None
 
 
 def _motions_chain(deformer, motions: Motions, bound: BoundData,
                    state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
-    """`blend_motions` down a hierarchy (core.hierarchy.chain_motions), incremental as `_offsets_chain`."""
-    params, matrices, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    """`blend_motions` down a hierarchy (accel.chain_motions), incremental as `_offsets_chain`."""
+    params, whole, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    table = hierarchy.chain_table(params, whole)
     if rows is not None and bound.motions is not None:
         result = bound.motions
         if len(rows):
-            result[:, rows] = hierarchy.chain_motions(params, matrices, layout, rows,
-                                                      kernel=accel.vertex_motions)
-        bound.params, bound.matrices = params, matrices
+            accel.chain_motions(table, layout.indices, layout.values, result, rows=rows,
+                                key=_chain_key(bound, layout))
+        bound.params, bound.whole_params = params, whole
         return result, rows
     bound.forget_result()
-    result = hierarchy.chain_motions(params, matrices, layout, kernel=accel.vertex_motions).astype(np.float32)
-    bound.state, bound.params, bound.matrices, bound.motions = state, params, matrices, result
+    out = np.empty((4, len(bound.points), 3), dtype=np.float32)
+    result = accel.chain_motions(table, layout.indices, layout.values, out, key=_chain_key(bound, layout))
+    bound.state, bound.params, bound.whole_params, bound.motions = state, params, whole, result
     return result, None

@@ -81,25 +81,20 @@ def local_motions(matrices: ArrayLike, parents: ArrayLike) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class ChainLevel:
-    """The factors F_d of one depth d below the vertices' prefixes: `rows` (n,) the vertices that have
-    one (sorted), `indices` (n, k) the controls at depth d, `values` (n, k) their cumulative weights
-    (padding: index 0, value 0)."""
-
-    depth: int
-    rows: IntArray
-    indices: NDArray[np.int32]
-    values: FloatArray
-
-
-@dataclass(frozen=True)
 class ChainLayout:
-    """Every vertex's product F_0 ⋯ F_D in evaluation form: `prefix` (N,) the control whose full motion
-    the vertex starts from (−1: none), `levels` the factors below it by increasing depth, and per
-    control the vertices that read it (`ptr`, `readers`: CSR, sorted) for incremental updates."""
+    """Every vertex's product A_prefix F_(prefix depth + 1) ⋯ F_D in evaluation form, as P kernel
+    passes over the table [ψ(L_0 … L_m−1); ψ(A_0 … A_m−1)] (`chain_table`, 2m rows):
+
+    indices (P, N, k) int32 and values (P, N, k): pass 0 holds every vertex's deepest factor, pass 1
+    the one above it, …, and the last pass its prefix (index m + prefix, value 1); a vertex with fewer
+    factors has zero weights there (φ(0) v = v). `prefix` (N,): the control whose full motion a vertex
+    starts from (−1: none); per control the vertices that read it (`ptr`, `readers`: CSR, sorted) for
+    incremental updates.
+    """
 
     prefix: NDArray[np.int32]
-    levels: tuple[ChainLevel, ...]
+    indices: NDArray[np.int32]
+    values: FloatArray
     ptr: IntArray
     readers: IntArray
 
@@ -142,113 +137,104 @@ def _closure(indices: np.ndarray, values: np.ndarray, parents: IntArray,
     return vertex.astype(np.intp), d.astype(np.intp), control.astype(np.intp), total
 
 
-def _group_starts(first: np.ndarray) -> IntArray:
+def _starts(first: np.ndarray) -> IntArray:
     """For runs marked by `first` (True at each run's first entry): the index of each entry's run start."""
     return np.maximum.accumulate(np.where(first, np.arange(len(first)), 0))
 
 
+def _leading(vertex: IntArray, d: IntArray, W: FloatArray, full_tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """(leading, new_level) over the sorted closure: leading marks each vertex's run of depths 0, 1, …
+    each held by one control with W within `full_tol` of 1 (its prefix); new_level the first entry of
+    each (vertex, depth)."""
+    e = len(vertex)
+    new_vertex = np.ones(e, dtype=bool)
+    new_vertex[1:] = vertex[1:] != vertex[:-1]
+    new_level = new_vertex.copy()
+    new_level[1:] |= d[1:] != d[:-1]
+    alone = new_level.copy()  # the only control of its (vertex, depth)
+    alone[:-1] &= new_level[1:]
+    ok = (d == np.arange(e) - _starts(new_vertex)) & alone & (np.abs(W - 1.0) <= full_tol)
+    bad = np.cumsum(~ok)
+    leading = bad == (bad - ~ok)[_starts(new_vertex)]
+    return leading, new_level
+
+
 def chain_layout(indices: ArrayLike, values: ArrayLike, parents: ArrayLike,
                  full_tol: float = FULL_TOL) -> ChainLayout:
-    """The `ChainLayout` of sparse weights (indices (N, K), values (N, K)) over controls with `parents`.
-
-    A vertex's prefix is the deepest control of its leading run of depths 0, 1, … each held by one
-    control with W within `full_tol` of 1; every other cumulative weight goes to its depth's level.
-    """
+    """The `ChainLayout` of sparse weights (indices (N, K), values (N, K)) over controls with `parents`."""
     indices = np.asarray(indices)
     values = np.asarray(values, dtype=np.float64)
     parents = np.asarray(parents, dtype=np.intp)
     depth = depths(parents)
     n, m = len(indices), len(parents)
     vertex, d, control, W = _closure(indices, values, parents, depth)
-    e = len(vertex)
-    new_vertex = np.ones(e, dtype=bool)
-    new_vertex[1:] = vertex[1:] != vertex[:-1]
-    position = np.arange(e) - _group_starts(new_vertex)
-    new_level = new_vertex.copy()
-    new_level[1:] |= d[1:] != d[:-1]
-    alone = new_level.copy()  # the only control of its (vertex, depth)
-    alone[:-1] &= new_level[1:]
-    ok = (d == position) & alone & (np.abs(W - 1.0) <= full_tol)
-    bad = np.cumsum(~ok)
-    leading = bad == (bad - ~ok)[_group_starts(new_vertex)]
+    leading, new_level = _leading(vertex, d, W, full_tol)
     last = leading.copy()
-    last[:-1] &= ~(leading[1:] & ~new_vertex[1:])
+    last[:-1] &= ~(leading[1:] & (vertex[1:] == vertex[:-1]))
     prefix = np.full(n, -1, dtype=np.int32)
     prefix[vertex[last]] = control[last]
-    levels = []
     below = ~leading
-    slot_all = np.arange(e) - _group_starts(new_level)
-    for level in np.unique(d[below]):
-        sel = below & (d == level)
-        rows, at = np.unique(vertex[sel], return_inverse=True)
-        slot = slot_all[sel]
-        width = int(slot.max()) + 1
-        idx = np.zeros((len(rows), width), dtype=np.int32)
-        val = np.zeros((len(rows), width))
-        idx[at, slot] = control[sel]
-        val[at, slot] = W[sel]
-        levels.append(ChainLevel(int(level), rows.astype(np.intp), idx, val))
+    vb, cb, wb = vertex[below], control[below], W[below]
+    slot = np.arange(len(vb)) - _starts(new_level[below])
+    # Each vertex's factors counted from its deepest (pass 0) up.
+    level_start = new_level[below]
+    rank = np.cumsum(level_start) - 1  # the (vertex, depth) group number
+    groups_per_vertex = np.bincount(vb[level_start], minlength=n)
+    first_group = np.concatenate([[0], np.cumsum(groups_per_vertex)[:-1]])
+    from_top = rank - first_group[vb]
+    pass_of = groups_per_vertex[vb] - 1 - from_top
     has = prefix >= 0
-    pair_v = np.concatenate([np.flatnonzero(has), vertex[below]])
-    pair_c = np.concatenate([prefix[has].astype(np.intp), control[below]])
+    n_factors = int(groups_per_vertex.max(initial=0))
+    n_pass = n_factors + bool(has.any())
+    width = int(slot.max(initial=0)) + 1
+    idx = np.zeros((n_pass, n, width), dtype=np.int32)
+    val = np.zeros((n_pass, n, width))
+    idx[pass_of, vb, slot] = cb
+    val[pass_of, vb, slot] = wb
+    if n_pass > n_factors:
+        idx[-1, :, 0] = np.where(has, m + prefix, 0)
+        val[-1, :, 0] = has
+    pair_v = np.concatenate([np.flatnonzero(has), vb])
+    pair_c = np.concatenate([prefix[has].astype(np.intp), cb])
     order = np.lexsort((pair_v, pair_c))
     ptr = np.zeros(m + 1, dtype=np.intp)
     np.cumsum(np.bincount(pair_c, minlength=m), out=ptr[1:])
-    return ChainLayout(prefix, tuple(levels), ptr, pair_v[order].astype(np.intp))
+    return ChainLayout(prefix, idx, val, ptr, pair_v[order].astype(np.intp))
 
 
-def _positions(level_rows: IntArray, rows: IntArray | None) -> tuple[IntArray, IntArray]:
-    """(positions in the level's arrays, positions in `rows`) of the vertices both hold (`rows`
-    sorted; None: all vertices, positions = the vertex numbers)."""
-    if rows is None:
-        return np.arange(len(level_rows)), level_rows
-    at = np.searchsorted(level_rows, rows)
-    inside = at < len(level_rows)
-    inside[inside] = level_rows[at[inside]] == rows[inside]
-    return at[inside], np.flatnonzero(inside)
+def chain_table(local_params: ArrayLike, motion_params: ArrayLike) -> FloatArray:
+    """The passes' table [ψ(L_i); ψ(A_i)] (2m, 12) from local_params ψ(L_i) (m, 12) and motion_params
+    ψ(A_i) (m, 12) (a prefix is φ(ψ(A)) = A to rounding)."""
+    return np.ascontiguousarray(np.concatenate([np.asarray(local_params, dtype=np.float64),
+                                                np.asarray(motion_params, dtype=np.float64)]))
 
 
-def _affine_apply(M: FloatArray, x: FloatArray) -> FloatArray:
-    """M[:, :3, :3] x + M[:, :3, 3] per row, as plain elementwise products (a row's bits do not depend
-    on the batch it is in)."""
-    return (M[:, :3, 0] * x[:, 0:1] + M[:, :3, 1] * x[:, 1:2]) + (M[:, :3, 2] * x[:, 2:3] + M[:, :3, 3])
-
-
-def _prefix_rows(layout: ChainLayout, rows: IntArray | None) -> tuple[IntArray, NDArray[np.int32]]:
-    """(positions in the evaluated rows with a prefix, their prefix controls)."""
-    prefix = layout.prefix if rows is None else layout.prefix[rows]
-    at = np.flatnonzero(prefix >= 0)
-    return at, prefix[at]
-
-
-def chain_points(points: ArrayLike, params: ArrayLike, matrices: ArrayLike, layout: ChainLayout,
-                 rows: ArrayLike | None = None, kernel: PointKernel | None = None) -> FloatArray:
+def chain_points(points: ArrayLike, table: ArrayLike, layout: ChainLayout, rows: ArrayLike | None = None,
+                 kernel: PointKernel | None = None) -> FloatArray:
     """v' = A_prefix F_(prefix depth + 1) ⋯ F_D v for the vertices `rows` (sorted; None: all) of
-    `points` (N, 3): params (m, 12) ψ(L_i), matrices (m, 4, 4) A_i. Returns (len(rows), 3) float64.
-    `kernel(points, params, indices, values)` is the blend map v ↦ φ(Σ w P) v (default: the numpy one).
-    """
+    `points` (N, 3), `table` from `chain_table`. Returns (len(rows), 3) float64. `kernel(points,
+    params, indices, values)` is the blend map v ↦ φ(Σ w P) v (default: the numpy one)."""
     if kernel is None:
         from .deform import deform_points_params as kernel
     points = np.asarray(points, dtype=np.float64)
     sel = None if rows is None else np.asarray(rows, dtype=np.intp)
     x = points.copy() if sel is None else points[sel]
-    table = np.ascontiguousarray(params, dtype=np.float64)
-    for level in reversed(layout.levels):  # the deepest factor acts first
-        at, into = _positions(level.rows, sel)
-        if len(at):
-            x[into] = kernel(x[into], table, level.indices[at], level.values[at])
-    into, controls = _prefix_rows(layout, sel)
-    if len(into):
-        x[into] = _affine_apply(np.asarray(matrices, dtype=np.float64)[controls], x[into])
+    table = np.ascontiguousarray(table, dtype=np.float64)
+    for idx, val in zip(layout.indices, layout.values, strict=True):  # the deepest factor first
+        if sel is not None:
+            idx, val = idx[sel], val[sel]
+        x = kernel(x, table, idx, val)
     return x
 
 
 def _compose(G: np.ndarray, H: np.ndarray) -> FloatArray:
     """G ∘ H for motions in column form (4, n, 3) (M e_x, M e_y, M e_z, t): columns G_M (H e_c) and
-    G_M t_H + t_G, elementwise."""
+    G_M t_H + t_G, elementwise (a row's bits do not depend on the batch)."""
     out = np.empty(np.shape(H), dtype=np.float64)
     for c in range(4):
-        out[c] = G[0] * H[c][:, 0:1] + G[1] * H[c][:, 1:2] + G[2] * H[c][:, 2:3]
+        out[c] = G[0] * H[c][:, 0:1]
+        out[c] += G[1] * H[c][:, 1:2]
+        out[c] += G[2] * H[c][:, 2:3]
     out[3] += G[3]
     return out
 
@@ -261,25 +247,18 @@ def identity_motions(n: int) -> FloatArray:
     return out
 
 
-def chain_motions(params: ArrayLike, matrices: ArrayLike, layout: ChainLayout,
-                  rows: ArrayLike | None = None, kernel: MotionKernel | None = None) -> FloatArray:
+def chain_motions(table: ArrayLike, layout: ChainLayout, rows: ArrayLike | None = None,
+                  kernel: MotionKernel | None = None) -> FloatArray:
     """The motions x ↦ A_prefix F_(prefix depth + 1) ⋯ F_D x of the vertices `rows` (sorted; None:
-    all) in column form (4, len(rows), 3) float64. `kernel(params, indices, values)` gives the
-    columns of φ(Σ w P) per row (default: the numpy one)."""
+    all) in column form (4, len(rows), 3) float64 (arguments as `chain_points`). `kernel(params,
+    indices, values)` gives the columns of φ(Σ w P) per row (default: the numpy one)."""
     if kernel is None:
         from .deform import vertex_motions as kernel
     sel = None if rows is None else np.asarray(rows, dtype=np.intp)
-    n = len(layout.prefix) if sel is None else len(sel)
-    out = identity_motions(n)
-    table = np.ascontiguousarray(params, dtype=np.float64)
-    for level in layout.levels:  # F_0 first: out = F_0 ⋯ F_d after level d
-        at, into = _positions(level.rows, sel)
-        if len(at):
-            factor = np.asarray(kernel(table, level.indices[at], level.values[at]), dtype=np.float64)
-            out[:, into] = _compose(out[:, into], factor)
-    into, controls = _prefix_rows(layout, sel)
-    if len(into):
-        A = np.asarray(matrices, dtype=np.float64)[controls]
-        G = np.concatenate([A[:, :3, :].transpose(2, 0, 1)], axis=0)  # (4, n, 3): columns and t
-        out[:, into] = _compose(G, out[:, into])
+    table = np.ascontiguousarray(table, dtype=np.float64)
+    out = identity_motions(len(layout.prefix) if sel is None else len(sel))
+    for idx, val in zip(layout.indices[::-1], layout.values[::-1], strict=True):  # the prefix first
+        if sel is not None:
+            idx, val = idx[sel], val[sel]
+        out = _compose(out, np.asarray(kernel(table, idx, val), dtype=np.float64))
     return out

@@ -916,7 +916,8 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     from affine_deformers.accel import compiled as kernel  # needs numba
 
     assert accel.warm_up().startswith("numba ")
-    assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params"}
+    assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params",
+                                                           "chain_points_entry", "chain_motion_entry"}
     assert fresh_state.spin and fresh_state.spin[0] is kernel.spin_wait  # the helpers' busy-wait
     jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
     for name, f in jitted.items():
@@ -935,6 +936,12 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     accel.deform_points_params_rows(pts, params, idx.astype(np.int64), val, np.array([2], np.int32), out)
     accel.vertex_motions(params, idx, val, np.zeros((4, 300, 3), np.float32), rows=[5])
     accel.vertex_motions(params, idx, val, rows=np.arange(9))
+    chain = (idx[None], val[None])
+    accel.chain_points(pts, params, *chain)
+    accel.chain_points(pts, params, *chain, [3, 1], out, offsets=True, out32=np.zeros((300, 3), np.float32))
+    accel.chain_points(pts, params, chain[0].astype(np.int64), val[None], np.array([2], np.int32), out)
+    accel.chain_motions(params, *chain, np.zeros((4, 300, 3), np.float32), rows=[5])
+    accel.chain_motions(params, *chain, rows=np.arange(9))
     for name in (*kernel.ENTRIES, "spin_wait"):
         fn = getattr(kernel, name)
         assert len(fn.signatures) == 1, (name, fn.signatures)
@@ -995,6 +1002,7 @@ from affine_deformers.accel import compiled
 
 case = np.load(sys.argv[1])
 pts, params, idx, val, rows, lifted = (case[k] for k in ("pts", "params", "idx", "val", "rows", "lifted"))
+chain = (np.stack([idx, np.roll(idx, 1, axis=0)]), np.stack([val, np.roll(val, 1, axis=0)]))
 res = {}
 for step in sys.argv[3].split(","):
     if step == "points-full":
@@ -1007,6 +1015,16 @@ for step in sys.argv[3].split(","):
         res[step] = accel.vertex_motions(params, idx, val)
     elif step == "motions-rows":
         res[step] = accel.vertex_motions(params, idx, val, rows=rows)[:, rows]
+    elif step == "chain-points-full":  # two passes: the blend, then the same weights one row down
+        res[step] = accel.chain_points(pts, params, *chain)
+    elif step == "chain-points-rows":
+        out = np.zeros_like(pts)
+        accel.chain_points(pts, params, *chain, rows, out)
+        res[step] = out[rows]
+    elif step == "chain-motions-full":
+        res[step] = accel.chain_motions(params, *chain)
+    elif step == "chain-motions-rows":
+        res[step] = accel.chain_motions(params, *chain, rows=rows)[:, rows]
     elif step == "lifted-alone":  # every θ > 1.8π row alone
         out = np.zeros_like(pts)
         mot = np.zeros((4,) + pts.shape)
@@ -1061,14 +1079,17 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
         assert proc.returncode == 0, stderr
         return json.loads(stdout.strip().splitlines()[-1])
 
-    a = start("cache-a", "a.npz", "points-full,motions-rows")
-    b = start("cache-b", "b.npz", "points-rows")
+    a = start("cache-a", "a.npz", "points-full,motions-rows,chain-points-full,chain-motions-rows")
+    b = start("cache-b", "b.npz", "points-rows,chain-points-rows")
     stats_a, stats_b = finish(a), finish(b)
-    c = start("cache-a", "c.npz", "points-rows,points-full,motions-full,motions-rows,lifted-alone")
+    c = start("cache-a", "c.npz", "points-rows,points-full,motions-full,motions-rows,lifted-alone,"
+              "chain-points-rows,chain-points-full,chain-motions-full,chain-motions-rows")
     stats_c = finish(c)
-    assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1]}, stats_a  # compiled there
-    assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0]}, stats_b
-    for name in ("deform_points_entry", "motion_params"):
+    assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1],  # compiled there
+                       "chain_points_entry": [0, 1], "chain_motion_entry": [0, 1]}, stats_a
+    assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0],
+                       "chain_points_entry": [0, 1], "chain_motion_entry": [0, 0]}, stats_b
+    for name in ("deform_points_entry", "motion_params", "chain_points_entry", "chain_motion_entry"):
         assert stats_c[name][0] >= 1 and stats_c[name][1] == 0, (name, stats_c)  # loaded from A's cache
     ra, rb, rc = (np.load(tmp_path / f"{x}.npz") for x in "abc")
     full, motions = ra["points-full"], rc["motions-full"]
@@ -1079,6 +1100,12 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert np.array_equal(rc["motions-rows"], motions[:, rows])
     assert np.array_equal(rc["points-alone"], full[lifted])  # every θ > 1.8π row alone, cached
     assert np.array_equal(rc["motions-alone"], motions[:, lifted])
+    chain_full, chain_motions = ra["chain-points-full"], rc["chain-motions-full"]
+    assert np.array_equal(rc["chain-points-full"], chain_full)  # loaded (C) = compiled (A)
+    assert np.array_equal(rb["chain-points-rows"], chain_full[rows])  # compiled with rows (B)
+    assert np.array_equal(rc["chain-points-rows"], chain_full[rows])
+    assert np.array_equal(ra["chain-motions-rows"], chain_motions[:, rows])
+    assert np.array_equal(rc["chain-motions-rows"], chain_motions[:, rows])
     # and this process (its entries compiled or loaded, whichever happened here)
     assert np.array_equal(accel.deform_points_params(pts, params, idx, val), full)
     assert np.array_equal(accel.vertex_motions(params, idx, val), motions)

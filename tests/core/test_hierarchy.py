@@ -91,38 +91,63 @@ def test_points_match_the_direct_product(seed, normalise):
     points, locals_, matrices, indices, values = _case(seed, normalise=normalise)
     layout = hierarchy.chain_layout(indices, values, PARENTS)
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    got = hierarchy.chain_points(points, params, matrices, layout)
+    full = aff3.params_from_matrices(matrices)
+    got = hierarchy.chain_points(points, hierarchy.chain_table(params, full), layout)
     want = _reference(points, locals_, indices, values, PARENTS)
     assert np.max(np.abs(got - want)) < 1e-10
 
 
+def _table(matrices: np.ndarray) -> np.ndarray:
+    return hierarchy.chain_table(aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS)),
+                                 aff3.params_from_matrices(matrices))
+
+
+def _apply(columns: np.ndarray, points: np.ndarray) -> np.ndarray:
+    linear = columns[0] * points[:, 0:1] + columns[1] * points[:, 1:2] + columns[2] * points[:, 2:3]
+    return linear + columns[3]
+
+
 @pytest.mark.parametrize("seed", [4, 5])
-def test_motions_match_points_and_both_kernels_agree(seed):
+def test_motions_match_points_and_the_compiled_passes_agree(seed):
     points, _, matrices, indices, values = _case(seed)
     layout = hierarchy.chain_layout(indices, values, PARENTS)
-    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    moved = hierarchy.chain_points(points, params, matrices, layout)
-    columns = hierarchy.chain_motions(params, matrices, layout)
-    applied = (columns[0] * points[:, 0:1] + columns[1] * points[:, 1:2] + columns[2] * points[:, 2:3]
-               + columns[3])
-    assert np.max(np.abs(applied - moved)) < 1e-12
-    compiled = hierarchy.chain_points(points, params, matrices, layout, kernel=accel.deform_points_params)
+    table = _table(matrices)
+    moved = hierarchy.chain_points(points, table, layout)
+    columns = hierarchy.chain_motions(table, layout)
+    assert np.max(np.abs(_apply(columns, points) - moved)) < 1e-12
+    compiled = accel.chain_points(points, table, layout.indices, layout.values)
     assert np.max(np.abs(compiled - moved)) < 1e-12
-    compiled_m = hierarchy.chain_motions(params, matrices, layout, kernel=accel.vertex_motions)
+    offsets = accel.chain_points(points, table, layout.indices, layout.values, offsets=True)
+    assert np.array_equal(offsets, compiled - points)
+    compiled_m = accel.chain_motions(table, layout.indices, layout.values)
     assert np.max(np.abs(compiled_m - columns)) < 1e-12
+    compiled_32 = accel.chain_motions(table, layout.indices, layout.values,
+                                      np.empty((4, len(points), 3), np.float32))
+    assert np.array_equal(compiled_32, compiled_m.astype(np.float32))
 
 
-def test_a_subset_of_rows_gives_the_same_bits():
-    points, _, matrices, indices, values = _case(6, n=400)
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_subset_of_rows_gives_the_same_bits(compiled, monkeypatch):
+    if not compiled:
+        monkeypatch.setenv(accel.ACCEL_ENV, "0")
+    points, _, matrices, indices, values = _case(6, n=5000)
     layout = hierarchy.chain_layout(indices, values, PARENTS)
-    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    full = hierarchy.chain_points(points, params, matrices, layout)
-    full_m = hierarchy.chain_motions(params, matrices, layout)
-    rows = np.sort(np.random.default_rng(0).choice(len(points), 57, replace=False))
-    part = hierarchy.chain_points(points, params, matrices, layout, rows)
-    part_m = hierarchy.chain_motions(params, matrices, layout, rows)
-    assert np.array_equal(part.view(np.int64), full[rows].view(np.int64))
-    assert np.array_equal(part_m.view(np.int64), full_m[:, rows].view(np.int64))
+    table = _table(matrices)
+    args = (table, layout.indices, layout.values)
+    whole = accel.chain_points(points, *args, offsets=True)
+    whole32 = whole.astype(np.float32)
+    whole_m = accel.chain_motions(*args)
+    rows = np.sort(np.random.default_rng(0).choice(len(points), 2100, replace=False))
+    part, part32 = np.full_like(whole, np.nan), np.zeros_like(whole32)
+    accel.chain_points(points, *args, rows, part, offsets=True, out32=part32)
+    part_m = np.full_like(whole_m, np.nan)
+    accel.chain_motions(*args, part_m, rows=rows)
+    assert np.array_equal(part[rows].view(np.int64), whole[rows].view(np.int64))
+    assert np.isnan(np.delete(part, rows, axis=0)).all()  # the others untouched
+    assert np.array_equal(part32[rows], whole32[rows])
+    assert np.array_equal(part_m[:, rows].view(np.int64), whole_m[:, rows].view(np.int64))
+    core = hierarchy.chain_points(points, table, layout, rows)
+    assert np.max(np.abs(core - points[rows] - part[rows])) < 1e-12
 
 
 def test_fully_weighted_vertices_follow_their_control_exactly_and_use_the_prefix():
@@ -131,9 +156,10 @@ def test_fully_weighted_vertices_follow_their_control_exactly_and_use_the_prefix
     values = np.ones((len(PARENTS), 1)) * (1.0 + 3e-8)  # float32-stored weights are this close to 1
     layout = hierarchy.chain_layout(indices, values, PARENTS)
     assert layout.prefix.tolist() == list(range(len(PARENTS)))
-    assert layout.levels == ()
+    assert len(layout.indices) == 1  # the prefix alone
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    got = hierarchy.chain_points(points, params, matrices, layout)
+    full = aff3.params_from_matrices(matrices)
+    got = hierarchy.chain_points(points, hierarchy.chain_table(params, full), layout)
     want = np.einsum("nij,nj->ni", matrices[:, :3, :3], points) + matrices[:, :3, 3]
     assert np.max(np.abs(got - want)) < 1e-12
 
@@ -146,14 +172,17 @@ def test_the_prefix_stops_where_weight_splits():
     values = np.array([[0.5, 0.5], [0.5, 0.5], [0.5, 0.5], [1.0, 0.5]])
     layout = hierarchy.chain_layout(indices, values, PARENTS)
     assert layout.prefix.tolist() == [1, 0, -1, -1]
-    by_depth = {level.depth: level for level in layout.levels}
-    assert sorted(by_depth) == [0, 1, 2, 3]
-    assert by_depth[0].rows.tolist() == [2, 3]
-    assert sorted(by_depth[0].indices[0].tolist()) == [0, 5]
-    assert by_depth[2].rows.tolist() == [0, 1]
-    pairs = zip(by_depth[2].indices[0].tolist(), by_depth[2].values[0].tolist(), strict=True)
-    assert sorted(pairs) == [(2, 0.5), (4, 0.5)]
-    assert by_depth[1].values[by_depth[1].rows.tolist().index(1)].max() == 0.5
+    m = len(PARENTS)
+
+    def row(r: int, v: int) -> dict[int, float]:
+        idx, val = layout.indices[r], layout.values[r]
+        return {int(i): float(w) for i, w in zip(idx[v], val[v], strict=True) if w != 0.0}
+
+    assert len(layout.indices) == 4  # vertex 1 has three factors, then the prefix pass
+    assert [row(0, v) for v in range(4)] == [{2: 0.5, 4: 0.5}, {3: 0.5}, {0: 0.5, 5: 0.5}, {0: 1.0, 5: 0.5}]
+    assert [row(1, v) for v in range(4)] == [{}, {2: 0.5}, {}, {}]
+    assert [row(2, v) for v in range(4)] == [{}, {1: 0.5}, {}, {}]
+    assert [row(3, v) for v in range(4)] == [{m + 1: 1.0}, {m + 0: 1.0}, {}, {}]
     # readers: control 1 is read by vertex 0 (its prefix) and vertex 1 (its level 1)
     assert layout.affected_rows([1]).tolist() == [0, 1]
     assert layout.affected_rows([5, 4]).tolist() == [0, 2, 3]
@@ -163,12 +192,13 @@ def test_affected_rows_hold_every_vertex_a_control_moves():
     points, _, matrices, indices, values = _case(8, n=300)
     layout = hierarchy.chain_layout(indices, values, PARENTS)
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    before = hierarchy.chain_points(points, params, matrices, layout)
+    full = aff3.params_from_matrices(matrices)
+    before = hierarchy.chain_points(points, hierarchy.chain_table(params, full), layout)
     for c in range(len(PARENTS)):
-        changed_params, changed_matrices = params.copy(), matrices.copy()
+        changed_params, changed_full = params.copy(), full.copy()
         changed_params[c, 0] += 0.1
-        changed_matrices[c, 0, 3] += 0.1
-        after = hierarchy.chain_points(points, changed_params, changed_matrices, layout)
+        changed_full[c, 4] += 0.1
+        after = hierarchy.chain_points(points, hierarchy.chain_table(changed_params, changed_full), layout)
         moved = np.flatnonzero(np.any(after != before, axis=1))
         assert set(moved) <= set(layout.affected_rows([c]).tolist())
         assert len(moved) > 0
@@ -183,7 +213,9 @@ def test_weights_moving_across_bones_give_a_continuous_field():
     indices = np.tile(np.array([1, 2, 3], dtype=np.int32), (len(t), 1))
     layout = hierarchy.chain_layout(indices, values, PARENTS)
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    x = hierarchy.chain_points(np.tile([[0.3, -0.2, 0.7]], (len(t), 1)), params, matrices, layout)
+    full = aff3.params_from_matrices(matrices)
+    points = np.tile([[0.3, -0.2, 0.7]], (len(t), 1))
+    x = hierarchy.chain_points(points, hierarchy.chain_table(params, full), layout)
     steps = np.linalg.norm(np.diff(x, axis=0), axis=1)
     assert steps.max() < 5 * np.median(steps) + 1e-9
 
@@ -205,7 +237,8 @@ def test_a_child_twisted_past_half_a_turn_under_a_turned_parent_stays_on_its_axi
     assert np.isclose(np.linalg.norm(params[1, :3]), np.radians(270.0))
     ring = np.array([[1.0, 0.2 * np.cos(a), 0.2 * np.sin(a)] for a in np.linspace(0, 2 * np.pi, 12)])
     layout = hierarchy.chain_layout(np.array([[0, 1]] * len(ring)), np.full((len(ring), 2), 0.5), parents)
-    got = hierarchy.chain_points(ring, params, matrices, layout)
+    table = hierarchy.chain_table(params, aff3.params_from_matrices(matrices))
+    got = hierarchy.chain_points(ring, table, layout)
     back = (got - parent[:3, 3]) @ parent[:3, :3]  # undo the parent's turn: the child's local frame
     assert np.allclose(back[:, 0], 1.0, atol=1e-12)  # on the joint's plane
     assert np.allclose(np.hypot(back[:, 1], back[:, 2]), 0.2, atol=1e-12)  # at the ring's radius
