@@ -605,7 +605,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache", "NullCache"]
+    assert res.stdout.split() == ["NullCache"] * 4  # one per entry
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
