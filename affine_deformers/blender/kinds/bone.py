@@ -111,6 +111,23 @@ def _bits(values: tuple[float, ...]) -> bytes:
     return struct.pack(f"{len(values)}d", *values)
 
 
+#: rot(P · R) per (P, R) bits: a bone's rest frame in the target's space changes only with the
+#: objects' transforms, not with the pose. Bounded like `_rows`.
+_rest_frames: dict[bytes, np.ndarray] = {}
+
+
+def _rest_frame(rested: np.ndarray) -> np.ndarray:
+    """rot(P · R) (3, 3), the polar rotation of a bone's rest matrix in the target's space."""
+    key = rested.tobytes()
+    frame = _rest_frames.get(key)
+    if frame is None:
+        frame = frame_rotation(rested[:3, :3], "XYZ", (0.0, 0.0, 0.0), (1.0,) * 6)
+        if len(_rest_frames) >= ROW_MEMO_SIZE:
+            _rest_frames.clear()
+        _rest_frames[key] = frame
+    return frame
+
+
 def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndarray, rest: np.ndarray,
               mode: str, channels: tuple[float, ...]) -> _BoneRow:
     """The `_BoneRow` of one pose bone: `frame_matrix` P and its inverse, its pose matrix B and rest
@@ -129,7 +146,7 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
         return _BoneRow(identity, False, False, np.zeros(3), head,
                         "Bone '{bone}' has a zero-length rest: fix it in Edit Mode")
     width = 4 if mode in ("QUATERNION", "AXIS_ANGLE") else 3
-    rest_frame = frame_rotation(rested[:3, :3], "XYZ", (0.0, 0.0, 0.0), (1.0,) * 6)
+    rest_frame = _rest_frame(rested)
     try:
         turn = rest_frame @ unwrap.channel_rotvec(mode, np.array(identity_channels(mode)[:width]),
                                                   np.array(rotation[:width], dtype=np.float64))
@@ -307,6 +324,7 @@ class BoneKind:
     def forget(self, key: tuple[int, str] | None = None) -> None:
         """Drop the per-bone memo (keyed on its inputs: shared by all deformers, `key` is ignored)."""
         _rows.clear()
+        _rest_frames.clear()
 
 
 def _frame_matrix(obj: bpy.types.Object, armature: bpy.types.Object,
