@@ -461,6 +461,7 @@ def test_random_pose_changes_match_a_full_recompute_bit_for_bit(bl, installed, p
     for pose_bone in bones:
         pose_bone.rotation_mode = "XYZ"
     rng = np.random.default_rng(11)
+    bpy.context.view_layer.update()
     moved, previous = 0, read()
     for step in range(16):
         for pose_bone in rng.choice(list(bones), size=rng.integers(1, 3), replace=False):
