@@ -727,15 +727,60 @@ def motion_params(
 
 
 @_inline
+def _prefix_indices(prefix: np.ndarray, mats: np.ndarray, rows: np.ndarray, a: int, n: int, use_rows: bool,
+                    Q: np.ndarray) -> None:
+    """Q[j] = 12 × the prefix row of column j (the identity row, the last of `mats`, in the unused
+    columns), clamped to the table."""
+    last = np.uint64(mats.shape[0] - 1)
+    for j in range(n):
+        r = rows[a + j] if use_rows else a + j
+        Q[j] = min(np.uint64(prefix[r]), last) * np.uint64(12)
+    Q[n:CHUNK] = last * np.uint64(12)
+
+
+@_inline
+def _prefix_at(Mf: np.ndarray, q: np.uint64) -> tuple[float, ...]:
+    """The 12 numbers (row-major M, then t) of the flat prefix table at offset q (unsigned offsets, as
+    in `_blend_params`)."""
+    one = np.uint64(1)
+    m00 = Mf[q]
+    q += one
+    m01 = Mf[q]
+    q += one
+    m02 = Mf[q]
+    q += one
+    m10 = Mf[q]
+    q += one
+    m11 = Mf[q]
+    q += one
+    m12 = Mf[q]
+    q += one
+    m20 = Mf[q]
+    q += one
+    m21 = Mf[q]
+    q += one
+    m22 = Mf[q]
+    q += one
+    t0 = Mf[q]
+    q += one
+    t1 = Mf[q]
+    q += one
+    t2 = Mf[q]
+    return m00, m01, m02, m10, m11, m12, m20, m21, m22, t0, t1, t2
+
+
+@_inline
 def _chain_chunk(
-    W: np.ndarray, points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray,
-    a: int, n: int, use_rows: bool, offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool,
+    W: np.ndarray, Q: np.ndarray, points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray,
+    prefix: np.ndarray, mats: np.ndarray, rows: np.ndarray, a: int, n: int, use_rows: bool, offsets: bool,
+    out: np.ndarray, out32: np.ndarray, use32: bool,
 ) -> None:
     """Rows a … a+n−1 of the work list: x = points[r], then for each pass p = 0 … P−1 in turn
-    x ← φ(Σ_k val[p, r, k] table[idx[p, r, k]]) x, stored as `_chunk` stores (minus the point when
-    offsets). W: _N_CHAIN_SCRATCH rows of _STRIDE (rows 18–20 keep the original point)."""
+    x ← φ(Σ_k val[p, r, k] table[idx[p, r, k]]) x, then x ← M x + t with (M, t) = mats[prefix[r]]
+    (row-major M, then t), stored as `_chunk` stores (minus the point when offsets). W:
+    _N_CHAIN_SCRATCH rows of _STRIDE (rows 18–20 keep the original point); Q: CHUNK uint64."""
     S = _STRIDE
-    T, Pf = table.reshape(-1), points.reshape(-1)
+    T, Pf, Mf = table.reshape(-1), points.reshape(-1), mats.reshape(-1)
     n_pass, K = idx.shape[0], idx.shape[2]
     stride = idx.shape[1] * K
     I, V = idx.reshape(-1), val.reshape(-1)
@@ -757,10 +802,17 @@ def _chain_chunk(
             _fixup(W, n)
         for t in range(3):  # the result is the next pass's point (all columns: see `_map`)
             W[(12 + t) * S : (12 + t) * S + CHUNK] = W[(15 + t) * S : (15 + t) * S + CHUNK]
+    _prefix_indices(prefix, mats, rows, a, n, use_rows, Q)
+    for j in range(CHUNK):  # constant trip count, as `_map`
+        m00, m01, m02, m10, m11, m12, m20, m21, m22, t0, t1, t2 = _prefix_at(Mf, Q[j])
+        x0, x1, x2 = W[12 * S + j], W[13 * S + j], W[14 * S + j]
+        W[15 * S + j] = m00 * x0 + m01 * x1 + m02 * x2 + t0
+        W[16 * S + j] = m10 * x0 + m11 * x1 + m12 * x2 + t1
+        W[17 * S + j] = m20 * x0 + m21 * x1 + m22 * x2 + t2
     for j in range(n):
         r = rows[a + j] if use_rows else a + j
         for t in range(3):
-            res = W[(12 + t) * S + j]
+            res = W[(15 + t) * S + j]
             res = res - W[(18 + t) * S + j] if offsets else res
             out[r, t] = res
             if use32:
@@ -791,23 +843,29 @@ def _compose_store(W: np.ndarray) -> None:
 
 @_inline
 def _chain_motion_chunk(
-    W: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, a: int, n: int,
-    use_rows: bool, out: np.ndarray, out32: np.ndarray, use32: bool,
+    W: np.ndarray, Q: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, prefix: np.ndarray,
+    mats: np.ndarray, rows: np.ndarray, a: int, n: int, use_rows: bool, out: np.ndarray, out32: np.ndarray,
+    use32: bool,
 ) -> None:
-    """Rows a … a+n−1 of the work list: the motion F_(P−1) ∘ ⋯ ∘ F_0 with F_p = φ(Σ_k val[p, r, k]
-    table[idx[p, r, k]]), stored as `_motion_chunk` stores. W: _N_CHAIN_MOTION_SCRATCH rows of
-    _STRIDE (rows 24–35 hold the product, built from the last pass down)."""
+    """Rows a … a+n−1 of the work list: the motion (M, t) ∘ F_(P−1) ∘ ⋯ ∘ F_0 with F_p = φ(Σ_k
+    val[p, r, k] table[idx[p, r, k]]) and (M, t) = mats[prefix[r]], stored as `_motion_chunk` stores.
+    W: _N_CHAIN_MOTION_SCRATCH rows of _STRIDE (rows 24–35 hold the product, built from the prefix
+    down); Q: CHUNK uint64."""
     S = _STRIDE
-    T = table.reshape(-1)
+    T, Mf = table.reshape(-1), mats.reshape(-1)
     n_pass, K = idx.shape[0], idx.shape[2]
     stride = idx.shape[1] * K
     I, V = idx.reshape(-1), val.reshape(-1)
     last = np.uint64(table.shape[0] - 1)
-    W[24 * S : 36 * S] = 0.0
-    for c in range(3):  # the identity
-        W[(24 + 4 * c) * S : (24 + 4 * c) * S + CHUNK] = 1.0
-    for q in range(n_pass):
-        p = n_pass - 1 - q
+    _prefix_indices(prefix, mats, rows, a, n, use_rows, Q)
+    for j in range(CHUNK):  # the prefix's columns M e_x, M e_y, M e_z, then t
+        m00, m01, m02, m10, m11, m12, m20, m21, m22, t0, t1, t2 = _prefix_at(Mf, Q[j])
+        W[24 * S + j], W[25 * S + j], W[26 * S + j] = m00, m10, m20
+        W[27 * S + j], W[28 * S + j], W[29 * S + j] = m01, m11, m21
+        W[30 * S + j], W[31 * S + j], W[32 * S + j] = m02, m12, m22
+        W[33 * S + j], W[34 * S + j], W[35 * S + j] = t0, t1, t2
+    for step in range(n_pass):
+        p = n_pass - 1 - step
         Ip, Vp = I[p * stride : (p + 1) * stride], V[p * stride : (p + 1) * stride]
         for j in range(n):
             _blend_params(T, Ip, Vp, K, last, W, j, rows[a + j] if use_rows else a + j)
@@ -829,41 +887,46 @@ def _chain_motion_chunk(
 
 @_entry
 def chain_points_entry(
-    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool,
-    offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool, counter: np.ndarray,
+    points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, prefix: np.ndarray,
+    mats: np.ndarray, rows: np.ndarray, use_rows: bool, offsets: bool, out: np.ndarray, out32: np.ndarray,
+    use32: bool, counter: np.ndarray,
 ) -> None:
-    """`deform_points_entry` for a product of P blends per vertex (core.hierarchy.chain_points):
+    """`deform_points_entry` for a product of P blends per vertex and a matrix (core.hierarchy):
     idx (P, N, K) int32 and val (P, N, K) f64 hold pass p's weights of every vertex (a zero row is
-    φ(0) = identity); pass 0 acts first. Other arguments, threads and rows as `deform_points_entry`,
-    but out must not share memory with points."""
+    φ(0) = identity; pass 0 acts first), then prefix (N,) int32 picks each vertex's final matrix in
+    mats (m' ≥ 1, 12) f64 (row-major M, then t). Other arguments, threads and rows as
+    `deform_points_entry`, but out must not share memory with points."""
     n = rows.shape[0] if use_rows else points.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     W = np.empty(_N_CHAIN_SCRATCH * _STRIDE)
+    Q = np.empty(CHUNK, dtype=np.uint64)
     while True:
         c = _claim(counter)
         if c >= n_chunks:
             break
         a = c * CHUNK
-        _chain_chunk(W, points, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, offsets, out, out32,
-                     use32)
+        _chain_chunk(W, Q, points, table, idx, val, prefix, mats, rows, a, min(CHUNK, n - a), use_rows,
+                     offsets, out, out32, use32)
 
 
 @_entry
 def chain_motion_entry(
-    table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool, out: np.ndarray,
-    out32: np.ndarray, use32: bool, counter: np.ndarray,
+    table: np.ndarray, idx: np.ndarray, val: np.ndarray, prefix: np.ndarray, mats: np.ndarray,
+    rows: np.ndarray, use_rows: bool, out: np.ndarray, out32: np.ndarray, use32: bool, counter: np.ndarray,
 ) -> None:
-    """`motion_params` for a product of P blends per vertex: the motion F_(P−1) ∘ ⋯ ∘ F_0 (idx, val as
-    `chain_points_entry`); other arguments as `motion_params`."""
-    n = rows.shape[0] if use_rows else idx.shape[1]
+    """`motion_params` for the product of `chain_points_entry`: the motion (M, t) ∘ F_(P−1) ∘ ⋯ ∘ F_0
+    (idx, val, prefix, mats as there); other arguments as `motion_params`."""
+    n = rows.shape[0] if use_rows else prefix.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     W = np.empty(_N_CHAIN_MOTION_SCRATCH * _STRIDE)
+    Q = np.empty(CHUNK, dtype=np.uint64)
     while True:
         c = _claim(counter)
         if c >= n_chunks:
             break
         a = c * CHUNK
-        _chain_motion_chunk(W, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)
+        _chain_motion_chunk(W, Q, table, idx, val, prefix, mats, rows, a, min(CHUNK, n - a), use_rows, out,
+                            out32, use32)
 
 
 @_entry

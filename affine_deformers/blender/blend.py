@@ -193,37 +193,41 @@ def _motions_affine(deformer, motions: Motions, bound: BoundData,
 
 def _chain_inputs(deformer, motions: Motions, bound: BoundData, state: tuple
                   ) -> tuple[np.ndarray, np.ndarray, hierarchy.ChainLayout, tuple, np.ndarray | None]:
-    """(ψ(L_i), ψ(A_i), the weights' layout down the hierarchy, the result state, the rows to
-    recompute or None for all): as `_changed_rows`, a vertex is recomputed when a control it reads
-    changed bitwise — in its local parameters (a factor) or in those of its full motion (a prefix)."""
+    """(ψ(L_i), the prefix matrices (core.hierarchy.prefix_table), the weights' layout down the
+    hierarchy, the result state, the rows to recompute or None for all): as `_changed_rows`, a vertex
+    is recomputed when a control it reads changed bitwise — in its local parameters (a factor) or in
+    its full motion (a prefix)."""
     chain = motions.chain
     params = parameters.chain_params(motions, deformer.branch_rule)
-    whole = parameters.motions_to_params(motions, "SHORTEST")
+    prefixes = hierarchy.prefix_table(motions.matrices)
     layout = bound.chain_layout(chain.parents, deformer.strength)
     state = (state, chain.parents.tobytes())
     previous = bound.motions if bound.offsets is None else bound.offsets
-    if (previous is None or bound.state != state or bound.params is None or bound.whole_params is None
+    if (previous is None or bound.state != state or bound.params is None or bound.prefixes is None
             or bound.params.shape != params.shape):
-        return params, whole, layout, state, None
+        return params, prefixes, layout, state, None
     changed = ((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1)
-               | (whole.view(np.int64) != bound.whole_params.view(np.int64)).any(axis=1))
+               | (prefixes[:-1].view(np.int64) != bound.prefixes[:-1].view(np.int64)).any(axis=1))
     rows = layout.affected_rows(np.flatnonzero(changed))
     few = len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points)
-    return params, whole, layout, state, rows if few else None
+    return params, prefixes, layout, state, rows if few else None
 
 
-def _chain_key(bound: BoundData, layout: hierarchy.ChainLayout) -> tuple:
-    """Names the bound points and the layout's passes for the kernel's argument checks: a layout is
-    a pure function of the bound weights (`bound.serial`) and its cache key (parents, strength)."""
-    return ("chain", bound.serial, bound.layout[0] if bound.layout is not None else None)
+def _chain_args(bound: BoundData, params: np.ndarray, prefixes: np.ndarray,
+                layout: hierarchy.ChainLayout) -> tuple[tuple, dict]:
+    """The arguments of accel.chain_points / chain_motions, with a key naming the bound points and
+    the layout's passes for the kernel's argument checks: a layout is a pure function of the bound
+    weights (`bound.serial`) and its cache key (parents, strength)."""
+    key = ("chain", bound.serial, bound.layout[0] if bound.layout is not None else None)
+    return (params, layout.indices, layout.values, layout.prefix, prefixes), {"key": key}
 
 
 def _offsets_chain(deformer, motions: Motions, bound: BoundData,
                    state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
     """`blend_offsets` down a hierarchy (accel.chain_points), recomputing only the vertices that read
     a changed control (rows are independent: bit-identical to a full recompute)."""
-    params, whole, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
-    table = hierarchy.chain_table(params, whole)
+    params, prefixes, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    args, key = _chain_args(bound, params, prefixes, layout)
     points = bound.points
     if rows is not None and bound.offsets is not None:
         offsets = bound.offsets
@@ -231,31 +235,27 @@ def _offsets_chain(deformer, motions: Motions, bound: BoundData,
             # The kernel rounds the rows it computes into the attribute's copy too, as in _offsets_affine.
             written = bound.written
             out32 = written if written is not None and written.shape == offsets.shape else None
-            accel.chain_points(points, table, layout.indices, layout.values, rows, offsets, offsets=True,
-                               out32=out32, key=_chain_key(bound, layout))
-        bound.params, bound.whole_params = params, whole
+            accel.chain_points(points, *args, rows, offsets, offsets=True, out32=out32, **key)
+        bound.params, bound.prefixes = params, prefixes
         return offsets, rows
     bound.forget_result()
-    offsets = accel.chain_points(points, table, layout.indices, layout.values, offsets=True,
-                                 key=_chain_key(bound, layout))
-    bound.state, bound.params, bound.whole_params, bound.offsets = state, params, whole, offsets
+    offsets = accel.chain_points(points, *args, offsets=True, **key)
+    bound.state, bound.params, bound.prefixes, bound.offsets = state, params, prefixes, offsets
     return offsets, None
 
 
 def _motions_chain(deformer, motions: Motions, bound: BoundData,
                    state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
     """`blend_motions` down a hierarchy (accel.chain_motions), incremental as `_offsets_chain`."""
-    params, whole, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
-    table = hierarchy.chain_table(params, whole)
+    params, prefixes, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    args, key = _chain_args(bound, params, prefixes, layout)
     if rows is not None and bound.motions is not None:
         result = bound.motions
         if len(rows):
-            accel.chain_motions(table, layout.indices, layout.values, result, rows=rows,
-                                key=_chain_key(bound, layout))
-        bound.params, bound.whole_params = params, whole
+            accel.chain_motions(*args, result, rows=rows, **key)
+        bound.params, bound.prefixes = params, prefixes
         return result, rows
     bound.forget_result()
-    out = np.empty((4, len(bound.points), 3), dtype=np.float32)
-    result = accel.chain_motions(table, layout.indices, layout.values, out, key=_chain_key(bound, layout))
-    bound.state, bound.params, bound.whole_params, bound.motions = state, params, whole, result
+    result = accel.chain_motions(*args, np.empty((4, len(bound.points), 3), dtype=np.float32), **key)
+    bound.state, bound.params, bound.prefixes, bound.motions = state, params, prefixes, result
     return result, None

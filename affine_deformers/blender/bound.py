@@ -50,7 +50,7 @@ class BoundData:
     written: np.ndarray | None = None  # (N, 3) float32 the offset attribute holds (None = unknown)
     motions: np.ndarray | None = None  # (4, N, 3) float32 last motions (motion path)
     motions_written: np.ndarray | None = None  # (4, N, 3) float32 the motion attributes hold (None = unknown)
-    whole_params: np.ndarray | None = None  # (m, 12) ψ(A_i) of the last result (bones' hierarchy)
+    prefixes: np.ndarray | None = None  # (m + 1, 12) the bones' prefix matrices of the last result
     layout: tuple[tuple, hierarchy.ChainLayout] | None = None  # ((parents, strength), layout)
 
     def scaled_values(self, strength: float) -> np.ndarray:
@@ -86,7 +86,7 @@ class BoundData:
         return self.layout[1]
 
     def forget_result(self) -> None:
-        self.state = self.params = self.offsets = self.motions = self.whole_params = None
+        self.state = self.params = self.offsets = self.motions = self.prefixes = None
 
 
 def forget(key: tuple[int, str] | None = None) -> None:

@@ -18,9 +18,9 @@ field has no seam where a vertex's set of bones changes; a vertex fully weighted
 exactly its motion (all W on its chain are 1, the rest 0: L_root ⋯ L_i = A_i).
 
 Evaluation: the leading factors whose single W is 1 multiply to the full motion of the deepest of
-them (the vertex's `prefix`), so a vertex computes A_prefix and only the factors below it — one
-kernel pass per depth level present, over the vertices that have that level. Rows are independent,
-so a subset of vertices computes bit for bit what the whole set gives them.
+them (the vertex's `prefix`), so a vertex applies the matrix A_prefix after the factors below it
+only — a blend pass per factor. Rows are independent, so a subset of vertices computes bit for bit
+what the whole set gives them.
 """
 
 from __future__ import annotations
@@ -82,13 +82,13 @@ def local_motions(matrices: ArrayLike, parents: ArrayLike) -> FloatArray:
 
 @dataclass(frozen=True)
 class ChainLayout:
-    """Every vertex's product A_prefix F_(prefix depth + 1) ⋯ F_D in evaluation form, as P kernel
-    passes over the table [ψ(L_0 … L_m−1); ψ(A_0 … A_m−1)] (`chain_table`, 2m rows):
+    """Every vertex's product A_prefix F_(prefix depth + 1) ⋯ F_D in evaluation form: P blend passes
+    over the local parameters ψ(L_i), then the prefix matrix.
 
     indices (P, N, k) int32 and values (P, N, k): pass 0 holds every vertex's deepest factor, pass 1
-    the one above it, …, and the last pass its prefix (index m + prefix, value 1); a vertex with fewer
-    factors has zero weights there (φ(0) v = v). `prefix` (N,): the control whose full motion a vertex
-    starts from (−1: none); per control the vertices that read it (`ptr`, `readers`: CSR, sorted) for
+    the one above it, …; a vertex with fewer factors has zero weights there (φ(0) v = v). `prefix`
+    (N,) int32: the control whose full motion a vertex ends with, m for none (the identity row of
+    `prefix_table`); per control the vertices that read it (`ptr`, `readers`: CSR, sorted) for
     incremental updates.
     """
 
@@ -171,7 +171,7 @@ def chain_layout(indices: ArrayLike, values: ArrayLike, parents: ArrayLike,
     leading, new_level = _leading(vertex, d, W, full_tol)
     last = leading.copy()
     last[:-1] &= ~(leading[1:] & (vertex[1:] == vertex[:-1]))
-    prefix = np.full(n, -1, dtype=np.int32)
+    prefix = np.full(n, m, dtype=np.int32)
     prefix[vertex[last]] = control[last]
     below = ~leading
     vb, cb, wb = vertex[below], control[below], W[below]
@@ -183,17 +183,13 @@ def chain_layout(indices: ArrayLike, values: ArrayLike, parents: ArrayLike,
     first_group = np.concatenate([[0], np.cumsum(groups_per_vertex)[:-1]])
     from_top = rank - first_group[vb]
     pass_of = groups_per_vertex[vb] - 1 - from_top
-    has = prefix >= 0
-    n_factors = int(groups_per_vertex.max(initial=0))
-    n_pass = n_factors + bool(has.any())
+    has = prefix < m
+    n_pass = int(groups_per_vertex.max(initial=0))
     width = int(slot.max(initial=0)) + 1
     idx = np.zeros((n_pass, n, width), dtype=np.int32)
     val = np.zeros((n_pass, n, width))
     idx[pass_of, vb, slot] = cb
     val[pass_of, vb, slot] = wb
-    if n_pass > n_factors:
-        idx[-1, :, 0] = np.where(has, m + prefix, 0)
-        val[-1, :, 0] = has
     pair_v = np.concatenate([np.flatnonzero(has), vb])
     pair_c = np.concatenate([prefix[has].astype(np.intp), cb])
     order = np.lexsort((pair_v, pair_c))
@@ -202,29 +198,45 @@ def chain_layout(indices: ArrayLike, values: ArrayLike, parents: ArrayLike,
     return ChainLayout(prefix, idx, val, ptr, pair_v[order].astype(np.intp))
 
 
-def chain_table(local_params: ArrayLike, motion_params: ArrayLike) -> FloatArray:
-    """The passes' table [ψ(L_i); ψ(A_i)] (2m, 12) from local_params ψ(L_i) (m, 12) and motion_params
-    ψ(A_i) (m, 12) (a prefix is φ(ψ(A)) = A to rounding)."""
-    return np.ascontiguousarray(np.concatenate([np.asarray(local_params, dtype=np.float64),
-                                                np.asarray(motion_params, dtype=np.float64)]))
+def prefix_table(matrices: ArrayLike) -> FloatArray:
+    """The prefix matrices (m + 1, 12) of motions A (m, 4, 4): each row M (row-major, 9) then t (3),
+    x ↦ M x + t; the last row is the identity (vertices without a prefix)."""
+    A = np.asarray(matrices, dtype=np.float64)
+    out = np.zeros((len(A) + 1, 12))
+    out[:-1, :9] = A[:, :3, :3].reshape(-1, 9)
+    out[:-1, 9:] = A[:, :3, 3]
+    out[-1, [0, 4, 8]] = 1.0
+    return out
 
 
-def chain_points(points: ArrayLike, table: ArrayLike, layout: ChainLayout, rows: ArrayLike | None = None,
-                 kernel: PointKernel | None = None) -> FloatArray:
+def _apply_prefix(table: FloatArray, prefix: NDArray[np.int32], x: FloatArray) -> FloatArray:
+    """M x + t per row with (M, t) = table[prefix] (`prefix_table` rows), elementwise."""
+    T = table[prefix]
+    out = np.empty_like(x)
+    for i in range(3):
+        row = 3 * i
+        out[:, i] = T[:, row] * x[:, 0] + T[:, row + 1] * x[:, 1] + T[:, row + 2] * x[:, 2] + T[:, 9 + i]
+    return out
+
+
+def chain_points(points: ArrayLike, params: ArrayLike, prefixes: ArrayLike, layout: ChainLayout,
+                 rows: ArrayLike | None = None, kernel: PointKernel | None = None) -> FloatArray:
     """v' = A_prefix F_(prefix depth + 1) ⋯ F_D v for the vertices `rows` (sorted; None: all) of
-    `points` (N, 3), `table` from `chain_table`. Returns (len(rows), 3) float64. `kernel(points,
-    params, indices, values)` is the blend map v ↦ φ(Σ w P) v (default: the numpy one)."""
+    `points` (N, 3): params (m, 12) ψ(L_i), prefixes (m + 1, 12) from `prefix_table`. Returns
+    (len(rows), 3) float64. `kernel(points, params, indices, values)` is the blend map
+    v ↦ φ(Σ w P) v (default: the numpy one)."""
     if kernel is None:
         from .deform import deform_points_params as kernel
     points = np.asarray(points, dtype=np.float64)
     sel = None if rows is None else np.asarray(rows, dtype=np.intp)
     x = points.copy() if sel is None else points[sel]
-    table = np.ascontiguousarray(table, dtype=np.float64)
+    table = np.ascontiguousarray(params, dtype=np.float64)
     for idx, val in zip(layout.indices, layout.values, strict=True):  # the deepest factor first
         if sel is not None:
             idx, val = idx[sel], val[sel]
         x = kernel(x, table, idx, val)
-    return x
+    prefix = layout.prefix if sel is None else layout.prefix[sel]
+    return _apply_prefix(np.asarray(prefixes, dtype=np.float64), prefix, x)
 
 
 def _compose(G: np.ndarray, H: np.ndarray) -> FloatArray:
@@ -247,7 +259,7 @@ def identity_motions(n: int) -> FloatArray:
     return out
 
 
-def chain_motions(table: ArrayLike, layout: ChainLayout, rows: ArrayLike | None = None,
+def chain_motions(params: ArrayLike, prefixes: ArrayLike, layout: ChainLayout, rows: ArrayLike | None = None,
                   kernel: MotionKernel | None = None) -> FloatArray:
     """The motions x ↦ A_prefix F_(prefix depth + 1) ⋯ F_D x of the vertices `rows` (sorted; None:
     all) in column form (4, len(rows), 3) float64 (arguments as `chain_points`). `kernel(params,
@@ -255,9 +267,10 @@ def chain_motions(table: ArrayLike, layout: ChainLayout, rows: ArrayLike | None 
     if kernel is None:
         from .deform import vertex_motions as kernel
     sel = None if rows is None else np.asarray(rows, dtype=np.intp)
-    table = np.ascontiguousarray(table, dtype=np.float64)
-    out = identity_motions(len(layout.prefix) if sel is None else len(sel))
-    for idx, val in zip(layout.indices[::-1], layout.values[::-1], strict=True):  # the prefix first
+    table = np.ascontiguousarray(params, dtype=np.float64)
+    T = np.asarray(prefixes, dtype=np.float64)[layout.prefix if sel is None else layout.prefix[sel]]
+    out = np.stack([T[:, [0, 3, 6]], T[:, [1, 4, 7]], T[:, [2, 5, 8]], T[:, 9:]])  # A_prefix's columns
+    for idx, val in zip(layout.indices[::-1], layout.values[::-1], strict=True):  # outermost first
         if sel is not None:
             idx, val = idx[sel], val[sel]
         out = _compose(out, np.asarray(kernel(table, idx, val), dtype=np.float64))

@@ -936,10 +936,12 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     accel.deform_points_params_rows(pts, params, idx.astype(np.int64), val, np.array([2], np.int32), out)
     accel.vertex_motions(params, idx, val, np.zeros((4, 300, 3), np.float32), rows=[5])
     accel.vertex_motions(params, idx, val, rows=np.arange(9))
-    chain = (idx[None], val[None])
+    prefixes = np.eye(4)[:3].T.reshape(1, 12).repeat(2, axis=0)
+    chain = (idx[None], val[None], np.zeros(300, np.int32), prefixes)
     accel.chain_points(pts, params, *chain)
     accel.chain_points(pts, params, *chain, [3, 1], out, offsets=True, out32=np.zeros((300, 3), np.float32))
-    accel.chain_points(pts, params, chain[0].astype(np.int64), val[None], np.array([2], np.int32), out)
+    accel.chain_points(pts, params, chain[0].astype(np.int64), val[None], np.ones(300, np.int64), prefixes,
+                       np.array([2], np.int32), out)
     accel.chain_motions(params, *chain, np.zeros((4, 300, 3), np.float32), rows=[5])
     accel.chain_motions(params, *chain, rows=np.arange(9))
     for name in (*kernel.ENTRIES, "spin_wait"):
@@ -1002,7 +1004,9 @@ from affine_deformers.accel import compiled
 
 case = np.load(sys.argv[1])
 pts, params, idx, val, rows, lifted = (case[k] for k in ("pts", "params", "idx", "val", "rows", "lifted"))
-chain = (np.stack([idx, np.roll(idx, 1, axis=0)]), np.stack([val, np.roll(val, 1, axis=0)]))
+prefixes = np.concatenate([params[:5, :9] * 0.1 + np.eye(3).ravel(), params[:5, 3:6]], axis=1)
+prefix = (np.arange(len(pts)) % 5).astype(np.int32)
+chain = (np.stack([idx, np.roll(idx, 1, axis=0)]), np.stack([val, np.roll(val, 1, axis=0)]), prefix, prefixes)
 res = {}
 for step in sys.argv[3].split(","):
     if step == "points-full":

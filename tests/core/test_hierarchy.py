@@ -91,15 +91,14 @@ def test_points_match_the_direct_product(seed, normalise):
     points, locals_, matrices, indices, values = _case(seed, normalise=normalise)
     layout = hierarchy.chain_layout(indices, values, PARENTS)
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    full = aff3.params_from_matrices(matrices)
-    got = hierarchy.chain_points(points, hierarchy.chain_table(params, full), layout)
+    got = hierarchy.chain_points(points, params, hierarchy.prefix_table(matrices), layout)
     want = _reference(points, locals_, indices, values, PARENTS)
     assert np.max(np.abs(got - want)) < 1e-10
 
 
-def _table(matrices: np.ndarray) -> np.ndarray:
-    return hierarchy.chain_table(aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS)),
-                                 aff3.params_from_matrices(matrices))
+def _table(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return (aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS)),
+            hierarchy.prefix_table(matrices))
 
 
 def _apply(columns: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -111,18 +110,18 @@ def _apply(columns: np.ndarray, points: np.ndarray) -> np.ndarray:
 def test_motions_match_points_and_the_compiled_passes_agree(seed):
     points, _, matrices, indices, values = _case(seed)
     layout = hierarchy.chain_layout(indices, values, PARENTS)
-    table = _table(matrices)
-    moved = hierarchy.chain_points(points, table, layout)
-    columns = hierarchy.chain_motions(table, layout)
+    params, prefixes = _table(matrices)
+    moved = hierarchy.chain_points(points, params, prefixes, layout)
+    columns = hierarchy.chain_motions(params, prefixes, layout)
+    passes = (params, layout.indices, layout.values, layout.prefix, prefixes)
     assert np.max(np.abs(_apply(columns, points) - moved)) < 1e-12
-    compiled = accel.chain_points(points, table, layout.indices, layout.values)
+    compiled = accel.chain_points(points, *passes)
     assert np.max(np.abs(compiled - moved)) < 1e-12
-    offsets = accel.chain_points(points, table, layout.indices, layout.values, offsets=True)
+    offsets = accel.chain_points(points, *passes, offsets=True)
     assert np.array_equal(offsets, compiled - points)
-    compiled_m = accel.chain_motions(table, layout.indices, layout.values)
+    compiled_m = accel.chain_motions(*passes)
     assert np.max(np.abs(compiled_m - columns)) < 1e-12
-    compiled_32 = accel.chain_motions(table, layout.indices, layout.values,
-                                      np.empty((4, len(points), 3), np.float32))
+    compiled_32 = accel.chain_motions(*passes, np.empty((4, len(points), 3), np.float32))
     assert np.array_equal(compiled_32, compiled_m.astype(np.float32))
 
 
@@ -132,8 +131,8 @@ def test_a_subset_of_rows_gives_the_same_bits(compiled, monkeypatch):
         monkeypatch.setenv(accel.ACCEL_ENV, "0")
     points, _, matrices, indices, values = _case(6, n=5000)
     layout = hierarchy.chain_layout(indices, values, PARENTS)
-    table = _table(matrices)
-    args = (table, layout.indices, layout.values)
+    params, prefixes = _table(matrices)
+    args = (params, layout.indices, layout.values, layout.prefix, prefixes)
     whole = accel.chain_points(points, *args, offsets=True)
     whole32 = whole.astype(np.float32)
     whole_m = accel.chain_motions(*args)
@@ -146,7 +145,7 @@ def test_a_subset_of_rows_gives_the_same_bits(compiled, monkeypatch):
     assert np.isnan(np.delete(part, rows, axis=0)).all()  # the others untouched
     assert np.array_equal(part32[rows], whole32[rows])
     assert np.array_equal(part_m[:, rows].view(np.int64), whole_m[:, rows].view(np.int64))
-    core = hierarchy.chain_points(points, table, layout, rows)
+    core = hierarchy.chain_points(points, params, prefixes, layout, rows)
     assert np.max(np.abs(core - points[rows] - part[rows])) < 1e-12
 
 
@@ -156,10 +155,9 @@ def test_fully_weighted_vertices_follow_their_control_exactly_and_use_the_prefix
     values = np.ones((len(PARENTS), 1)) * (1.0 + 3e-8)  # float32-stored weights are this close to 1
     layout = hierarchy.chain_layout(indices, values, PARENTS)
     assert layout.prefix.tolist() == list(range(len(PARENTS)))
-    assert len(layout.indices) == 1  # the prefix alone
+    assert len(layout.indices) == 0  # the prefix alone: no blend pass
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    full = aff3.params_from_matrices(matrices)
-    got = hierarchy.chain_points(points, hierarchy.chain_table(params, full), layout)
+    got = hierarchy.chain_points(points, params, hierarchy.prefix_table(matrices), layout)
     want = np.einsum("nij,nj->ni", matrices[:, :3, :3], points) + matrices[:, :3, 3]
     assert np.max(np.abs(got - want)) < 1e-12
 
@@ -171,18 +169,17 @@ def test_the_prefix_stops_where_weight_splits():
     indices = np.array([[2, 4], [0, 3], [0, 5], [0, 5]], dtype=np.int32)
     values = np.array([[0.5, 0.5], [0.5, 0.5], [0.5, 0.5], [1.0, 0.5]])
     layout = hierarchy.chain_layout(indices, values, PARENTS)
-    assert layout.prefix.tolist() == [1, 0, -1, -1]
     m = len(PARENTS)
+    assert layout.prefix.tolist() == [1, 0, m, m]  # m: none (the identity row)
 
     def row(r: int, v: int) -> dict[int, float]:
         idx, val = layout.indices[r], layout.values[r]
         return {int(i): float(w) for i, w in zip(idx[v], val[v], strict=True) if w != 0.0}
 
-    assert len(layout.indices) == 4  # vertex 1 has three factors, then the prefix pass
+    assert len(layout.indices) == 3  # vertex 1 has three factors
     assert [row(0, v) for v in range(4)] == [{2: 0.5, 4: 0.5}, {3: 0.5}, {0: 0.5, 5: 0.5}, {0: 1.0, 5: 0.5}]
     assert [row(1, v) for v in range(4)] == [{}, {2: 0.5}, {}, {}]
     assert [row(2, v) for v in range(4)] == [{}, {1: 0.5}, {}, {}]
-    assert [row(3, v) for v in range(4)] == [{m + 1: 1.0}, {m + 0: 1.0}, {}, {}]
     # readers: control 1 is read by vertex 0 (its prefix) and vertex 1 (its level 1)
     assert layout.affected_rows([1]).tolist() == [0, 1]
     assert layout.affected_rows([5, 4]).tolist() == [0, 2, 3]
@@ -192,13 +189,13 @@ def test_affected_rows_hold_every_vertex_a_control_moves():
     points, _, matrices, indices, values = _case(8, n=300)
     layout = hierarchy.chain_layout(indices, values, PARENTS)
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    full = aff3.params_from_matrices(matrices)
-    before = hierarchy.chain_points(points, hierarchy.chain_table(params, full), layout)
+    full = hierarchy.prefix_table(matrices)
+    before = hierarchy.chain_points(points, params, full, layout)
     for c in range(len(PARENTS)):
         changed_params, changed_full = params.copy(), full.copy()
         changed_params[c, 0] += 0.1
-        changed_full[c, 4] += 0.1
-        after = hierarchy.chain_points(points, hierarchy.chain_table(changed_params, changed_full), layout)
+        changed_full[c, 9] += 0.1
+        after = hierarchy.chain_points(points, changed_params, changed_full, layout)
         moved = np.flatnonzero(np.any(after != before, axis=1))
         assert set(moved) <= set(layout.affected_rows([c]).tolist())
         assert len(moved) > 0
@@ -213,9 +210,8 @@ def test_weights_moving_across_bones_give_a_continuous_field():
     indices = np.tile(np.array([1, 2, 3], dtype=np.int32), (len(t), 1))
     layout = hierarchy.chain_layout(indices, values, PARENTS)
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    full = aff3.params_from_matrices(matrices)
     points = np.tile([[0.3, -0.2, 0.7]], (len(t), 1))
-    x = hierarchy.chain_points(points, hierarchy.chain_table(params, full), layout)
+    x = hierarchy.chain_points(points, params, hierarchy.prefix_table(matrices), layout)
     steps = np.linalg.norm(np.diff(x, axis=0), axis=1)
     assert steps.max() < 5 * np.median(steps) + 1e-9
 
@@ -237,8 +233,7 @@ def test_a_child_twisted_past_half_a_turn_under_a_turned_parent_stays_on_its_axi
     assert np.isclose(np.linalg.norm(params[1, :3]), np.radians(270.0))
     ring = np.array([[1.0, 0.2 * np.cos(a), 0.2 * np.sin(a)] for a in np.linspace(0, 2 * np.pi, 12)])
     layout = hierarchy.chain_layout(np.array([[0, 1]] * len(ring)), np.full((len(ring), 2), 0.5), parents)
-    table = hierarchy.chain_table(params, aff3.params_from_matrices(matrices))
-    got = hierarchy.chain_points(ring, table, layout)
+    got = hierarchy.chain_points(ring, params, hierarchy.prefix_table(matrices), layout)
     back = (got - parent[:3, 3]) @ parent[:3, :3]  # undo the parent's turn: the child's local frame
     assert np.allclose(back[:, 0], 1.0, atol=1e-12)  # on the joint's plane
     assert np.allclose(np.hypot(back[:, 1], back[:, 2]), 0.2, atol=1e-12)  # at the ring's radius
