@@ -180,7 +180,12 @@ class _Helper:
     for it and re-raises its exception. Two locks used as binary semaphores, so the hand-over is one
     lock release each way (a thread pool's futures cost ~0.1 ms more per call here); after a job it
     spins for up to SPIN_MS on a job counter (`compiled.spin_wait`, GIL released) before it blocks.
-    Daemon: it only ever waits for a job or runs one the caller waits for."""
+    Daemon: it only ever waits for a job or runs one the caller waits for.
+
+    `defer` instead of `join`: for a job that provably has nothing left to do (every chunk of its
+    call was claimed by other threads, so when it runs it claims none and writes nothing), the wait
+    moves to the next `start` or `join` — by then the thread has long woken up — instead of keeping
+    the caller waiting for a sleeping thread to get a core back (0.05–4 ms) for no work."""
 
     def __init__(self, spin: tuple[Callable[[np.ndarray, int, int], bool], int] | None) -> None:
         self._go = threading.Lock()
@@ -191,6 +196,7 @@ class _Helper:
         self._job: tuple[Callable[..., None], tuple] | None = None
         self._error: BaseException | None = None
         self._spin = spin
+        self._deferred = False  # a handed-over job not joined yet (`defer`)
         threading.Thread(target=self._loop, name="affine_deformers accel", daemon=True).start()
 
     def _loop(self) -> None:
@@ -212,15 +218,22 @@ class _Helper:
                 self._done.release()
 
     def start(self, fn: Callable[..., None], args: tuple) -> None:
+        if self._deferred:
+            self.join()
         self._job = (fn, args)
         self._posted[0] += 1
         self._go.release()
 
     def join(self) -> None:
+        self._deferred = False
         self._done.acquire()
         error, self._error = self._error, None
         if error is not None:
             raise error
+
+    def defer(self) -> None:
+        """Leave the current job to finish on its own (see the class doc); joined later."""
+        self._deferred = True
 
 
 _helpers: list[_Helper] = []  # grown on demand; used under _state.lock only
@@ -252,8 +265,12 @@ def _run_chunks(
     and `_Helper` threads (the entries release the GIL; new helpers get `spin`). Each thread claims
     the next chunk until none is left, so a helper that starts late (thread wake-up, a busy core)
     takes fewer chunks instead of delaying the call. A row's value does not depend on the thread.
+    The compiled entries return how many chunks the calling thread did: when that is all of them, no
+    helper can write anything any more (a chunk is claimed once), so the call returns without waiting
+    for helpers still asleep (`_Helper.defer`); any other return value (None) waits for every helper.
     Call under _state.lock."""
     counter = np.zeros(1, dtype=np.int64)
+    own = None
     n_helpers = max(0, min(threads, n_chunks) - 1)
     while len(_helpers) < n_helpers:
         _helpers.append(_Helper(spin))
@@ -262,12 +279,17 @@ def _run_chunks(
         for helper in _helpers[:n_helpers]:
             helper.start(entry, (*args, counter))
             started.append(helper)
-        entry(*args, counter)
+        own = entry(*args, counter)
     finally:
         errors = []
-        for helper in started:  # they write into the caller's arrays: never return before they are done
+        # The helpers write into the caller's arrays: never return before those that can are done.
+        alone = isinstance(own, int) and own >= n_chunks  # `own` unbound only when raising
+        for helper in started:
             try:
-                helper.join()
+                if alone:
+                    helper.defer()
+                else:
+                    helper.join()
             except Exception as exc:
                 errors.append(exc)
     if errors:

@@ -59,7 +59,9 @@ the same bits however it was reached. The rules:
   session-compiled entries before.
 * Threads come from the caller (`affine_deformers.accel._run_chunks`): the entries release the GIL,
   and every thread running one call claims chunks from a shared counter (`_claim`, an atomic
-  increment), so a helper that starts late takes fewer chunks instead of delaying the call.
+  increment), so a helper that starts late takes fewer chunks instead of delaying the call; each
+  entry returns how many chunks its thread did, so a caller that did them all need not wait for a
+  helper that is still asleep (it will claim nothing).
 * Every function carries the same fastmath flags (only 'contract': FMA formation; no reassociation,
   so no sum is reordered), and the map always runs a full chunk, so no row is computed by a scalar
   remainder loop whose FMA contraction could differ from the vector body's (see `_map`).
@@ -670,7 +672,7 @@ def _entry(fn: Callable) -> Callable:
 def deform_points_entry(
     points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool,
     offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool, counter: np.ndarray,
-) -> None:
+) -> int:
     """The point map on the chunks (CHUNK rows each) of the work list it claims from `counter` (a
     (1,) int64 array, 0 at the start of a call; chunk c is claimed by the thread that increments it
     from c, so a lone call with a fresh counter does every chunk): every row v (use_rows
@@ -683,39 +685,47 @@ def deform_points_entry(
     f64, out32 (N, 3) f32 (an empty (0, 3) one without use32). Full call and rows, float32 copy or
     not, all go through this one specialisation (see the module doc). out may be points itself in a
     full call (a chunk reads its rows before it writes them). Threads: call it on each with the same
-    counter; a row's value does not depend on which thread computes its chunk."""
+    counter; a row's value does not depend on which thread computes its chunk. Returns how many
+    chunks this thread did (when that is all of them, the other threads of the call write nothing)."""
     n = rows.shape[0] if use_rows else points.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     W = np.empty(_N_SCRATCH * _STRIDE)
+    done = 0
     while True:
         c = _claim(counter)
         if c >= n_chunks:
             break
         a = c * CHUNK
         _chunk(W, points, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, offsets, out, out32, use32)
+        done += 1
+    return done
 
 
 @_entry
 def motion_params(
     table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool, out: np.ndarray,
     out32: np.ndarray, use32: bool, counter: np.ndarray,
-) -> None:
+) -> int:
     """The affine map φ(p_v), p_v = Σ_k val[v, k] table[idx[v, k]], on the chunks of the work list it
     claims from `counter` (as `deform_points_entry`): every vertex v (use_rows False) or v = rows[i]
     (use_rows), as out[:, v] = (M e_x, M e_y, M e_z, t) (M = R(ω) exp(Y), t = V(ω) u); other rows
     untouched. table (m ≥ 1, 12) f64, idx (N, K) int32, val (N, K) f64, rows (n,) intp in [0, N)
     (empty when not use_rows), out (4, N, 3) f64; with use32 out32 (4, N, 3) f32 gets the float64
     value rounded once instead and out is not accessed. One specialisation for both output types
-    (pass an empty (4, 0, 3) array for the unused one), full call or rows: see the module doc."""
+    (pass an empty (4, 0, 3) array for the unused one), full call or rows: see the module doc.
+    Returns how many chunks this thread did, as `deform_points_entry`."""
     n = rows.shape[0] if use_rows else idx.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     W = np.empty(_N_MOTION_SCRATCH * _STRIDE)
+    done = 0
     while True:
         c = _claim(counter)
         if c >= n_chunks:
             break
         a = c * CHUNK
         _motion_chunk(W, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)
+        done += 1
+    return done
 
 
 @_entry

@@ -276,6 +276,37 @@ def test_helper_threads_are_joined_and_their_errors_reach_the_caller() -> None:
         assert len(seen) == 3 and seen[-1][1] == threading.get_ident()
 
 
+def test_a_helper_with_nothing_left_to_do_is_not_waited_for() -> None:
+    """`_run_chunks` (no numba needed): when the calling thread's entry reports that it did every
+    chunk, the call returns without waiting for a helper that has not woken up yet (it can claim
+    nothing, so it writes nothing); that helper is joined before its next job. When the calling
+    thread did fewer chunks, or the entry reports nothing (None), every helper is waited for."""
+    import threading
+    import time
+
+    seen: list[tuple[str, bool]] = []
+
+    def entry(tag: str, own: int | None, counter: np.ndarray) -> int | None:
+        helper = threading.current_thread() is not threading.main_thread()
+        if helper:
+            time.sleep(0.3)
+        seen.append((tag, helper))
+        return None if helper else own
+
+    with accel._state.lock:
+        t0 = time.perf_counter()
+        accel._run_chunks(entry, ("alone", 2), 2, 2)
+        assert time.perf_counter() - t0 < 0.25  # the sleeping helper was not waited for
+        assert seen == [("alone", False)]
+        t0 = time.perf_counter()
+        accel._run_chunks(entry, ("shared", 1), 2, 2)  # the caller did 1 of 2 chunks: wait
+        assert time.perf_counter() - t0 >= 0.3  # ... for the deferred job, then for this one
+        assert seen == [("alone", False), ("alone", True), ("shared", False), ("shared", True)]
+        seen.clear()
+        accel._run_chunks(entry, ("unknown", None), 2, 2)  # no count: wait
+        assert seen == [("unknown", False), ("unknown", True)]
+
+
 def test_out_argument_in_place_and_layouts(compiled: ModuleType) -> None:
     rng = np.random.default_rng(109)
     pts, params, idx, val = blend_case(rng, 5000)
