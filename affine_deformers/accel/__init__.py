@@ -60,6 +60,7 @@ __all__ = [
     "deform_points_params",
     "deform_points_params_rows",
     "linear_maps",
+    "polar_log",
     "set_enabled",
     "vertex_motions",
     "warm_up",
@@ -116,7 +117,7 @@ def _usable() -> ModuleType | None:
 
 
 def warm_up() -> str:
-    """Compile (or load from numba's cache) both compiled entries (compiled.ENTRIES) on a tiny input,
+    """Compile (or load from numba's cache) the compiled entries (compiled.ENTRIES) on a tiny input,
     and the helper threads' `spin_wait`, so the first real update does not pay for it; returns
     `backend()`. Each has one specialisation
     for all its calls (full or rows, float32 copy or not), so one call apiece is all it takes. Safe
@@ -131,6 +132,7 @@ def warm_up() -> str:
     try:
         deform_points_params(pts, params, idx, val)  # deform_points_entry
         vertex_motions(params, idx, val)  # motion_params
+        polar_log(np.eye(3)[None])  # polar_log
         module = _load()
         if module is not None:
             with _state.lock:
@@ -555,6 +557,30 @@ def vertex_motions(
         else:
             out[:, sel] = dst[:, sel]
     return out
+
+
+def polar_log(M: ArrayLike) -> tuple[FloatArray, FloatArray] | None:
+    """(R, Ŷ) (n, 3, 3) each with M = R exp(Ŷ), R = U Vᵀ, Ŷ = V diag(log σ) Vᵀ for the SVD
+    M = U diag(σ) Vᵀ of each of the (n, 3, 3) matrices M (det > 0, checked by the caller), computed
+    by the compiled kernel (`compiled.polar_log`, agreeing with numpy's SVD to ~1e-15); None when the
+    compiled kernel is not active now (the caller then uses numpy): the `polar` argument of
+    `core.aff3.params_from_matrices`."""
+    module = _usable()
+    if module is None:
+        return None
+    m = _c(np.asarray(M, dtype=np.float64).reshape(-1, 3, 3), np.float64)
+    R = np.empty_like(m)
+    Yh = np.empty_like(m)
+    with _state.lock:
+        try:
+            module.polar_log(m, R, Yh)
+        except Exception as exc:
+            if "polar_log" in _state.compiled:
+                raise
+            _fail(f"compiling polar_log failed: {type(exc).__name__}: {exc}")
+            return None
+        _state.compiled.add("polar_log")
+    return R, Yh
 
 
 def linear_maps(params: ArrayLike) -> FloatArray:

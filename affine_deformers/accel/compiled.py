@@ -46,7 +46,8 @@ recomputes only the rows a changed control influences and keeps the others, and 
 the same bits however it was reached. The rules:
 
 * One compiled entry per map, one specialisation each: `deform_points_entry` (full call and rows,
-  offsets and float32 copy are runtime flags; unused arrays are passed empty) and `motion_params`.
+  offsets and float32 copy are runtime flags; unused arrays are passed empty), `motion_params`, and
+  `polar_log` (the polar split of ψ for a batch of 3×3 matrices: a cage's corner tetrahedra).
 * Each entry is one LLVM module: every other jitted function here is inline="always" (numba IR
   inlining), and the entries have no prange. A call between separately compiled numba functions —
   a plain njit callee, or the gufunc numba makes of a prange body — links a copy of the callee's
@@ -98,7 +99,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["CHUNK", "ENTRIES", "deform_points_entry", "motion_params", "spin_wait"]
+__all__ = ["CHUNK", "ENTRIES", "deform_points_entry", "motion_params", "polar_log", "spin_wait"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -110,7 +111,7 @@ _STRIDE = CHUNK + 8
 _N_SCRATCH = 18  # 12 parameters, 3 point coordinates, 3 results
 _N_MOTION_SCRATCH = 24  # 12 parameters, 12 results (M e_x, M e_y, M e_z, t)
 #: The compiled kernel entries, one specialisation each (`warm_up` runs exactly these and `spin_wait`).
-ENTRIES = ("deform_points_entry", "motion_params")
+ENTRIES = ("deform_points_entry", "motion_params", "polar_log")
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -726,6 +727,74 @@ def motion_params(
         _motion_chunk(W, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)
         done += 1
     return done
+
+
+#: One-sided Jacobi (`polar_log`): a column pair is rotated while |a_p·a_q| > tol·|a_p||a_q|; at most
+#: this many sweeps (3×3 matrices converge quadratically, in 3–5).
+_JACOBI_TOL = 4.0 * 2.220446049250313e-16
+_JACOBI_SWEEPS = 16
+
+
+@_entry
+def polar_log(M: np.ndarray, R: np.ndarray, Yh: np.ndarray) -> int:
+    """The polar split of ψ for each M[i] (n, 3, 3) f64 with det > 0: R[i] = U Vᵀ and
+    Yh[i] = V diag(log σ) Vᵀ for the SVD M = U diag(σ) Vᵀ (so M = R exp(Yh), Yh = ½ log(MᵀM)), the
+    quantities `core.aff3.params_from_matrices` takes from numpy's SVD; returns n.
+
+    The SVD is one-sided Jacobi (Hestenes): plane rotations of column pairs (p, q) of A = M V,
+    ζ = (‖a_q‖² − ‖a_p‖²)/(2 a_p·a_q), t = sign ζ/(|ζ| + √(1 + ζ²)), c = 1/√(1 + t²), s = c t,
+    (a_p, a_q) ← (c a_p − s a_q, s a_p + c a_q) (and the same on V), which makes a_p ⊥ a_q; sweeps
+    until no pair exceeds _JACOBI_TOL. Then σ_c = ‖a_c‖, u_c = a_c/σ_c, R = Σ_c u_c v_cᵀ and
+    Yh = Σ_c log σ_c v_c v_cᵀ (independent of the order and signs of the singular pairs). Backward
+    stable like LAPACK's SVD (no MᵀM is formed); R and Yh agree with the numpy path to ~1e-15 relative
+    for well-conditioned M. Non-finite input gives non-finite output. Scalar code, one thread."""
+    n = M.shape[0]
+    A = np.empty((3, 3))
+    V = np.empty((3, 3))
+    sig = np.empty(3)
+    lsig = np.empty(3)
+    for i in range(n):
+        for r in range(3):
+            for c in range(3):
+                A[r, c] = M[i, r, c]
+                V[r, c] = 1.0 if r == c else 0.0
+        for _ in range(_JACOBI_SWEEPS):
+            rotated = False
+            for p in range(2):
+                for q in range(p + 1, 3):
+                    alpha = A[0, p] * A[0, p] + A[1, p] * A[1, p] + A[2, p] * A[2, p]
+                    beta = A[0, q] * A[0, q] + A[1, q] * A[1, q] + A[2, q] * A[2, q]
+                    gamma = A[0, p] * A[0, q] + A[1, p] * A[1, q] + A[2, p] * A[2, q]
+                    if abs(gamma) > _JACOBI_TOL * math.sqrt(alpha * beta):
+                        rotated = True
+                        zeta = (beta - alpha) / (2.0 * gamma)
+                        t = math.copysign(1.0, zeta) / (abs(zeta) + math.sqrt(1.0 + zeta * zeta))
+                        cs = 1.0 / math.sqrt(1.0 + t * t)
+                        sn = cs * t
+                        for r in range(3):
+                            ap = A[r, p]
+                            aq = A[r, q]
+                            A[r, p] = cs * ap - sn * aq
+                            A[r, q] = sn * ap + cs * aq
+                            vp = V[r, p]
+                            vq = V[r, q]
+                            V[r, p] = cs * vp - sn * vq
+                            V[r, q] = sn * vp + cs * vq
+            if not rotated:
+                break
+        for c in range(3):
+            sig[c] = math.sqrt(A[0, c] * A[0, c] + A[1, c] * A[1, c] + A[2, c] * A[2, c])
+            lsig[c] = math.log(sig[c])
+        for r in range(3):
+            for k in range(3):
+                rr = 0.0
+                yy = 0.0
+                for c in range(3):
+                    rr += (A[r, c] / sig[c]) * V[k, c]
+                    yy += (V[r, c] * lsig[c]) * V[k, c]
+                R[i, r, k] = rr
+                Yh[i, r, k] = yy
+    return n
 
 
 @_entry

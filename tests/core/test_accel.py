@@ -636,7 +636,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache", "NullCache"]
+    assert res.stdout.split() == ["NullCache"] * 3
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
@@ -947,7 +947,8 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     from affine_deformers.accel import compiled as kernel  # needs numba
 
     assert accel.warm_up().startswith("numba ")
-    assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params"}
+    assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params",
+                                                           "polar_log"}
     assert fresh_state.spin and fresh_state.spin[0] is kernel.spin_wait  # the helpers' busy-wait
     jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
     for name, f in jitted.items():
@@ -966,6 +967,7 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     accel.deform_points_params_rows(pts, params, idx.astype(np.int64), val, np.array([2], np.int32), out)
     accel.vertex_motions(params, idx, val, np.zeros((4, 300, 3), np.float32), rows=[5])
     accel.vertex_motions(params, idx, val, rows=np.arange(9))
+    accel.polar_log(np.eye(3)[None] * 2.0)
     for name in (*kernel.ENTRIES, "spin_wait"):
         fn = getattr(kernel, name)
         assert len(fn.signatures) == 1, (name, fn.signatures)
@@ -1045,6 +1047,8 @@ for step in sys.argv[3].split(","):
             accel.deform_points_params_rows(pts, params, idx, val, [r], out, key="k")
             accel.vertex_motions(params, idx, val, mot, rows=[r], key="k")
         res["points-alone"], res["motions-alone"] = out[lifted], mot[:, lifted]
+    elif step == "polar":
+        res["polar-R"], res["polar-Y"] = accel.polar_log(case["polar"])
 np.savez(sys.argv[2], **res)
 stats = {name: getattr(compiled, name).stats for name in compiled.ENTRIES}
 print(json.dumps({n: [sum(s.cache_hits.values()), sum(s.cache_misses.values())] for n, s in stats.items()}))
@@ -1075,7 +1079,9 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     rows = rng.permutation(np.union1d(np.flatnonzero(rng.random(n) < 0.3), lifted)).astype(np.intp)
     assert len(lifted) >= 300 and np.isin(lifted, rows).all()
     case = tmp_path / "case.npz"
-    np.savez(case, pts=pts, params=params, idx=idx, val=val, rows=rows, lifted=lifted)
+    polar = rng.normal(size=(500, 3, 3))
+    polar[np.linalg.det(polar) < 0.0] *= -1.0
+    np.savez(case, pts=pts, params=params, idx=idx, val=val, rows=rows, lifted=lifted, polar=polar)
     child = tmp_path / "child.py"
     child.write_text(_CACHE_CHILD)
     root = Path(__file__).resolve().parents[2]
@@ -1092,14 +1098,14 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
         assert proc.returncode == 0, stderr
         return json.loads(stdout.strip().splitlines()[-1])
 
-    a = start("cache-a", "a.npz", "points-full,motions-rows")
+    a = start("cache-a", "a.npz", "points-full,motions-rows,polar")
     b = start("cache-b", "b.npz", "points-rows")
     stats_a, stats_b = finish(a), finish(b)
-    c = start("cache-a", "c.npz", "points-rows,points-full,motions-full,motions-rows,lifted-alone")
+    c = start("cache-a", "c.npz", "points-rows,points-full,motions-full,motions-rows,lifted-alone,polar")
     stats_c = finish(c)
-    assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1]}, stats_a  # compiled there
-    assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0]}, stats_b
-    for name in ("deform_points_entry", "motion_params"):
+    assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1], "polar_log": [0, 1]}, stats_a
+    assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0], "polar_log": [0, 0]}, stats_b
+    for name in ("deform_points_entry", "motion_params", "polar_log"):
         assert stats_c[name][0] >= 1 and stats_c[name][1] == 0, (name, stats_c)  # loaded from A's cache
     ra, rb, rc = (np.load(tmp_path / f"{x}.npz") for x in "abc")
     full, motions = ra["points-full"], rc["motions-full"]
@@ -1108,8 +1114,46 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert np.array_equal(rb["points-rows"], rc["points-full"][rows])  # B: compiled, rows; C: loaded, full
     assert np.array_equal(ra["motions-rows"], motions[:, rows])  # A: compiled, rows; C: loaded, full first
     assert np.array_equal(rc["motions-rows"], motions[:, rows])
+    assert np.array_equal(ra["polar-R"], rc["polar-R"]) and np.array_equal(ra["polar-Y"], rc["polar-Y"])
     assert np.array_equal(rc["points-alone"], full[lifted])  # every θ > 1.8π row alone, cached
     assert np.array_equal(rc["motions-alone"], motions[:, lifted])
     # and this process (its entries compiled or loaded, whichever happened here)
     assert np.array_equal(accel.deform_points_params(pts, params, idx, val), full)
     assert np.array_equal(accel.vertex_motions(params, idx, val), motions)
+
+
+# --------------------------------------------------------------------------------------------------
+# polar_log: the polar split of ψ (a cage's corner tetrahedra)
+
+
+def test_polar_log_matches_numpys_svd(compiled: ModuleType) -> None:
+    """R = U Vᵀ and Ŷ = V diag(log σ) Vᵀ from the compiled Jacobi SVD agree with numpy's SVD to
+    ~1e-15 relative, for random, rigid (exactly and nearly), repeated-σ and stretched matrices, and
+    ψ through it (`params_from_matrices(polar=…)`) agrees with the numpy path; None when the kernel
+    is off."""
+    rng = np.random.default_rng(141)
+    M = rng.normal(size=(600, 3, 3))
+    M[np.linalg.det(M) < 0.0] *= -1.0
+    rigid = aff3.so3_exp(rng.normal(size=(200, 3)) * 2.0)
+    M = np.concatenate([M, rigid, rigid * 1.0000001 + 1e-9 * rng.normal(size=rigid.shape),
+                        rigid @ np.diag([0.1, 1.0, 10.0]), 2.0 * np.eye(3)[None], np.eye(3)[None]])
+    R, Y = accel.polar_log(M)
+    U, sigma, Vh = np.linalg.svd(M)
+    assert np.abs(R - U @ Vh).max() < 1e-13
+    Yn = Vh.transpose(0, 2, 1) @ (np.log(sigma)[:, :, None] * Vh)
+    # log σ_min carries both SVDs' rounding of σ_min relative to σ_max: ε κ(M)
+    kappa = sigma[:, 0] / sigma[:, 2]
+    assert (np.abs(Y - Yn).max(axis=(1, 2)) < 1e-14 * np.maximum(kappa, 10.0)).all()
+    assert np.array_equal(R[-1], np.eye(3)) and np.array_equal(Y[-1], np.zeros((3, 3)))
+    A = np.broadcast_to(np.eye(4), (len(M), 4, 4)).copy()
+    A[:, :3, :3] = M
+    A[:, :3, 3] = rng.normal(size=(len(M), 3))
+    P, Pc = aff3.params_from_matrices(A), aff3.params_from_matrices(A, accel.polar_log)
+    scale = np.maximum(kappa, 10.0) * np.maximum(1.0, np.abs(P).max(axis=1))
+    assert (np.abs(Pc - P).max(axis=1) < 1e-14 * scale).all()
+    assert np.array_equal(aff3.params_from_matrices(A, lambda m: None), P)  # None: numpy's SVD
+    accel.set_enabled(False)
+    try:
+        assert accel.polar_log(M) is None
+    finally:
+        accel.set_enabled(True)

@@ -420,7 +420,8 @@ class CageKind:
         # Every depsgraph update re-evaluates; the motions are a pure function of these inputs.
         linear = deformer.blend_mode == "LINEAR"
         key = (rest.tobytes(), loops.tobytes(), start.tobytes(), total.tobytes(), stored.tobytes(),
-               state.points.tobytes(), None if nodes is None else deformer.bind_generation, linear)
+               state.points.tobytes(), None if nodes is None else deformer.bind_generation, linear,
+               accel.active())  # the compiled polar split and numpy's agree to ~1e-15, not bitwise
         cached = _last_motions.get((obj.session_uid, deformer.uid))
         if cached is not None and cached[0] == key:
             controls = cached[1]
@@ -480,7 +481,7 @@ def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
     valid = np.ones(F, dtype=bool)
     warning = ""
     if np.any(face_moved):
-        motion = face_motions(rest, current, topology, faces=face_moved)
+        motion = face_motions(rest, current, topology, faces=face_moved, polar=accel.polar_log)
         params[face_moved] = motion.params[face_moved]
         valid = motion.valid | at_rest
         if motion.messages:
