@@ -38,6 +38,7 @@ from types import ModuleType
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..core import cage_harmonic as _harmonic
 from ..core import deform as _np_kernel
 from ..core.checks import (
     check_given_out,
@@ -60,6 +61,7 @@ __all__ = [
     "deform_points_params",
     "deform_points_params_rows",
     "linear_maps",
+    "node_params",
     "polar_log",
     "set_enabled",
     "vertex_motions",
@@ -133,6 +135,7 @@ def warm_up() -> str:
         deform_points_params(pts, params, idx, val)  # deform_points_entry
         vertex_motions(params, idx, val)  # motion_params
         polar_log(np.eye(3)[None])  # polar_log
+        node_params(np.zeros((1, 3)), np.ones((1, 1)), params)  # node_pivot
         module = _load()
         if module is not None:
             with _state.lock:
@@ -497,6 +500,7 @@ def deform_points_params_rows(
 
 
 _NO_OUT32 = np.empty((0, 3), dtype=np.float32)
+_NO_POINTS = np.empty((0, 3))
 _NO_ROWS = np.empty(0, dtype=np.intp)
 _NO_MOTIONS = np.empty((4, 0, 3))
 _NO_MOTIONS32 = np.empty((4, 0, 3), dtype=np.float32)
@@ -581,6 +585,40 @@ def polar_log(M: ArrayLike) -> tuple[FloatArray, FloatArray] | None:
             return None
         _state.compiled.add("polar_log")
     return R, Yh
+
+
+def node_params(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, *,
+                faces: ArrayLike | None = None, valid: ArrayLike | None = None) -> FloatArray:
+    """`core.cage_harmonic.node_params` (same arguments and result, to ~1e-15) with its per-face
+    and per-node steps in the compiled kernel (`compiled.node_pivot`): B_f = V(ω_f)⁻¹ (M_f − I) for
+    the faces, the blend over the node's faces (`face_columns`, numpy), then u′ = u + B x +
+    V(ω)⁻¹ (x − M x) for the nodes. The numpy version (with `linear_maps`) when the compiled kernel
+    is not active now."""
+    module = _usable()
+    if module is None:
+        return _harmonic.node_params(node_points, node_weights, face_params, faces=faces, valid=valid,
+                                     maps=linear_maps)
+    W = np.asarray(node_weights, dtype=np.float64)
+    x = _c(node_points, np.float64)
+    P = np.asarray(face_params, dtype=np.float64)
+    faces = np.arange(W.shape[1]) if faces is None else np.asarray(faces, dtype=np.intp)
+    face_rows = _c(P[faces], np.float64)
+    B = np.empty((faces.size, 9))
+    nodes = np.empty((x.shape[0], 12))
+    # One specialisation: every array argument is 2-D C-contiguous float64.
+    with _state.lock:
+        try:
+            module.node_pivot(False, face_rows, _NO_POINTS, B)
+            blend = _harmonic.face_columns(W, faces, valid, np.concatenate([face_rows, B], axis=1))
+            module.node_pivot(True, np.ascontiguousarray(blend), x, nodes)
+        except Exception as exc:
+            if "node_pivot" in _state.compiled:
+                raise
+            _fail(f"compiling node_pivot failed: {type(exc).__name__}: {exc}")
+            return _harmonic.node_params(node_points, node_weights, face_params, faces=faces, valid=valid,
+                                         maps=linear_maps)
+        _state.compiled.add("node_pivot")
+    return nodes
 
 
 def linear_maps(params: ArrayLike) -> FloatArray:

@@ -47,7 +47,8 @@ the same bits however it was reached. The rules:
 
 * One compiled entry per map, one specialisation each: `deform_points_entry` (full call and rows,
   offsets and float32 copy are runtime flags; unused arrays are passed empty), `motion_params`, and
-  `polar_log` (the polar split of ψ for a batch of 3×3 matrices: a cage's corner tetrahedra).
+  `polar_log` (the polar split of ψ for a batch of 3×3 matrices: a cage's corner tetrahedra) and
+  `node_pivot` (the per-face and per-node steps of a harmonic cage's pivoted node blend).
 * Each entry is one LLVM module: every other jitted function here is inline="always" (numba IR
   inlining), and the entries have no prange. A call between separately compiled numba functions —
   a plain njit callee, or the gufunc numba makes of a prange body — links a copy of the callee's
@@ -99,7 +100,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["CHUNK", "ENTRIES", "deform_points_entry", "motion_params", "polar_log", "spin_wait"]
+__all__ = ["CHUNK", "ENTRIES", "deform_points_entry", "motion_params", "node_pivot", "polar_log", "spin_wait"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -111,7 +112,7 @@ _STRIDE = CHUNK + 8
 _N_SCRATCH = 18  # 12 parameters, 3 point coordinates, 3 results
 _N_MOTION_SCRATCH = 24  # 12 parameters, 12 results (M e_x, M e_y, M e_z, t)
 #: The compiled kernel entries, one specialisation each (`warm_up` runs exactly these and `spin_wait`).
-ENTRIES = ("deform_points_entry", "motion_params", "polar_log")
+ENTRIES = ("deform_points_entry", "motion_params", "polar_log", "node_pivot")
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -794,6 +795,86 @@ def polar_log(M: np.ndarray, R: np.ndarray, Yh: np.ndarray) -> int:
                     yy += (V[r, c] * lsig[c]) * V[k, c]
                 R[i, r, k] = rr
                 Yh[i, r, k] = yy
+    return n
+
+
+@_inline
+def _linear_columns(w0: float, w1: float, w2: float, y: np.ndarray, o: int
+                    ) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """M = R(ω) exp(Y) (the linear part of φ(ω, 0, Y)), row-major, Y = y[o : o + 6] in the layout
+    (xx, yy, zz, xy, xz, yz); the map of `_motion_store_at` (polynomial θ-coefficients up to 1.8π,
+    libm beyond), one row at a time."""
+    s = w0 * w0 + w1 * w1 + w2 * w2
+    if s > POLY_MAX_S:
+        A, B, C, cth = _rotation_coeffs_libm(s)
+    else:
+        A, B, C, cth = _rotation_coeffs_poly(s)
+    xx, yy, zz, xy, xz, yz = _exp_sym_matrix(y[o], y[o + 1], y[o + 2], y[o + 3], y[o + 4], y[o + 5])
+    c00, c10, c20 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xx, xy, xz, A, B, C, cth)
+    c01, c11, c21 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xy, yy, yz, A, B, C, cth)
+    c02, c12, c22 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xz, yz, zz, A, B, C, cth)
+    return c00, c01, c02, c10, c11, c12, c20, c21, c22
+
+
+@_inline
+def _jacobian_inv_apply(w0: float, w1: float, w2: float, v0: float, v1: float, v2: float
+                        ) -> tuple[float, float, float]:
+    """V(ω)⁻¹ v = v − ½ ω × v + d(θ) ω × (ω × v), d = (1 − (θ/2) cot(θ/2))/θ² (its series
+    1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600 + θ⁸/47900160 below θ = 0.2), as core.aff3's
+    left_jacobian_inv."""
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    theta = math.sqrt(t2)
+    if theta < 0.2:
+        d = (((t2 * (1.0 / 47900160) + 1.0 / 1209600) * t2 + 1.0 / 30240) * t2 + 1.0 / 720) * t2 + 1.0 / 12
+    else:
+        half = 0.5 * theta
+        d = (1.0 - half * math.cos(half) / math.sin(half)) / t2
+    a0 = w1 * v2 - w2 * v1
+    a1 = w2 * v0 - w0 * v2
+    a2 = w0 * v1 - w1 * v0
+    b0 = w1 * a2 - w2 * a1
+    b1 = w2 * a0 - w0 * a2
+    b2 = w0 * a1 - w1 * a0
+    return v0 - 0.5 * a0 + d * b0, v1 - 0.5 * a1 + d * b1, v2 - 0.5 * a2 + d * b2
+
+
+@_entry
+def node_pivot(finish: bool, A: np.ndarray, x: np.ndarray, out: np.ndarray) -> int:
+    """The two per-row steps of core.cage_harmonic.node_params (its module doc), one row at a time;
+    returns the row count.
+
+    finish False (faces): A (n, 12) face parameters (ω, u, Y) → out (n, 9) B = V(ω)⁻¹ (M − I)
+    row-major, M = R(ω) exp(Y) (face_blend_terms' B; x unused, pass an empty (0, 3) array).
+    finish True (nodes): A (G, 21) the nodes' blended (ω, u, Y, B), x (G, 3) the node points →
+    out (G, 12) = (ω, u′, Y) with u′ = u + B x + V(ω)⁻¹ (x − M x), M the linear part for (ω, 0, Y).
+    Scalar code, one thread (a few hundred rows)."""
+    n = A.shape[0]
+    for i in range(n):
+        w0, w1, w2 = A[i, 0], A[i, 1], A[i, 2]
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = _linear_columns(w0, w1, w2, A[i], 6)
+        if finish:
+            p0, p1, p2 = x[i, 0], x[i, 1], x[i, 2]
+            v0 = p0 - (c00 * p0 + c01 * p1 + c02 * p2)
+            v1 = p1 - (c10 * p0 + c11 * p1 + c12 * p2)
+            v2 = p2 - (c20 * p0 + c21 * p1 + c22 * p2)
+            j0, j1, j2 = _jacobian_inv_apply(w0, w1, w2, v0, v1, v2)
+            u0 = A[i, 3] + (A[i, 12] * p0 + A[i, 13] * p1 + A[i, 14] * p2)
+            u1 = A[i, 4] + (A[i, 15] * p0 + A[i, 16] * p1 + A[i, 17] * p2)
+            u2 = A[i, 5] + (A[i, 18] * p0 + A[i, 19] * p1 + A[i, 20] * p2)
+            for k in range(3):
+                out[i, k] = A[i, k]
+            out[i, 3] = u0 + j0
+            out[i, 4] = u1 + j1
+            out[i, 5] = u2 + j2
+            for k in range(6, 12):
+                out[i, k] = A[i, k]
+        else:
+            b00, b10, b20 = _jacobian_inv_apply(w0, w1, w2, c00 - 1.0, c10, c20)
+            b01, b11, b21 = _jacobian_inv_apply(w0, w1, w2, c01, c11 - 1.0, c21)
+            b02, b12, b22 = _jacobian_inv_apply(w0, w1, w2, c02, c12, c22 - 1.0)
+            out[i, 0], out[i, 1], out[i, 2] = b00, b01, b02
+            out[i, 3], out[i, 4], out[i, 5] = b10, b11, b12
+            out[i, 6], out[i, 7], out[i, 8] = b20, b21, b22
     return n
 
 

@@ -628,14 +628,18 @@ def corner_matrices(
 def _params_or_nan(A: np.ndarray, polar: PolarSplit | None = None) -> np.ndarray:
     """ψ_params of each matrix; a row that ψ rejects comes back as NaN instead of raising. polar: as
     in `params_from_matrices`."""
+
+    def psi(M: np.ndarray) -> np.ndarray:
+        return params_from_matrices(M) if polar is None else params_from_matrices(M, polar)
+
     try:
-        return params_from_matrices(A, polar)
+        return psi(A)
     except ValueError:
         # Rare (a corner too degenerate for the logarithm): redo row by row to isolate it.
         out = np.full((A.shape[0], 12), np.nan)
         for i in range(A.shape[0]):
             with contextlib.suppress(ValueError):
-                out[i] = params_from_matrices(A[i], polar)
+                out[i] = psi(A[i])
         return out
 
 

@@ -636,7 +636,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache"] * 3
+    assert res.stdout.split() == ["NullCache"] * 4
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
@@ -948,7 +948,7 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
 
     assert accel.warm_up().startswith("numba ")
     assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params",
-                                                           "polar_log"}
+                                                           "polar_log", "node_pivot"}
     assert fresh_state.spin and fresh_state.spin[0] is kernel.spin_wait  # the helpers' busy-wait
     jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
     for name, f in jitted.items():
@@ -968,6 +968,7 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     accel.vertex_motions(params, idx, val, np.zeros((4, 300, 3), np.float32), rows=[5])
     accel.vertex_motions(params, idx, val, rows=np.arange(9))
     accel.polar_log(np.eye(3)[None] * 2.0)
+    accel.node_params(rng.normal(size=(4, 3)), rng.random((4, 3)), params[:3], faces=np.array([0, 2]))
     for name in (*kernel.ENTRIES, "spin_wait"):
         fn = getattr(kernel, name)
         assert len(fn.signatures) == 1, (name, fn.signatures)
@@ -1049,6 +1050,8 @@ for step in sys.argv[3].split(","):
         res["points-alone"], res["motions-alone"] = out[lifted], mot[:, lifted]
     elif step == "polar":
         res["polar-R"], res["polar-Y"] = accel.polar_log(case["polar"])
+    elif step == "nodes":
+        res["nodes"] = accel.node_params(pts[:300], val[:300], params[: val.shape[1]])
 np.savez(sys.argv[2], **res)
 stats = {name: getattr(compiled, name).stats for name in compiled.ENTRIES}
 print(json.dumps({n: [sum(s.cache_hits.values()), sum(s.cache_misses.values())] for n, s in stats.items()}))
@@ -1098,14 +1101,17 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
         assert proc.returncode == 0, stderr
         return json.loads(stdout.strip().splitlines()[-1])
 
-    a = start("cache-a", "a.npz", "points-full,motions-rows,polar")
+    a = start("cache-a", "a.npz", "points-full,motions-rows,polar,nodes")
     b = start("cache-b", "b.npz", "points-rows")
     stats_a, stats_b = finish(a), finish(b)
-    c = start("cache-a", "c.npz", "points-rows,points-full,motions-full,motions-rows,lifted-alone,polar")
+    c = start("cache-a", "c.npz",
+              "points-rows,points-full,motions-full,motions-rows,lifted-alone,polar,nodes")
     stats_c = finish(c)
-    assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1], "polar_log": [0, 1]}, stats_a
-    assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0], "polar_log": [0, 0]}, stats_b
-    for name in ("deform_points_entry", "motion_params", "polar_log"):
+    assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1], "polar_log": [0, 1],
+                       "node_pivot": [0, 1]}, stats_a  # compiled there
+    assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0], "polar_log": [0, 0],
+                       "node_pivot": [0, 0]}, stats_b
+    for name in ("deform_points_entry", "motion_params", "polar_log", "node_pivot"):
         assert stats_c[name][0] >= 1 and stats_c[name][1] == 0, (name, stats_c)  # loaded from A's cache
     ra, rb, rc = (np.load(tmp_path / f"{x}.npz") for x in "abc")
     full, motions = ra["points-full"], rc["motions-full"]
@@ -1115,6 +1121,7 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert np.array_equal(ra["motions-rows"], motions[:, rows])  # A: compiled, rows; C: loaded, full first
     assert np.array_equal(rc["motions-rows"], motions[:, rows])
     assert np.array_equal(ra["polar-R"], rc["polar-R"]) and np.array_equal(ra["polar-Y"], rc["polar-Y"])
+    assert np.array_equal(ra["nodes"], rc["nodes"])
     assert np.array_equal(rc["points-alone"], full[lifted])  # every θ > 1.8π row alone, cached
     assert np.array_equal(rc["motions-alone"], motions[:, lifted])
     # and this process (its entries compiled or loaded, whichever happened here)
@@ -1155,5 +1162,36 @@ def test_polar_log_matches_numpys_svd(compiled: ModuleType) -> None:
     accel.set_enabled(False)
     try:
         assert accel.polar_log(M) is None
+    finally:
+        accel.set_enabled(True)
+
+
+def test_compiled_node_params_match_the_numpy_blend(compiled: ModuleType) -> None:
+    """`accel.node_params` (the per-face and per-node steps of the harmonic cage's pivoted node blend
+    in the compiled kernel) agrees with `core.cage_harmonic.node_params` to ~1e-15 relative: small
+    (θ < 0.2, the series of V⁻¹), ordinary and large rotations (θ up to 1.9π, the libm
+    θ-coefficients), with subsets of faces and invalid faces; the numpy version when the kernel is
+    off."""
+    from affine_deformers.core import cage_harmonic
+
+    rng = np.random.default_rng(151)
+    F, G = 60, 200
+    theta = np.concatenate([rng.uniform(0.0, 0.2, 20), rng.uniform(0.2, 3.0, 30), rng.uniform(5.7, 5.97, 10)])
+    axis = rng.normal(size=(F, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    P = np.concatenate([theta[:, None] * axis, rng.normal(size=(F, 3)), 0.3 * rng.normal(size=(F, 6))],
+                       axis=1)
+    W = rng.random((G, F)) * (rng.random((G, F)) < 0.2)
+    x = rng.normal(size=(G, 3)) * 2.0
+    faces = np.flatnonzero(rng.random(F) < 0.7)
+    valid = rng.random(F) < 0.9
+    for kwargs in ({}, {"faces": faces}, {"faces": faces, "valid": valid}):
+        want = cage_harmonic.node_params(x, W, P, maps=accel.linear_maps, **kwargs)
+        got = accel.node_params(x, np.asfortranarray(W), P, **kwargs)
+        assert np.abs(got - want).max() < 1e-13 * max(1.0, np.abs(want).max()), kwargs
+    accel.set_enabled(False)
+    try:
+        got = accel.node_params(x, W, P, faces=faces)
+        assert np.array_equal(got, cage_harmonic.node_params(x, W, P, faces=faces, maps=accel.linear_maps))
     finally:
         accel.set_enabled(True)

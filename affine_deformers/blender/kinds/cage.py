@@ -67,7 +67,7 @@ from ...core.cage import (
     face_motions,
     signed_volume,
 )
-from ...core.cage_harmonic import harmonic_weights, node_matrices_linear, node_params
+from ...core.cage_harmonic import harmonic_weights, node_matrices_linear
 from .. import nodes, storage
 from .base import Adopted, BindError, Motions, ignored_note, single_selected
 from .transforms import (
@@ -124,6 +124,8 @@ def node_data(obj: bpy.types.Object, deformer, n_faces: int) -> tuple[np.ndarray
     weights = weights.reshape(len(points), n_faces)
     total = weights.sum(axis=1, keepdims=True)
     weights = np.where(total > 0.0, weights / np.where(total > 0.0, total, 1.0), 0.0)
+    # Column-major: an update gathers the columns of the faces that moved (core.cage_harmonic).
+    weights = np.asfortranarray(weights)
     _node_data[key] = (deformer.bind_generation, points, weights)
     return points, weights
 
@@ -509,12 +511,12 @@ def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndar
     params = np.zeros((G, 12))
     matrices = np.broadcast_to(np.eye(4), (G, 4, 4)).copy()
     if rows.size:
-        params[rows] = node_params(node_points[rows], node_weights[rows], faces.params, faces=moved,
-                                   maps=accel.linear_maps,
-                                   valid=valid)
+        # All nodes (the usual case: harmonic weights reach far): no copy of the (G, F) weights.
+        whole = rows.size == G
+        points, weights = (node_points, node_weights) if whole else (node_points[rows], node_weights[rows])
+        params[rows] = accel.node_params(points, weights, faces.params, faces=moved, valid=valid)
         if linear:
-            matrices[rows] = node_matrices_linear(node_weights[rows], faces.matrices, faces=moved,
-                                                  valid=valid)
+            matrices[rows] = node_matrices_linear(weights, faces.matrices, faces=moved, valid=valid)
     at_rest = np.ones(G, dtype=bool)
     at_rest[rows] = False
     return Motions(matrices, at_rest, "", params=params, warning=faces.warning)
