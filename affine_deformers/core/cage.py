@@ -427,6 +427,16 @@ class ApexStencil:
         object.__setattr__(self, "moments", moments)
         object.__setattr__(self, "spread", np.abs(self.gamma * self.beta).sum(axis=1))
 
+    def take(self, rows: np.ndarray) -> ApexStencil:
+        """The stencils of the corners `rows` (a bool mask or indices), the derived rows (`moments`,
+        `spread`) taken from this one's rather than recomputed: exactly the rows the full stencil
+        uses, so a corner's apex does not depend on which other corners are computed with it."""
+        sub = object.__new__(ApexStencil)
+        for name in ("vertices", "alpha", "beta", "gamma", "active", "moments", "spread"):
+            object.__setattr__(sub, name, getattr(self, name)[rows])
+        object.__setattr__(sub, "rows", np.flatnonzero(sub.active))
+        return sub
+
 
 _stencil_cache: OrderedDict[bytes, ApexStencil] = OrderedDict()
 _stencil_lock = threading.Lock()
@@ -701,8 +711,7 @@ def face_motions(
         chosen = np.asarray(faces, dtype=bool)[face]
         A = np.broadcast_to(np.eye(4), (triples.shape[0], 4, 4)).copy()
         ok = np.ones(triples.shape[0], dtype=bool)
-        sub = None if stencil is None else ApexStencil(stencil.vertices[chosen], stencil.alpha[chosen],
-                                                       stencil.beta[chosen], stencil.gamma[chosen])
+        sub = None if stencil is None else stencil.take(chosen)
         A[chosen], ok[chosen] = corner_matrices(rest, cur, triples[chosen], stencil=sub,
                                                 rest_frames=corners.take(chosen))
 

@@ -324,9 +324,10 @@ def test_stencils_are_cached_by_content() -> None:
 
 def test_rest_corners_are_cached_by_content_and_change_no_bit() -> None:
     """face_motions takes the rest side of its corners (usability, weights, frames, E_rest⁻¹) from a
-    content-keyed cache (`rest_corners`): the same object for the same rest cage and a rebuilt
-    topology, a new one for another rest shape; corner_matrices with those rest frames gives the same
-    bits as computing them, for all corners and for a subset (a few moved faces)."""
+    content-keyed cache (`rest_corners`) and the moved corners' stencils by `ApexStencil.take`: the
+    same object for the same rest cage and a rebuilt topology, a new one for another rest shape;
+    corner_matrices with those gives the same bits as computing them, for all corners and for a
+    subset (a few moved faces)."""
     points, topo = mixed_prism()
     first = cage_module.rest_corners(points, topo)
     again = CageTopology.from_arrays(topo.loop_vertex_indices.copy(), topo.loop_start.copy(),
@@ -345,8 +346,11 @@ def test_rest_corners_are_cached_by_content_and_change_no_bit() -> None:
         for rows in (np.ones(len(triples), dtype=bool), rng.random(len(triples)) < 0.4):
             sub = cage_module.ApexStencil(stencil.vertices[rows], stencil.alpha[rows], stencil.beta[rows],
                                           stencil.gamma[rows])
+            taken = stencil.take(rows)  # what face_motions uses: the full stencil's derived rows
+            for name in ("vertices", "alpha", "beta", "gamma", "active", "rows", "moments", "spread"):
+                np.testing.assert_allclose(getattr(taken, name), getattr(sub, name), rtol=1e-15, atol=0)
             want = cage_module.corner_matrices(points, current, triples[rows], stencil=sub)
-            got = cage_module.corner_matrices(points, current, triples[rows], stencil=sub,
+            got = cage_module.corner_matrices(points, current, triples[rows], stencil=taken,
                                               rest_frames=first.take(rows))
             assert np.array_equal(want[0], got[0]) and np.array_equal(want[1], got[1])
 
