@@ -125,7 +125,7 @@ def test_affected_rows_of_few_and_of_many_controls(ns):
     controls) or makes one pass over the weights (many: a cage's grid nodes)."""
     rng = np.random.default_rng(11)
     n, m, k = 5000, 300, 6
-    indices = rng.integers(0, m, size=(n, k)).astype(np.int32)
+    indices = np.argsort(rng.random((n, m)), axis=1)[:, :k].astype(np.int32)  # distinct per row, as bound
     values = np.where(rng.random((n, k)) < 0.3, 0.0, rng.random((n, k)))
     points = rng.normal(size=(n, 3))
     bound = ns.bound.BoundData(("test",), 1, points.astype(np.float32), points, indices, values)

@@ -97,6 +97,9 @@ _last_motions: dict[tuple[int, str], tuple[tuple, Motions]] = {}
 # (target session_uid, deformer uid) -> (bind generation, node points (G, 3), node weights (G, F)
 # float64 with rows summing to 1): the 'HARMONIC' bind data as the blend uses them.
 _node_data: dict[tuple[int, str], tuple[int, np.ndarray, np.ndarray]] = {}
+# (vertex count, loop arrays' bytes) -> the validated CageTopology (`rest_cage`), oldest first.
+_topologies: dict[tuple, CageTopology] = {}
+_TOPOLOGIES_KEPT = 8
 
 
 def weight_mode(deformer) -> str:
@@ -251,10 +254,18 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
     if points.ndim != 1 or points.size % 3:
         raise BindError("The cage bind data is damaged: rebind the deformer")
     points = points.reshape(-1, 3)
-    try:
-        topology = CageTopology.from_arrays(loops, start, total, len(points))
-    except ValueError:
-        raise BindError("The cage bind data is damaged: rebind the deformer") from None
+    # Validated once per distinct topology (every update reads it), and kept with the derived arrays
+    # it caches (corner triples, fans), which then need not be rebuilt per update either.
+    key = (len(points), loops.tobytes(), start.tobytes(), total.tobytes())
+    topology = _topologies.get(key)
+    if topology is None:
+        try:
+            topology = CageTopology.from_arrays(loops, start, total, len(points))
+        except ValueError:
+            raise BindError("The cage bind data is damaged: rebind the deformer") from None
+        _topologies[key] = topology
+        while len(_topologies) > _TOPOLOGIES_KEPT:
+            _topologies.pop(next(iter(_topologies)))
     return points, topology, loops, start, total
 
 
@@ -308,6 +319,7 @@ class CageKind:
         if key is None:
             _last_motions.clear()
             _node_data.clear()
+            _topologies.clear()
         else:
             _last_motions.pop(key, None)
             _node_data.pop(key, None)
