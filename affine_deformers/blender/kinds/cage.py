@@ -523,12 +523,14 @@ def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndar
     params = np.zeros((G, 12))
     matrices = np.broadcast_to(np.eye(4), (G, 4, 4)).copy()
     if rows.size:
-        # All nodes (the usual case: harmonic weights reach far): no copy of the (G, F) weights.
-        whole = rows.size == G
+        # Most nodes (the usual case: harmonic weights reach far): every node is computed and the rows
+        # kept, rather than copying those rows of the (G, F) weights (column-major: `node_data`).
+        whole = 4 * rows.size >= G
         points, weights = (node_points, node_weights) if whole else (node_points[rows], node_weights[rows])
-        params[rows] = accel.node_params(points, weights, faces.params, faces=moved, valid=valid)
+        pick = rows if whole else slice(None)
+        params[rows] = accel.node_params(points, weights, faces.params, faces=moved, valid=valid)[pick]
         if linear:
-            matrices[rows] = node_matrices_linear(weights, faces.matrices, faces=moved, valid=valid)
+            matrices[rows] = node_matrices_linear(weights, faces.matrices, faces=moved, valid=valid)[pick]
     at_rest = np.ones(G, dtype=bool)
     at_rest[rows] = False
     return Motions(matrices, at_rest, "", params=params, warning=faces.warning)
