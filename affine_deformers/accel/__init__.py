@@ -38,6 +38,7 @@ from types import ModuleType
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..core import cage_harmonic as _harmonic
 from ..core import deform as _np_kernel
 from ..core import hierarchy as _np_hierarchy
 from ..core.checks import (
@@ -63,6 +64,8 @@ __all__ = [
     "deform_points_params",
     "deform_points_params_rows",
     "linear_maps",
+    "node_params",
+    "polar_log",
     "set_enabled",
     "vertex_motions",
     "warm_up",
@@ -120,7 +123,7 @@ def _usable() -> ModuleType | None:
 
 
 def warm_up() -> str:
-    """Compile (or load from numba's cache) both compiled entries (compiled.ENTRIES) on a tiny input,
+    """Compile (or load from numba's cache) the compiled entries (compiled.ENTRIES) on a tiny input,
     and the helper threads' `spin_wait`, so the first real update does not pay for it; returns
     `backend()`. Each has one specialisation
     for all its calls (full or rows, float32 copy or not), so one call apiece is all it takes. Safe
@@ -135,6 +138,8 @@ def warm_up() -> str:
     try:
         deform_points_params(pts, params, idx, val)  # deform_points_entry
         vertex_motions(params, idx, val)  # motion_params
+        polar_log(np.eye(3)[None])  # polar_log
+        node_params(np.zeros((1, 3)), np.ones((1, 1)), params)  # node_pivot
         prefixes = np.zeros((1, 12))
         prefixes[0, [0, 4, 8]] = 1.0
         chain_points(pts, params, idx[None], val[None], idx[:, 0], prefixes)  # chain_points_entry
@@ -188,7 +193,12 @@ class _Helper:
     for it and re-raises its exception. Two locks used as binary semaphores, so the hand-over is one
     lock release each way (a thread pool's futures cost ~0.1 ms more per call here); after a job it
     spins for up to SPIN_MS on a job counter (`compiled.spin_wait`, GIL released) before it blocks.
-    Daemon: it only ever waits for a job or runs one the caller waits for."""
+    Daemon: it only ever waits for a job or runs one the caller waits for.
+
+    `defer` instead of `join`: for a job that provably has nothing left to do (every chunk of its
+    call was claimed by other threads, so when it runs it claims none and writes nothing), the wait
+    moves to the next `start` or `join` — by then the thread has long woken up — instead of keeping
+    the caller waiting for a sleeping thread to get a core back (0.05–4 ms) for no work."""
 
     def __init__(self, spin: tuple[Callable[[np.ndarray, int, int], bool], int] | None) -> None:
         self._go = threading.Lock()
@@ -199,6 +209,7 @@ class _Helper:
         self._job: tuple[Callable[..., None], tuple] | None = None
         self._error: BaseException | None = None
         self._spin = spin
+        self._deferred = False  # a handed-over job not joined yet (`defer`)
         threading.Thread(target=self._loop, name="affine_deformers accel", daemon=True).start()
 
     def _loop(self) -> None:
@@ -220,15 +231,22 @@ class _Helper:
                 self._done.release()
 
     def start(self, fn: Callable[..., None], args: tuple) -> None:
+        if self._deferred:
+            self.join()
         self._job = (fn, args)
         self._posted[0] += 1
         self._go.release()
 
     def join(self) -> None:
+        self._deferred = False
         self._done.acquire()
         error, self._error = self._error, None
         if error is not None:
             raise error
+
+    def defer(self) -> None:
+        """Leave the current job to finish on its own (see the class doc); joined later."""
+        self._deferred = True
 
 
 _helpers: list[_Helper] = []  # grown on demand; used under _state.lock only
@@ -260,8 +278,12 @@ def _run_chunks(
     and `_Helper` threads (the entries release the GIL; new helpers get `spin`). Each thread claims
     the next chunk until none is left, so a helper that starts late (thread wake-up, a busy core)
     takes fewer chunks instead of delaying the call. A row's value does not depend on the thread.
+    The compiled entries return how many chunks the calling thread did: when that is all of them, no
+    helper can write anything any more (a chunk is claimed once), so the call returns without waiting
+    for helpers still asleep (`_Helper.defer`); any other return value (None) waits for every helper.
     Call under _state.lock."""
     counter = np.zeros(1, dtype=np.int64)
+    own = None
     n_helpers = max(0, min(threads, n_chunks) - 1)
     while len(_helpers) < n_helpers:
         _helpers.append(_Helper(spin))
@@ -270,12 +292,17 @@ def _run_chunks(
         for helper in _helpers[:n_helpers]:
             helper.start(entry, (*args, counter))
             started.append(helper)
-        entry(*args, counter)
+        own = entry(*args, counter)
     finally:
         errors = []
-        for helper in started:  # they write into the caller's arrays: never return before they are done
+        # The helpers write into the caller's arrays: never return before those that can are done.
+        alone = isinstance(own, int) and own >= n_chunks  # `own` unbound only when raising
+        for helper in started:
             try:
-                helper.join()
+                if alone:
+                    helper.defer()
+                else:
+                    helper.join()
             except Exception as exc:
                 errors.append(exc)
     if errors:
@@ -481,6 +508,7 @@ def deform_points_params_rows(
 
 
 _NO_OUT32 = np.empty((0, 3), dtype=np.float32)
+_NO_POINTS = np.empty((0, 3))
 _NO_ROWS = np.empty(0, dtype=np.intp)
 _NO_MOTIONS = np.empty((4, 0, 3))
 _NO_MOTIONS32 = np.empty((4, 0, 3), dtype=np.float32)
@@ -541,6 +569,64 @@ def vertex_motions(
         else:
             out[:, sel] = dst[:, sel]
     return out
+
+
+def polar_log(M: ArrayLike) -> tuple[FloatArray, FloatArray] | None:
+    """(R, Ŷ) (n, 3, 3) each with M = R exp(Ŷ), R = U Vᵀ, Ŷ = V diag(log σ) Vᵀ for the SVD
+    M = U diag(σ) Vᵀ of each of the (n, 3, 3) matrices M (det > 0, checked by the caller), computed
+    by the compiled kernel (`compiled.polar_log`, agreeing with numpy's SVD to ~1e-15); None when the
+    compiled kernel is not active now (the caller then uses numpy): the `polar` argument of
+    `core.aff3.params_from_matrices`."""
+    module = _usable()
+    if module is None:
+        return None
+    m = _c(np.asarray(M, dtype=np.float64).reshape(-1, 3, 3), np.float64)
+    R = np.empty_like(m)
+    Yh = np.empty_like(m)
+    with _state.lock:
+        try:
+            module.polar_log(m, R, Yh)
+        except Exception as exc:
+            if "polar_log" in _state.compiled:
+                raise
+            _fail(f"compiling polar_log failed: {type(exc).__name__}: {exc}")
+            return None
+        _state.compiled.add("polar_log")
+    return R, Yh
+
+
+def node_params(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, *,
+                faces: ArrayLike | None = None, valid: ArrayLike | None = None) -> FloatArray:
+    """`core.cage_harmonic.node_params` (same arguments and result, to ~1e-15) with its per-face
+    and per-node steps in the compiled kernel (`compiled.node_pivot`): B_f = V(ω_f)⁻¹ (M_f − I) for
+    the faces, the blend over the node's faces (`face_columns`, numpy), then u′ = u + B x +
+    V(ω)⁻¹ (x − M x) for the nodes. The numpy version (with `linear_maps`) when the compiled kernel
+    is not active now."""
+    module = _usable()
+    if module is None:
+        return _harmonic.node_params(node_points, node_weights, face_params, faces=faces, valid=valid,
+                                     maps=linear_maps)
+    W = np.asarray(node_weights, dtype=np.float64)
+    x = _c(node_points, np.float64)
+    P = np.asarray(face_params, dtype=np.float64)
+    faces = np.arange(W.shape[1]) if faces is None else np.asarray(faces, dtype=np.intp)
+    face_rows = _c(P[faces], np.float64)
+    B = np.empty((faces.size, 9))
+    nodes = np.empty((x.shape[0], 12))
+    # One specialisation: every array argument is 2-D C-contiguous float64.
+    with _state.lock:
+        try:
+            module.node_pivot(False, face_rows, _NO_POINTS, B)
+            blend = _harmonic.face_columns(W, faces, valid, np.concatenate([face_rows, B], axis=1))
+            module.node_pivot(True, np.ascontiguousarray(blend), x, nodes)
+        except Exception as exc:
+            if "node_pivot" in _state.compiled:
+                raise
+            _fail(f"compiling node_pivot failed: {type(exc).__name__}: {exc}")
+            return _harmonic.node_params(node_points, node_weights, face_params, faces=faces, valid=valid,
+                                         maps=linear_maps)
+        _state.compiled.add("node_pivot")
+    return nodes
 
 
 def linear_maps(params: ArrayLike) -> FloatArray:

@@ -46,7 +46,9 @@ recomputes only the rows a changed control influences and keeps the others, and 
 the same bits however it was reached. The rules:
 
 * One compiled entry per map, one specialisation each: `deform_points_entry` (full call and rows,
-  offsets and float32 copy are runtime flags; unused arrays are passed empty) and `motion_params`.
+  offsets and float32 copy are runtime flags; unused arrays are passed empty), `motion_params`, and
+  `polar_log` (the polar split of ψ for a batch of 3×3 matrices: a cage's corner tetrahedra) and
+  `node_pivot` (the per-face and per-node steps of a harmonic cage's pivoted node blend).
 * Each entry is one LLVM module: every other jitted function here is inline="always" (numba IR
   inlining), and the entries have no prange. A call between separately compiled numba functions —
   a plain njit callee, or the gufunc numba makes of a prange body — links a copy of the callee's
@@ -59,7 +61,9 @@ the same bits however it was reached. The rules:
   session-compiled entries before.
 * Threads come from the caller (`affine_deformers.accel._run_chunks`): the entries release the GIL,
   and every thread running one call claims chunks from a shared counter (`_claim`, an atomic
-  increment), so a helper that starts late takes fewer chunks instead of delaying the call.
+  increment), so a helper that starts late takes fewer chunks instead of delaying the call; each
+  entry returns how many chunks its thread did, so a caller that did them all need not wait for a
+  helper that is still asleep (it will claim nothing).
 * Every function carries the same fastmath flags (only 'contract': FMA formation; no reassociation,
   so no sum is reordered), and the map always runs a full chunk, so no row is computed by a scalar
   remainder loop whose FMA contraction could differ from the vector body's (see `_map`).
@@ -97,7 +101,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 __all__ = ["CHUNK", "ENTRIES", "chain_motion_entry", "chain_points_entry", "deform_points_entry",
-           "motion_params", "spin_wait"]
+           "motion_params", "node_pivot", "polar_log", "spin_wait"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -111,7 +115,8 @@ _N_MOTION_SCRATCH = 24  # 12 parameters, 12 results (M e_x, M e_y, M e_z, t)
 _N_CHAIN_SCRATCH = 21  # as _N_SCRATCH, plus the original point (offsets)
 _N_CHAIN_MOTION_SCRATCH = 36  # as _N_MOTION_SCRATCH, plus the product so far
 #: The compiled kernel entries, one specialisation each (`warm_up` runs exactly these and `spin_wait`).
-ENTRIES = ("deform_points_entry", "motion_params", "chain_points_entry", "chain_motion_entry")
+ENTRIES = ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
+           "chain_motion_entry")
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -673,7 +678,7 @@ def _entry(fn: Callable) -> Callable:
 def deform_points_entry(
     points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool,
     offsets: bool, out: np.ndarray, out32: np.ndarray, use32: bool, counter: np.ndarray,
-) -> None:
+) -> int:
     """The point map on the chunks (CHUNK rows each) of the work list it claims from `counter` (a
     (1,) int64 array, 0 at the start of a call; chunk c is claimed by the thread that increments it
     from c, so a lone call with a fresh counter does every chunk): every row v (use_rows
@@ -686,39 +691,195 @@ def deform_points_entry(
     f64, out32 (N, 3) f32 (an empty (0, 3) one without use32). Full call and rows, float32 copy or
     not, all go through this one specialisation (see the module doc). out may be points itself in a
     full call (a chunk reads its rows before it writes them). Threads: call it on each with the same
-    counter; a row's value does not depend on which thread computes its chunk."""
+    counter; a row's value does not depend on which thread computes its chunk. Returns how many
+    chunks this thread did (when that is all of them, the other threads of the call write nothing)."""
     n = rows.shape[0] if use_rows else points.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     W = np.empty(_N_SCRATCH * _STRIDE)
+    done = 0
     while True:
         c = _claim(counter)
         if c >= n_chunks:
             break
         a = c * CHUNK
         _chunk(W, points, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, offsets, out, out32, use32)
+        done += 1
+    return done
 
 
 @_entry
 def motion_params(
     table: np.ndarray, idx: np.ndarray, val: np.ndarray, rows: np.ndarray, use_rows: bool, out: np.ndarray,
     out32: np.ndarray, use32: bool, counter: np.ndarray,
-) -> None:
+) -> int:
     """The affine map φ(p_v), p_v = Σ_k val[v, k] table[idx[v, k]], on the chunks of the work list it
     claims from `counter` (as `deform_points_entry`): every vertex v (use_rows False) or v = rows[i]
     (use_rows), as out[:, v] = (M e_x, M e_y, M e_z, t) (M = R(ω) exp(Y), t = V(ω) u); other rows
     untouched. table (m ≥ 1, 12) f64, idx (N, K) int32, val (N, K) f64, rows (n,) intp in [0, N)
     (empty when not use_rows), out (4, N, 3) f64; with use32 out32 (4, N, 3) f32 gets the float64
     value rounded once instead and out is not accessed. One specialisation for both output types
-    (pass an empty (4, 0, 3) array for the unused one), full call or rows: see the module doc."""
+    (pass an empty (4, 0, 3) array for the unused one), full call or rows: see the module doc.
+    Returns how many chunks this thread did, as `deform_points_entry`."""
     n = rows.shape[0] if use_rows else idx.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     W = np.empty(_N_MOTION_SCRATCH * _STRIDE)
+    done = 0
     while True:
         c = _claim(counter)
         if c >= n_chunks:
             break
         a = c * CHUNK
         _motion_chunk(W, table, idx, val, rows, a, min(CHUNK, n - a), use_rows, out, out32, use32)
+        done += 1
+    return done
+
+
+#: One-sided Jacobi (`polar_log`): a column pair is rotated while |a_p·a_q| > tol·|a_p||a_q|; at most
+#: this many sweeps (3×3 matrices converge quadratically, in 3–5).
+_JACOBI_TOL = 4.0 * 2.220446049250313e-16
+_JACOBI_SWEEPS = 16
+
+
+@_entry
+def polar_log(M: np.ndarray, R: np.ndarray, Yh: np.ndarray) -> int:
+    """The polar split of ψ for each M[i] (n, 3, 3) f64 with det > 0: R[i] = U Vᵀ and
+    Yh[i] = V diag(log σ) Vᵀ for the SVD M = U diag(σ) Vᵀ (so M = R exp(Yh), Yh = ½ log(MᵀM)), the
+    quantities `core.aff3.params_from_matrices` takes from numpy's SVD; returns n.
+
+    The SVD is one-sided Jacobi (Hestenes): plane rotations of column pairs (p, q) of A = M V,
+    ζ = (‖a_q‖² − ‖a_p‖²)/(2 a_p·a_q), t = sign ζ/(|ζ| + √(1 + ζ²)), c = 1/√(1 + t²), s = c t,
+    (a_p, a_q) ← (c a_p − s a_q, s a_p + c a_q) (and the same on V), which makes a_p ⊥ a_q; sweeps
+    until no pair exceeds _JACOBI_TOL. Then σ_c = ‖a_c‖, u_c = a_c/σ_c, R = Σ_c u_c v_cᵀ and
+    Yh = Σ_c log σ_c v_c v_cᵀ (independent of the order and signs of the singular pairs). Backward
+    stable like LAPACK's SVD (no MᵀM is formed); R and Yh agree with the numpy path to ~1e-15 relative
+    for well-conditioned M. Non-finite input gives non-finite output. Scalar code, one thread."""
+    n = M.shape[0]
+    A = np.empty((3, 3))
+    V = np.empty((3, 3))
+    sig = np.empty(3)
+    lsig = np.empty(3)
+    for i in range(n):
+        for r in range(3):
+            for c in range(3):
+                A[r, c] = M[i, r, c]
+                V[r, c] = 1.0 if r == c else 0.0
+        for _ in range(_JACOBI_SWEEPS):
+            rotated = False
+            for p in range(2):
+                for q in range(p + 1, 3):
+                    alpha = A[0, p] * A[0, p] + A[1, p] * A[1, p] + A[2, p] * A[2, p]
+                    beta = A[0, q] * A[0, q] + A[1, q] * A[1, q] + A[2, q] * A[2, q]
+                    gamma = A[0, p] * A[0, q] + A[1, p] * A[1, q] + A[2, p] * A[2, q]
+                    if abs(gamma) > _JACOBI_TOL * math.sqrt(alpha * beta):
+                        rotated = True
+                        zeta = (beta - alpha) / (2.0 * gamma)
+                        t = math.copysign(1.0, zeta) / (abs(zeta) + math.sqrt(1.0 + zeta * zeta))
+                        cs = 1.0 / math.sqrt(1.0 + t * t)
+                        sn = cs * t
+                        for r in range(3):
+                            ap = A[r, p]
+                            aq = A[r, q]
+                            A[r, p] = cs * ap - sn * aq
+                            A[r, q] = sn * ap + cs * aq
+                            vp = V[r, p]
+                            vq = V[r, q]
+                            V[r, p] = cs * vp - sn * vq
+                            V[r, q] = sn * vp + cs * vq
+            if not rotated:
+                break
+        for c in range(3):
+            sig[c] = math.sqrt(A[0, c] * A[0, c] + A[1, c] * A[1, c] + A[2, c] * A[2, c])
+            lsig[c] = math.log(sig[c])
+        for r in range(3):
+            for k in range(3):
+                rr = 0.0
+                yy = 0.0
+                for c in range(3):
+                    rr += (A[r, c] / sig[c]) * V[k, c]
+                    yy += (V[r, c] * lsig[c]) * V[k, c]
+                R[i, r, k] = rr
+                Yh[i, r, k] = yy
+    return n
+
+
+@_inline
+def _linear_columns(w0: float, w1: float, w2: float, y: np.ndarray, o: int
+                    ) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """M = R(ω) exp(Y) (the linear part of φ(ω, 0, Y)), row-major, Y = y[o : o + 6] in the layout
+    (xx, yy, zz, xy, xz, yz); the map of `_motion_store_at` (polynomial θ-coefficients up to 1.8π,
+    libm beyond), one row at a time."""
+    s = w0 * w0 + w1 * w1 + w2 * w2
+    if s > POLY_MAX_S:
+        A, B, C, cth = _rotation_coeffs_libm(s)
+    else:
+        A, B, C, cth = _rotation_coeffs_poly(s)
+    xx, yy, zz, xy, xz, yz = _exp_sym_matrix(y[o], y[o + 1], y[o + 2], y[o + 3], y[o + 4], y[o + 5])
+    c00, c10, c20 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xx, xy, xz, A, B, C, cth)
+    c01, c11, c21 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xy, yy, yz, A, B, C, cth)
+    c02, c12, c22 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xz, yz, zz, A, B, C, cth)
+    return c00, c01, c02, c10, c11, c12, c20, c21, c22
+
+
+@_inline
+def _jacobian_inv_apply(w0: float, w1: float, w2: float, v0: float, v1: float, v2: float
+                        ) -> tuple[float, float, float]:
+    """V(ω)⁻¹ v = v − ½ ω × v + d(θ) ω × (ω × v), d = (1 − (θ/2) cot(θ/2))/θ² (its series
+    1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600 + θ⁸/47900160 below θ = 0.2), as core.aff3's
+    left_jacobian_inv."""
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    theta = math.sqrt(t2)
+    if theta < 0.2:
+        d = (((t2 * (1.0 / 47900160) + 1.0 / 1209600) * t2 + 1.0 / 30240) * t2 + 1.0 / 720) * t2 + 1.0 / 12
+    else:
+        half = 0.5 * theta
+        d = (1.0 - half * math.cos(half) / math.sin(half)) / t2
+    a0 = w1 * v2 - w2 * v1
+    a1 = w2 * v0 - w0 * v2
+    a2 = w0 * v1 - w1 * v0
+    b0 = w1 * a2 - w2 * a1
+    b1 = w2 * a0 - w0 * a2
+    b2 = w0 * a1 - w1 * a0
+    return v0 - 0.5 * a0 + d * b0, v1 - 0.5 * a1 + d * b1, v2 - 0.5 * a2 + d * b2
+
+
+@_entry
+def node_pivot(finish: bool, A: np.ndarray, x: np.ndarray, out: np.ndarray) -> int:
+    """The two per-row steps of core.cage_harmonic.node_params (its module doc), one row at a time;
+    returns the row count.
+
+    finish False (faces): A (n, 12) face parameters (ω, u, Y) → out (n, 9) B = V(ω)⁻¹ (M − I)
+    row-major, M = R(ω) exp(Y) (face_blend_terms' B; x unused, pass an empty (0, 3) array).
+    finish True (nodes): A (G, 21) the nodes' blended (ω, u, Y, B), x (G, 3) the node points →
+    out (G, 12) = (ω, u′, Y) with u′ = u + B x + V(ω)⁻¹ (x − M x), M the linear part for (ω, 0, Y).
+    Scalar code, one thread (a few hundred rows)."""
+    n = A.shape[0]
+    for i in range(n):
+        w0, w1, w2 = A[i, 0], A[i, 1], A[i, 2]
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = _linear_columns(w0, w1, w2, A[i], 6)
+        if finish:
+            p0, p1, p2 = x[i, 0], x[i, 1], x[i, 2]
+            v0 = p0 - (c00 * p0 + c01 * p1 + c02 * p2)
+            v1 = p1 - (c10 * p0 + c11 * p1 + c12 * p2)
+            v2 = p2 - (c20 * p0 + c21 * p1 + c22 * p2)
+            j0, j1, j2 = _jacobian_inv_apply(w0, w1, w2, v0, v1, v2)
+            u0 = A[i, 3] + (A[i, 12] * p0 + A[i, 13] * p1 + A[i, 14] * p2)
+            u1 = A[i, 4] + (A[i, 15] * p0 + A[i, 16] * p1 + A[i, 17] * p2)
+            u2 = A[i, 5] + (A[i, 18] * p0 + A[i, 19] * p1 + A[i, 20] * p2)
+            for k in range(3):
+                out[i, k] = A[i, k]
+            out[i, 3] = u0 + j0
+            out[i, 4] = u1 + j1
+            out[i, 5] = u2 + j2
+            for k in range(6, 12):
+                out[i, k] = A[i, k]
+        else:
+            b00, b10, b20 = _jacobian_inv_apply(w0, w1, w2, c00 - 1.0, c10, c20)
+            b01, b11, b21 = _jacobian_inv_apply(w0, w1, w2, c01, c11 - 1.0, c21)
+            b02, b12, b22 = _jacobian_inv_apply(w0, w1, w2, c02, c12, c22 - 1.0)
+            out[i, 0], out[i, 1], out[i, 2] = b00, b01, b02
+            out[i, 3], out[i, 4], out[i, 5] = b10, b11, b12
+            out[i, 6], out[i, 7], out[i, 8] = b20, b21, b22
+    return n
 
 
 # ---------------------------------------------------------------------------------------------
@@ -890,43 +1051,50 @@ def chain_points_entry(
     points: np.ndarray, table: np.ndarray, idx: np.ndarray, val: np.ndarray, prefix: np.ndarray,
     mats: np.ndarray, rows: np.ndarray, use_rows: bool, offsets: bool, out: np.ndarray, out32: np.ndarray,
     use32: bool, counter: np.ndarray,
-) -> None:
+) -> int:
     """`deform_points_entry` for a product of P blends per vertex and a matrix (core.hierarchy):
     idx (P, N, K) int32 and val (P, N, K) f64 hold pass p's weights of every vertex (a zero row is
     φ(0) = identity; pass 0 acts first), then prefix (N,) int32 picks each vertex's final matrix in
     mats (m' ≥ 1, 12) f64 (row-major M, then t). Other arguments, threads and rows as
-    `deform_points_entry`, but out must not share memory with points."""
+    `deform_points_entry`, but out must not share memory with points. Returns the chunks this thread
+    did, as `deform_points_entry`."""
     n = rows.shape[0] if use_rows else points.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     W = np.empty(_N_CHAIN_SCRATCH * _STRIDE)
     Q = np.empty(CHUNK, dtype=np.uint64)
+    done = 0
     while True:
         c = _claim(counter)
         if c >= n_chunks:
             break
         a = c * CHUNK
+        done += 1
         _chain_chunk(W, Q, points, table, idx, val, prefix, mats, rows, a, min(CHUNK, n - a), use_rows,
                      offsets, out, out32, use32)
+    return done
 
 
 @_entry
 def chain_motion_entry(
     table: np.ndarray, idx: np.ndarray, val: np.ndarray, prefix: np.ndarray, mats: np.ndarray,
     rows: np.ndarray, use_rows: bool, out: np.ndarray, out32: np.ndarray, use32: bool, counter: np.ndarray,
-) -> None:
+) -> int:
     """`motion_params` for the product of `chain_points_entry`: the motion (M, t) ∘ F_(P−1) ∘ ⋯ ∘ F_0
-    (idx, val, prefix, mats as there); other arguments as `motion_params`."""
+    (idx, val, prefix, mats as there); other arguments and the return value as `motion_params`."""
     n = rows.shape[0] if use_rows else prefix.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     W = np.empty(_N_CHAIN_MOTION_SCRATCH * _STRIDE)
     Q = np.empty(CHUNK, dtype=np.uint64)
+    done = 0
     while True:
         c = _claim(counter)
         if c >= n_chunks:
             break
         a = c * CHUNK
+        done += 1
         _chain_motion_chunk(W, Q, table, idx, val, prefix, mats, rows, a, min(CHUNK, n - a), use_rows, out,
                             out32, use32)
+    return done
 
 
 @_entry

@@ -72,6 +72,10 @@ class BoundData:
         ptr, rows = self.csr
         if len(controls) == 1:  # one control's rows are already sorted and distinct
             return rows[ptr[controls[0]] : ptr[controls[0] + 1]]
+        if len(controls) > 32:  # many controls (cage nodes): one pass over the weights, no loop
+            hit = np.zeros(len(ptr) - 1, dtype=bool)
+            hit[controls] = True
+            return np.flatnonzero((hit.take(self.indices, mode="clip") & (self.values != 0.0)).any(axis=1))
         mask = np.zeros(len(self.points), dtype=bool)
         for i in controls:
             mask[rows[ptr[i] : ptr[i + 1]]] = True

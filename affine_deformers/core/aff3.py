@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -726,18 +727,28 @@ _SYM6_UPPER = np.array([0, 4, 8, 1, 2, 5])
 _SYM6_LOWER = np.array([0, 4, 8, 3, 6, 7])
 
 
-def params_from_matrices(A: ArrayLike) -> FloatArray:
+def params_from_matrices(
+    A: ArrayLike, polar: Callable[[FloatArray], tuple[FloatArray, FloatArray] | None] | None = None
+) -> FloatArray:
     """ψ in the 12-number layout: A (..., 4, 4) -> P (..., 12). ValueError on invalid A.
 
     Bit for bit params_from_xy(*psi(A)) (vee(hat(ω)) = ω and the averaged off-diagonals of the
     exactly symmetric Y are exact), without forming X: the Blender layer calls this once per update
     for the one or two controls that moved, where numpy's per-call overhead is the whole cost.
+
+    polar: optional faster evaluation of the polar split, M (n, 3, 3) ↦ (R = U Vᵀ, Ŷ = V diag(log σ)
+    Vᵀ) for the SVD M = U diag(σ) Vᵀ, or None to use numpy's SVD here (`accel.polar_log`: the
+    compiled kernel's, the same quantities to ~1e-15 relative).
     """
     A = validate_affine(A)
     lead = A.shape[:-2]
     flat = A.reshape(-1, 4, 4)
-    R, Vh, sigma, _ = _polar_svd(flat[:, :3, :3])
-    Yh = (Vh.transpose(0, 2, 1) @ (np.log(sigma)[:, :, None] * Vh)).reshape(-1, 9)
+    split = None if polar is None else polar(flat[:, :3, :3])
+    if split is None:
+        R, Vh, sigma, _ = _polar_svd(flat[:, :3, :3])
+        Yh = (Vh.transpose(0, 2, 1) @ (np.log(sigma)[:, :, None] * Vh)).reshape(-1, 9)
+    else:
+        R, Yh = split[0], split[1].reshape(-1, 9)
     w, u = se3_log(R, flat[:, :3, 3])
     # Y = ½(Ŷ + Ŷᵀ) read straight into the layout: ½(Ŷᵢᵢ + Ŷᵢᵢ) = Ŷᵢᵢ exactly, off-diagonals averaged.
     y6 = 0.5 * (Yh.take(_SYM6_UPPER, axis=1) + Yh.take(_SYM6_LOWER, axis=1))

@@ -132,6 +132,8 @@ STENCIL_RIDGE = 1e-2
 _STENCIL_CACHE_ENTRIES = 4
 
 _T = TypeVar("_T")
+#: M (n, 3, 3) ↦ (R, Ŷ) of the polar split, or None (`aff3.params_from_matrices`' `polar`).
+PolarSplit = Callable[[np.ndarray], "tuple[np.ndarray, np.ndarray] | None"]
 
 
 def _norm(v: np.ndarray) -> np.ndarray:
@@ -345,6 +347,55 @@ def _usable_rest_triples(rest: np.ndarray, topology: CageTopology) -> tuple[np.n
     return usable, weight
 
 
+@dataclass(frozen=True, eq=False)
+class RestCorners:
+    """What `face_motions` needs of the rest cage alone, per corner t (rows of
+    `CageTopology.corner_triples`): `usable` and `weight` (`_usable_rest_triples`), the rest frame
+    `frame` (T, 3, 3), centroid `centre` (T, 3) and sin of the corner angle `sin` (T,)
+    (`_corner_frames`), and `inverse` (T, 3, 3) = E_rest⁻¹ by the adjugate (`inverse3`; rows that
+    are singular or non-finite hold whatever the adjugate gives and are never used). Every entry is
+    computed row by row, so a row is bit for bit what the same computation on a subset of the corners
+    gives."""
+
+    usable: np.ndarray
+    weight: np.ndarray
+    frame: np.ndarray
+    centre: np.ndarray
+    sin: np.ndarray
+    inverse: np.ndarray
+
+    def take(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(frame, centre, sin, inverse) of the corners `rows` (a bool mask or indices), the
+        `rest_frames` argument of `corner_matrices`."""
+        return self.frame[rows], self.centre[rows], self.sin[rows], self.inverse[rows]
+
+
+_rest_corner_cache: OrderedDict[bytes, RestCorners] = OrderedDict()
+
+
+def rest_corners(rest_points: np.ndarray, topology: CageTopology) -> RestCorners:
+    """The rest cage's corner data (`RestCorners`), cached by content as `apex_stencils` is: a cage
+    deformer asks for them on every update with the same rest cage."""
+    rest = _check_points(rest_points, topology, "rest_points")
+    key = b"corners" + _stencil_key(rest, topology, 0)
+    with _stencil_lock:
+        found = _rest_corner_cache.get(key)
+        if found is not None:
+            _rest_corner_cache.move_to_end(key)
+            return found
+    triples, _, _ = topology.corner_triples()
+    usable, weight = _usable_rest_triples(rest, topology)
+    E, c, sin_corner = _corner_frames(rest, triples)
+    with np.errstate(all="ignore"):
+        inverse = inverse3(E)[0]
+    corners = RestCorners(usable, weight, E, c, sin_corner, inverse)
+    with _stencil_lock:
+        _rest_corner_cache[key] = corners
+        while len(_rest_corner_cache) > _STENCIL_CACHE_ENTRIES:
+            _rest_corner_cache.popitem(last=False)
+    return corners
+
+
 # --- apex stencils -------------------------------------------------------------------------------
 
 
@@ -375,6 +426,16 @@ class ApexStencil:
         object.__setattr__(self, "rows", np.flatnonzero(active))
         object.__setattr__(self, "moments", moments)
         object.__setattr__(self, "spread", np.abs(self.gamma * self.beta).sum(axis=1))
+
+    def take(self, rows: np.ndarray) -> ApexStencil:
+        """The stencils of the corners `rows` (a bool mask or indices), the derived rows (`moments`,
+        `spread`) taken from this one's rather than recomputed: exactly the rows the full stencil
+        uses, so a corner's apex does not depend on which other corners are computed with it."""
+        sub = object.__new__(ApexStencil)
+        for name in ("vertices", "alpha", "beta", "gamma", "active", "moments", "spread"):
+            object.__setattr__(sub, name, getattr(self, name)[rows])
+        object.__setattr__(sub, "rows", np.flatnonzero(sub.active))
+        return sub
 
 
 _stencil_cache: OrderedDict[bytes, ApexStencil] = OrderedDict()
@@ -533,6 +594,7 @@ def corner_matrices(
     triples: np.ndarray,
     *,
     stencil: ApexStencil | None = None,
+    rest_frames: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(A (T, 4, 4), ok (T,)): the affine map taking each rest corner tetrahedron onto the current one.
 
@@ -540,9 +602,15 @@ def corner_matrices(
     (rows matching `triples`) the fitted c′ + h′ wherever that is available (module docstring) and
     some input of the corner has moved (bitwise), so a corner at rest is exactly the identity. ok is
     False where either tetrahedron is collapsed (sin of the corner angle ≤ COLLAPSED_SIN) or the
-    result is non-finite or has det ≤ 0; those rows of A are the identity.
+    result is non-finite or has det ≤ 0; those rows of A are the identity. rest_frames: the rest
+    side (frame, centre, sin, E_rest⁻¹) of these corners computed before (`RestCorners.take`): the
+    same values, so the same result bit for bit.
     """
-    E_rest, c_rest, sin_rest = _corner_frames(rest, triples)
+    if rest_frames is None:
+        E_rest, c_rest, sin_rest = _corner_frames(rest, triples)
+        rest_inverse = None
+    else:
+        E_rest, c_rest, sin_rest, rest_inverse = rest_frames
     E_cur, c_cur, sin_cur = _corner_frames(current, triples)
     if stencil is not None:
         fitted = _stencil_apex(current, E_cur, c_cur, stencil)
@@ -558,7 +626,7 @@ def corner_matrices(
     A = np.broadcast_to(np.eye(4), (triples.shape[0], 4, 4)).copy()
     if np.any(ok):
         # M E_rest = E_cur (the rest frames are well conditioned: sin of the corner > COLLAPSED_SIN)
-        M = E_cur[ok] @ inverse3(E_rest[ok])[0]
+        M = E_cur[ok] @ (inverse3(E_rest[ok])[0] if rest_inverse is None else rest_inverse[ok])
         A[ok, :3, :3] = M
         A[ok, :3, 3] = c_cur[ok] - np.einsum("tij,tj->ti", M, c_rest[ok])
     good = np.isfinite(A).all(axis=(1, 2)) & (inverse3(A[:, :3, :3])[1] > 0.0)
@@ -567,16 +635,21 @@ def corner_matrices(
     return A, ok
 
 
-def _params_or_nan(A: np.ndarray) -> np.ndarray:
-    """ψ_params of each matrix; a row that ψ rejects comes back as NaN instead of raising."""
+def _params_or_nan(A: np.ndarray, polar: PolarSplit | None = None) -> np.ndarray:
+    """ψ_params of each matrix; a row that ψ rejects comes back as NaN instead of raising. polar: as
+    in `params_from_matrices`."""
+
+    def psi(M: np.ndarray) -> np.ndarray:
+        return params_from_matrices(M) if polar is None else params_from_matrices(M, polar)
+
     try:
-        return params_from_matrices(A)
+        return psi(A)
     except ValueError:
         # Rare (a corner too degenerate for the logarithm): redo row by row to isolate it.
         out = np.full((A.shape[0], 12), np.nan)
         for i in range(A.shape[0]):
             with contextlib.suppress(ValueError):
-                out[i] = params_from_matrices(A[i])
+                out[i] = psi(A[i])
         return out
 
 
@@ -599,8 +672,12 @@ def face_motions(
     pivot: np.ndarray | None = None,
     apex: str = "NEIGHBOURS",
     faces: np.ndarray | None = None,
+    polar: PolarSplit | None = None,
 ) -> FaceMotions:
     """P_f = Σ_t (1/n_f) ψ_params(A_t) over the face's corner tetrahedra (see module docstring).
+
+    polar: the polar split of ψ, as in `aff3.params_from_matrices` (the Blender layer passes the
+    compiled kernel's `accel.polar_log`; the same motions to ~1e-15).
 
     faces: optional (F,) bool, the only faces whose motions are computed; the others get params 0
     and count as valid, as if at rest (for callers that know which faces can have moved,
@@ -624,18 +701,19 @@ def face_motions(
     rest, cur = _check_pose_pair(rest_points, current_points, topology, apex)
     F = topology.n_faces
     triples, face, _ = topology.corner_triples()
-    usable, weight = _usable_rest_triples(rest, topology)
+    corners = rest_corners(rest, topology)
+    usable, weight = corners.usable, corners.weight
     stencil = apex_stencils(rest, topology) if apex == "NEIGHBOURS" else None
     chosen = np.ones(triples.shape[0], dtype=bool)
     if faces is None:
-        A, ok = corner_matrices(rest, cur, triples, stencil=stencil)
+        A, ok = corner_matrices(rest, cur, triples, stencil=stencil, rest_frames=corners.take(chosen))
     else:
         chosen = np.asarray(faces, dtype=bool)[face]
         A = np.broadcast_to(np.eye(4), (triples.shape[0], 4, 4)).copy()
         ok = np.ones(triples.shape[0], dtype=bool)
-        sub = None if stencil is None else ApexStencil(stencil.vertices[chosen], stencil.alpha[chosen],
-                                                       stencil.beta[chosen], stencil.gamma[chosen])
-        A[chosen], ok[chosen] = corner_matrices(rest, cur, triples[chosen], stencil=sub)
+        sub = None if stencil is None else stencil.take(chosen)
+        A[chosen], ok[chosen] = corner_matrices(rest, cur, triples[chosen], stencil=sub,
+                                                rest_frames=corners.take(chosen))
 
     broken = np.zeros(F, dtype=bool)
     np.logical_or.at(broken, face, usable & ~ok)
@@ -645,7 +723,7 @@ def face_motions(
 
     params_t = np.zeros((triples.shape[0], 12))
     if np.any(use):
-        params_t[use] = _params_or_nan(A[use])
+        params_t[use] = _params_or_nan(A[use], polar)
         finite = np.isfinite(params_t).all(axis=1)
         if not np.all(finite):
             np.logical_and.at(valid, face, finite)

@@ -539,7 +539,7 @@ def face_blend_terms(face_params: np.ndarray, maps: Callable[[np.ndarray], np.nd
     return np.concatenate([P, B.reshape(-1, 9)], axis=1)
 
 
-def _face_columns(W: np.ndarray, faces: np.ndarray | None, valid: np.ndarray | None,
+def face_columns(W: np.ndarray, faces: np.ndarray | None, valid: np.ndarray | None,
                   values: np.ndarray) -> np.ndarray:
     """Σ_f W_cf values_f over `faces` ∩ `valid` (all faces when None), rows renormalised over the
     valid faces (rows without any give 0): (G, C) for values (len(faces) or F, C) given per face of
@@ -579,7 +579,7 @@ def node_params(node_points: np.ndarray, node_weights: np.ndarray, face_params: 
     x = np.asarray(node_points, dtype=np.float64)
     P = np.asarray(face_params, dtype=np.float64)
     faces = np.arange(W.shape[1]) if faces is None else np.asarray(faces, dtype=np.intp)
-    blend = _face_columns(W, faces, valid, face_blend_terms(P[faces], maps))
+    blend = face_columns(W, faces, valid, face_blend_terms(P[faces], maps))
     omega, Y = blend[:, 0:3], blend[:, 6:12]
     u = blend[:, 3:6] + np.einsum("gij,gj->gi", blend[:, 12:21].reshape(-1, 3, 3), x)
     linear = np.concatenate([omega, np.zeros_like(omega), Y], axis=1)
@@ -595,4 +595,4 @@ def node_matrices_linear(node_weights: np.ndarray, face_matrices: np.ndarray, *,
     W = np.asarray(node_weights, dtype=np.float64)
     faces = np.arange(W.shape[1]) if faces is None else np.asarray(faces, dtype=np.intp)
     delta = (np.asarray(face_matrices, dtype=np.float64)[faces] - np.eye(4)).reshape(-1, 16)
-    return np.eye(4) + _face_columns(W, faces, valid, delta).reshape(-1, 4, 4)
+    return np.eye(4) + face_columns(W, faces, valid, delta).reshape(-1, 4, 4)

@@ -83,3 +83,46 @@ def test_preference_switches_kernel_and_results_agree(rig, extension_zip):
     probes[1].scale = (1.5, 0.7, 1.0)
     probes[2].location = (0.2, 0.1, 1.4)
     assert np.array_equal(_positions(target), compiled)  # depends only on the inputs, not on history
+
+
+def test_cage_results_agree_across_kernels_and_depend_only_on_the_inputs(bl, extension_zip):
+    """A harmonic cage deformer's per-control path runs in the compiled kernel too (ψ's polar split
+    of the moved corners, the node blend): switching to numpy gives the same deformation to float32
+    rounding, and back on the compiled kernel the same pose gives the same bits as before, though
+    the cage's motion memo was filled by numpy meanwhile."""
+    if not _bundles_numba(extension_zip):
+        pytest.skip("package built without wheels (--platform none): numpy kernel only")
+    accel, prefs_module = _modules()
+    bpy.ops.wm.read_homefile(use_empty=True)
+    target = bl.grid_cube(cuts=6, size=1.0, name="Target")
+    cage = bl.grid_cube(cuts=2, size=2.4, name="Cage")
+    with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, cage]):
+        assert bpy.ops.object.affine_cage_deformer_add() == {"FINISHED"}
+    deformer = target.affine_deformers[0]
+    assert deformer.cage_weights == "HARMONIC" and deformer.status == ""
+    vertices = cage.data.vertices
+    base = np.array([v.co[:] for v in vertices])
+    corner = int(np.argmax(base @ [1.0, 2.0, 3.0]))
+
+    def pose(shift) -> np.ndarray:
+        vertices[corner].co = base[corner] + np.asarray(shift)
+        cage.data.update()
+        bpy.context.view_layer.update()
+        return _positions(target)
+
+    rest = _positions(target)
+    compiled = pose((0.4, -0.2, 0.5))
+    assert np.abs(compiled - rest).max() > 0.02
+    prefs = prefs_module.preferences()
+    try:
+        prefs.use_compiled_kernel = False
+        assert not accel.active()
+        pose((0.1, 0.1, 0.1))
+        numpy_result = pose((0.4, -0.2, 0.5))
+        assert deformer.status == ""
+        assert np.abs(numpy_result - compiled).max() < 2e-6
+    finally:
+        prefs.use_compiled_kernel = True
+    assert accel.active()
+    bpy.context.view_layer.update()
+    assert np.array_equal(_positions(target), compiled)

@@ -117,3 +117,20 @@ def test_rebind_and_reweight_invalidate_the_cached_weights(ns):
     reweighted = ns.stored_offsets(target, deformer)
     assert not np.array_equal(reweighted, before)
     assert np.array_equal(reweighted, ns.recomputed_offsets(target, deformer))
+
+
+def test_affected_rows_of_few_and_of_many_controls(ns):
+    """`BoundData.affected_rows` (the rows an incremental update recomputes): the sorted vertices with
+    a non-zero weight on any of the given controls, whether it gathers per-control row lists (few
+    controls) or makes one pass over the weights (many: a cage's grid nodes)."""
+    rng = np.random.default_rng(11)
+    n, m, k = 5000, 300, 6
+    indices = np.argsort(rng.random((n, m)), axis=1)[:, :k].astype(np.int32)  # distinct per row, as bound
+    values = np.where(rng.random((n, k)) < 0.3, 0.0, rng.random((n, k)))
+    points = rng.normal(size=(n, 3))
+    bound = ns.bound.BoundData(("test",), 1, points.astype(np.float32), points, indices, values)
+    for size in (1, 2, 5, 32, 33, 80, 299, 300):
+        controls = np.sort(rng.choice(m, size=size, replace=False))
+        want = np.flatnonzero((np.isin(indices, controls) & (values != 0.0)).any(axis=1))
+        got = bound.affected_rows(controls)
+        assert np.array_equal(got, want), size

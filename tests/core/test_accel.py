@@ -276,6 +276,37 @@ def test_helper_threads_are_joined_and_their_errors_reach_the_caller() -> None:
         assert len(seen) == 3 and seen[-1][1] == threading.get_ident()
 
 
+def test_a_helper_with_nothing_left_to_do_is_not_waited_for() -> None:
+    """`_run_chunks` (no numba needed): when the calling thread's entry reports that it did every
+    chunk, the call returns without waiting for a helper that has not woken up yet (it can claim
+    nothing, so it writes nothing); that helper is joined before its next job. When the calling
+    thread did fewer chunks, or the entry reports nothing (None), every helper is waited for."""
+    import threading
+    import time
+
+    seen: list[tuple[str, bool]] = []
+
+    def entry(tag: str, own: int | None, counter: np.ndarray) -> int | None:
+        helper = threading.current_thread() is not threading.main_thread()
+        if helper:
+            time.sleep(0.3)
+        seen.append((tag, helper))
+        return None if helper else own
+
+    with accel._state.lock:
+        t0 = time.perf_counter()
+        accel._run_chunks(entry, ("alone", 2), 2, 2)
+        assert time.perf_counter() - t0 < 0.25  # the sleeping helper was not waited for
+        assert seen == [("alone", False)]
+        t0 = time.perf_counter()
+        accel._run_chunks(entry, ("shared", 1), 2, 2)  # the caller did 1 of 2 chunks: wait
+        assert time.perf_counter() - t0 >= 0.3  # ... for the deferred job, then for this one
+        assert seen == [("alone", False), ("alone", True), ("shared", False), ("shared", True)]
+        seen.clear()
+        accel._run_chunks(entry, ("unknown", None), 2, 2)  # no count: wait
+        assert seen == [("unknown", False), ("unknown", True)]
+
+
 def test_out_argument_in_place_and_layouts(compiled: ModuleType) -> None:
     rng = np.random.default_rng(109)
     pts, params, idx, val = blend_case(rng, 5000)
@@ -605,7 +636,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache"] * 4  # one per entry
+    assert res.stdout.split() == ["NullCache"] * 6  # one per entry
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
@@ -917,7 +948,8 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
 
     assert accel.warm_up().startswith("numba ")
     assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params",
-                                                           "chain_points_entry", "chain_motion_entry"}
+                                                           "polar_log", "node_pivot", "chain_points_entry",
+                                                           "chain_motion_entry"}
     assert fresh_state.spin and fresh_state.spin[0] is kernel.spin_wait  # the helpers' busy-wait
     jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
     for name, f in jitted.items():
@@ -936,6 +968,8 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     accel.deform_points_params_rows(pts, params, idx.astype(np.int64), val, np.array([2], np.int32), out)
     accel.vertex_motions(params, idx, val, np.zeros((4, 300, 3), np.float32), rows=[5])
     accel.vertex_motions(params, idx, val, rows=np.arange(9))
+    accel.polar_log(np.eye(3)[None] * 2.0)
+    accel.node_params(rng.normal(size=(4, 3)), rng.random((4, 3)), params[:3], faces=np.array([0, 2]))
     prefixes = np.eye(4)[:3].T.reshape(1, 12).repeat(2, axis=0)
     chain = (idx[None], val[None], np.zeros(300, np.int32), prefixes)
     accel.chain_points(pts, params, *chain)
@@ -1036,6 +1070,10 @@ for step in sys.argv[3].split(","):
             accel.deform_points_params_rows(pts, params, idx, val, [r], out, key="k")
             accel.vertex_motions(params, idx, val, mot, rows=[r], key="k")
         res["points-alone"], res["motions-alone"] = out[lifted], mot[:, lifted]
+    elif step == "polar":
+        res["polar-R"], res["polar-Y"] = accel.polar_log(case["polar"])
+    elif step == "nodes":
+        res["nodes"] = accel.node_params(pts[:300], val[:300], params[: val.shape[1]])
 np.savez(sys.argv[2], **res)
 stats = {name: getattr(compiled, name).stats for name in compiled.ENTRIES}
 print(json.dumps({n: [sum(s.cache_hits.values()), sum(s.cache_misses.values())] for n, s in stats.items()}))
@@ -1066,7 +1104,9 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     rows = rng.permutation(np.union1d(np.flatnonzero(rng.random(n) < 0.3), lifted)).astype(np.intp)
     assert len(lifted) >= 300 and np.isin(lifted, rows).all()
     case = tmp_path / "case.npz"
-    np.savez(case, pts=pts, params=params, idx=idx, val=val, rows=rows, lifted=lifted)
+    polar = rng.normal(size=(500, 3, 3))
+    polar[np.linalg.det(polar) < 0.0] *= -1.0
+    np.savez(case, pts=pts, params=params, idx=idx, val=val, rows=rows, lifted=lifted, polar=polar)
     child = tmp_path / "child.py"
     child.write_text(_CACHE_CHILD)
     root = Path(__file__).resolve().parents[2]
@@ -1083,17 +1123,21 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
         assert proc.returncode == 0, stderr
         return json.loads(stdout.strip().splitlines()[-1])
 
-    a = start("cache-a", "a.npz", "points-full,motions-rows,chain-points-full,chain-motions-rows")
+    a = start("cache-a", "a.npz", "points-full,motions-rows,polar,nodes,chain-points-full,chain-motions-rows")
     b = start("cache-b", "b.npz", "points-rows,chain-points-rows")
     stats_a, stats_b = finish(a), finish(b)
-    c = start("cache-a", "c.npz", "points-rows,points-full,motions-full,motions-rows,lifted-alone,"
+    c = start("cache-a", "c.npz",
+              "points-rows,points-full,motions-full,motions-rows,lifted-alone,polar,nodes,"
               "chain-points-rows,chain-points-full,chain-motions-full,chain-motions-rows")
     stats_c = finish(c)
-    assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1],  # compiled there
-                       "chain_points_entry": [0, 1], "chain_motion_entry": [0, 1]}, stats_a
-    assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0],
-                       "chain_points_entry": [0, 1], "chain_motion_entry": [0, 0]}, stats_b
-    for name in ("deform_points_entry", "motion_params", "chain_points_entry", "chain_motion_entry"):
+    assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1], "polar_log": [0, 1],
+                       "node_pivot": [0, 1], "chain_points_entry": [0, 1],
+                       "chain_motion_entry": [0, 1]}, stats_a  # compiled there
+    assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0], "polar_log": [0, 0],
+                       "node_pivot": [0, 0], "chain_points_entry": [0, 1],
+                       "chain_motion_entry": [0, 0]}, stats_b
+    for name in ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
+                 "chain_motion_entry"):
         assert stats_c[name][0] >= 1 and stats_c[name][1] == 0, (name, stats_c)  # loaded from A's cache
     ra, rb, rc = (np.load(tmp_path / f"{x}.npz") for x in "abc")
     full, motions = ra["points-full"], rc["motions-full"]
@@ -1102,6 +1146,8 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert np.array_equal(rb["points-rows"], rc["points-full"][rows])  # B: compiled, rows; C: loaded, full
     assert np.array_equal(ra["motions-rows"], motions[:, rows])  # A: compiled, rows; C: loaded, full first
     assert np.array_equal(rc["motions-rows"], motions[:, rows])
+    assert np.array_equal(ra["polar-R"], rc["polar-R"]) and np.array_equal(ra["polar-Y"], rc["polar-Y"])
+    assert np.array_equal(ra["nodes"], rc["nodes"])
     assert np.array_equal(rc["points-alone"], full[lifted])  # every θ > 1.8π row alone, cached
     assert np.array_equal(rc["motions-alone"], motions[:, lifted])
     chain_full, chain_motions = ra["chain-points-full"], rc["chain-motions-full"]
@@ -1113,3 +1159,71 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     # and this process (its entries compiled or loaded, whichever happened here)
     assert np.array_equal(accel.deform_points_params(pts, params, idx, val), full)
     assert np.array_equal(accel.vertex_motions(params, idx, val), motions)
+
+
+# --------------------------------------------------------------------------------------------------
+# polar_log: the polar split of ψ (a cage's corner tetrahedra)
+
+
+def test_polar_log_matches_numpys_svd(compiled: ModuleType) -> None:
+    """R = U Vᵀ and Ŷ = V diag(log σ) Vᵀ from the compiled Jacobi SVD agree with numpy's SVD to
+    ~1e-15 relative, for random, rigid (exactly and nearly), repeated-σ and stretched matrices, and
+    ψ through it (`params_from_matrices(polar=…)`) agrees with the numpy path; None when the kernel
+    is off."""
+    rng = np.random.default_rng(141)
+    M = rng.normal(size=(600, 3, 3))
+    M[np.linalg.det(M) < 0.0] *= -1.0
+    rigid = aff3.so3_exp(rng.normal(size=(200, 3)) * 2.0)
+    M = np.concatenate([M, rigid, rigid * 1.0000001 + 1e-9 * rng.normal(size=rigid.shape),
+                        rigid @ np.diag([0.1, 1.0, 10.0]), 2.0 * np.eye(3)[None], np.eye(3)[None]])
+    R, Y = accel.polar_log(M)
+    U, sigma, Vh = np.linalg.svd(M)
+    assert np.abs(R - U @ Vh).max() < 1e-13
+    Yn = Vh.transpose(0, 2, 1) @ (np.log(sigma)[:, :, None] * Vh)
+    # log σ_min carries both SVDs' rounding of σ_min relative to σ_max: ε κ(M)
+    kappa = sigma[:, 0] / sigma[:, 2]
+    assert (np.abs(Y - Yn).max(axis=(1, 2)) < 1e-14 * np.maximum(kappa, 10.0)).all()
+    assert np.array_equal(R[-1], np.eye(3)) and np.array_equal(Y[-1], np.zeros((3, 3)))
+    A = np.broadcast_to(np.eye(4), (len(M), 4, 4)).copy()
+    A[:, :3, :3] = M
+    A[:, :3, 3] = rng.normal(size=(len(M), 3))
+    P, Pc = aff3.params_from_matrices(A), aff3.params_from_matrices(A, accel.polar_log)
+    scale = np.maximum(kappa, 10.0) * np.maximum(1.0, np.abs(P).max(axis=1))
+    assert (np.abs(Pc - P).max(axis=1) < 1e-14 * scale).all()
+    assert np.array_equal(aff3.params_from_matrices(A, lambda m: None), P)  # None: numpy's SVD
+    accel.set_enabled(False)
+    try:
+        assert accel.polar_log(M) is None
+    finally:
+        accel.set_enabled(True)
+
+
+def test_compiled_node_params_match_the_numpy_blend(compiled: ModuleType) -> None:
+    """`accel.node_params` (the per-face and per-node steps of the harmonic cage's pivoted node blend
+    in the compiled kernel) agrees with `core.cage_harmonic.node_params` to ~1e-15 relative: small
+    (θ < 0.2, the series of V⁻¹), ordinary and large rotations (θ up to 1.9π, the libm
+    θ-coefficients), with subsets of faces and invalid faces; the numpy version when the kernel is
+    off."""
+    from affine_deformers.core import cage_harmonic
+
+    rng = np.random.default_rng(151)
+    F, G = 60, 200
+    theta = np.concatenate([rng.uniform(0.0, 0.2, 20), rng.uniform(0.2, 3.0, 30), rng.uniform(5.7, 5.97, 10)])
+    axis = rng.normal(size=(F, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    P = np.concatenate([theta[:, None] * axis, rng.normal(size=(F, 3)), 0.3 * rng.normal(size=(F, 6))],
+                       axis=1)
+    W = rng.random((G, F)) * (rng.random((G, F)) < 0.2)
+    x = rng.normal(size=(G, 3)) * 2.0
+    faces = np.flatnonzero(rng.random(F) < 0.7)
+    valid = rng.random(F) < 0.9
+    for kwargs in ({}, {"faces": faces}, {"faces": faces, "valid": valid}):
+        want = cage_harmonic.node_params(x, W, P, maps=accel.linear_maps, **kwargs)
+        got = accel.node_params(x, np.asfortranarray(W), P, **kwargs)
+        assert np.abs(got - want).max() < 1e-13 * max(1.0, np.abs(want).max()), kwargs
+    accel.set_enabled(False)
+    try:
+        got = accel.node_params(x, W, P, faces=faces)
+        assert np.array_equal(got, cage_harmonic.node_params(x, W, P, faces=faces, maps=accel.linear_maps))
+    finally:
+        accel.set_enabled(True)

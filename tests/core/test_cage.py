@@ -322,6 +322,64 @@ def test_stencils_are_cached_by_content() -> None:
         face_motions(points, points, topo, apex="NORMALS")
 
 
+def test_rest_corners_are_cached_by_content_and_change_no_bit() -> None:
+    """face_motions takes the rest side of its corners (usability, weights, frames, E_rest⁻¹) from a
+    content-keyed cache (`rest_corners`) and the moved corners' stencils by `ApexStencil.take`: the
+    same object for the same rest cage and a rebuilt topology, a new one for another rest shape;
+    corner_matrices with those gives the same bits as computing them, for all corners and for a
+    subset (a few moved faces)."""
+    points, topo = mixed_prism()
+    first = cage_module.rest_corners(points, topo)
+    again = CageTopology.from_arrays(topo.loop_vertex_indices.copy(), topo.loop_start.copy(),
+                                     topo.loop_total.copy())
+    assert cage_module.rest_corners(points.copy(), again) is first
+    moved = points.copy()
+    moved[0, 0] += 1e-3
+    assert cage_module.rest_corners(moved, topo) is not first
+    usable, weight = cage_module._usable_rest_triples(points, topo)
+    assert np.array_equal(first.usable, usable) and np.array_equal(first.weight, weight)
+    rng = np.random.default_rng(17)
+    triples, _, _ = topo.corner_triples()
+    stencil = apex_stencils(points, topo)
+    for _ in range(5):
+        current = points + rng.normal(scale=0.1, size=points.shape)
+        for rows in (np.ones(len(triples), dtype=bool), rng.random(len(triples)) < 0.4):
+            sub = cage_module.ApexStencil(stencil.vertices[rows], stencil.alpha[rows], stencil.beta[rows],
+                                          stencil.gamma[rows])
+            taken = stencil.take(rows)  # what face_motions uses: the full stencil's derived rows
+            for name in ("vertices", "alpha", "beta", "gamma", "active", "rows", "moments", "spread"):
+                np.testing.assert_allclose(getattr(taken, name), getattr(sub, name), rtol=1e-15, atol=0)
+            want = cage_module.corner_matrices(points, current, triples[rows], stencil=sub)
+            got = cage_module.corner_matrices(points, current, triples[rows], stencil=taken,
+                                              rest_frames=first.take(rows))
+            assert np.array_equal(want[0], got[0]) and np.array_equal(want[1], got[1])
+
+
+def test_face_motions_with_a_polar_split_given() -> None:
+    """`polar` (the compiled kernel's polar split in the Blender layer) only replaces numpy's SVD in
+    ψ: with numpy's own split passed in, the motions are bit for bit the default ones; with a
+    different but exact split (transposed twice), equal to rounding."""
+    points, topo = mixed_prism()
+    rng = np.random.default_rng(19)
+    current = points + rng.normal(scale=0.1, size=points.shape)
+
+    def numpy_split(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        U, sigma, Vh = np.linalg.svd(M)
+        return U @ Vh, Vh.transpose(0, 2, 1) @ (np.log(sigma)[:, :, None] * Vh)
+
+    def via_transpose(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # Mᵀ = U′ Σ V′ᵀ, so M = V′ Σ U′ᵀ: R = V′ U′ᵀ = (U′ V′ᵀ)ᵀ and Ŷ = U′ diag(log σ) U′ᵀ.
+        U, sigma, Vh = np.linalg.svd(M.transpose(0, 2, 1))
+        return (U @ Vh).transpose(0, 2, 1), U @ (np.log(sigma)[:, :, None] * U.transpose(0, 2, 1))
+
+    want = face_motions(points, current, topo)
+    assert np.array_equal(face_motions(points, current, topo, polar=numpy_split).params, want.params)
+    assert np.array_equal(face_motions(points, current, topo, polar=lambda M: None).params, want.params)
+    got = face_motions(points, current, topo, polar=via_transpose)
+    assert np.abs(got.params - want.params).max() < 1e-12
+    assert np.array_equal(got.valid, want.valid)
+
+
 def test_flat_open_cage_keeps_the_normal_apex() -> None:
     """No vertex off a face's plane: no stencil, so 'NEIGHBOURS' falls back to the normal apex."""
     g = np.linspace(0.0, 1.0, 4)

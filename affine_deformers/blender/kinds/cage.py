@@ -67,7 +67,7 @@ from ...core.cage import (
     face_motions,
     signed_volume,
 )
-from ...core.cage_harmonic import harmonic_weights, node_matrices_linear, node_params
+from ...core.cage_harmonic import harmonic_weights, node_matrices_linear
 from .. import nodes, storage
 from .base import Adopted, BindError, Motions, ignored_note, single_selected
 from .transforms import (
@@ -97,6 +97,9 @@ _last_motions: dict[tuple[int, str], tuple[tuple, Motions]] = {}
 # (target session_uid, deformer uid) -> (bind generation, node points (G, 3), node weights (G, F)
 # float64 with rows summing to 1): the 'HARMONIC' bind data as the blend uses them.
 _node_data: dict[tuple[int, str], tuple[int, np.ndarray, np.ndarray]] = {}
+# (vertex count, loop arrays' bytes) -> the validated CageTopology (`rest_cage`), oldest first.
+_topologies: dict[tuple, CageTopology] = {}
+_TOPOLOGIES_KEPT = 8
 
 
 def weight_mode(deformer) -> str:
@@ -124,6 +127,8 @@ def node_data(obj: bpy.types.Object, deformer, n_faces: int) -> tuple[np.ndarray
     weights = weights.reshape(len(points), n_faces)
     total = weights.sum(axis=1, keepdims=True)
     weights = np.where(total > 0.0, weights / np.where(total > 0.0, total, 1.0), 0.0)
+    # Column-major: an update gathers the columns of the faces that moved (core.cage_harmonic).
+    weights = np.asfortranarray(weights)
     _node_data[key] = (deformer.bind_generation, points, weights)
     return points, weights
 
@@ -249,10 +254,18 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
     if points.ndim != 1 or points.size % 3:
         raise BindError("The cage bind data is damaged: rebind the deformer")
     points = points.reshape(-1, 3)
-    try:
-        topology = CageTopology.from_arrays(loops, start, total, len(points))
-    except ValueError:
-        raise BindError("The cage bind data is damaged: rebind the deformer") from None
+    # Validated once per distinct topology (every update reads it), and kept with the derived arrays
+    # it caches (corner triples, fans), which then need not be rebuilt per update either.
+    key = (len(points), loops.tobytes(), start.tobytes(), total.tobytes())
+    topology = _topologies.get(key)
+    if topology is None:
+        try:
+            topology = CageTopology.from_arrays(loops, start, total, len(points))
+        except ValueError:
+            raise BindError("The cage bind data is damaged: rebind the deformer") from None
+        _topologies[key] = topology
+        while len(_topologies) > _TOPOLOGIES_KEPT:
+            _topologies.pop(next(iter(_topologies)))
     return points, topology, loops, start, total
 
 
@@ -306,6 +319,7 @@ class CageKind:
         if key is None:
             _last_motions.clear()
             _node_data.clear()
+            _topologies.clear()
         else:
             _last_motions.pop(key, None)
             _node_data.pop(key, None)
@@ -420,7 +434,8 @@ class CageKind:
         # Every depsgraph update re-evaluates; the motions are a pure function of these inputs.
         linear = deformer.blend_mode == "LINEAR"
         key = (rest.tobytes(), loops.tobytes(), start.tobytes(), total.tobytes(), stored.tobytes(),
-               state.points.tobytes(), None if nodes is None else deformer.bind_generation, linear)
+               state.points.tobytes(), None if nodes is None else deformer.bind_generation, linear,
+               accel.active())  # the compiled polar split and numpy's agree to ~1e-15, not bitwise
         cached = _last_motions.get((obj.session_uid, deformer.uid))
         if cached is not None and cached[0] == key:
             controls = cached[1]
@@ -480,7 +495,7 @@ def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
     valid = np.ones(F, dtype=bool)
     warning = ""
     if np.any(face_moved):
-        motion = face_motions(rest, current, topology, faces=face_moved)
+        motion = face_motions(rest, current, topology, faces=face_moved, polar=accel.polar_log)
         params[face_moved] = motion.params[face_moved]
         valid = motion.valid | at_rest
         if motion.messages:
@@ -508,12 +523,14 @@ def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndar
     params = np.zeros((G, 12))
     matrices = np.broadcast_to(np.eye(4), (G, 4, 4)).copy()
     if rows.size:
-        params[rows] = node_params(node_points[rows], node_weights[rows], faces.params, faces=moved,
-                                   maps=accel.linear_maps,
-                                   valid=valid)
+        # Most nodes (the usual case: harmonic weights reach far): every node is computed and the rows
+        # kept, rather than copying those rows of the (G, F) weights (column-major: `node_data`).
+        whole = 4 * rows.size >= G
+        points, weights = (node_points, node_weights) if whole else (node_points[rows], node_weights[rows])
+        pick = rows if whole else slice(None)
+        params[rows] = accel.node_params(points, weights, faces.params, faces=moved, valid=valid)[pick]
         if linear:
-            matrices[rows] = node_matrices_linear(node_weights[rows], faces.matrices, faces=moved,
-                                                  valid=valid)
+            matrices[rows] = node_matrices_linear(weights, faces.matrices, faces=moved, valid=valid)[pick]
     at_rest = np.ones(G, dtype=bool)
     at_rest[rows] = False
     return Motions(matrices, at_rest, "", params=params, warning=faces.warning)
