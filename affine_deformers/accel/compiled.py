@@ -431,9 +431,9 @@ def _blend(T: np.ndarray, I: np.ndarray, V: np.ndarray, P: np.ndarray, K: int, l
 @_inline
 def _blend_params(T: np.ndarray, I: np.ndarray, V: np.ndarray, K: int, last: np.uint64, W: np.ndarray, j: int,
                   r: int) -> None:
-    """Scratch rows 0–11 of column j = Σ_k V[r, k] T[I[r, k]] (slot order). T, I, V are the flat
-    (row-major) table, indices and values; `last` = m − 1. Indices are clamped to the table (no effect
-    on valid input, see the module doc)."""
+    """Scratch rows 0–11 of column j = Σ_k V[r, k] T[I[r, k]] (slot order, zero weights skipped).
+    T, I, V are the flat (row-major) table, indices and values; `last` = m − 1. Indices are clamped
+    to the table (no effect on valid input, see the module doc)."""
     # Unsigned offsets: numba adds a negative-index wraparound select to every signed subscript,
     # which here would cost as much as the arithmetic.
     one = np.uint64(1)
@@ -441,6 +441,11 @@ def _blend_params(T: np.ndarray, I: np.ndarray, V: np.ndarray, K: int, last: np.
     base = r * K
     for k in range(K):
         wv = V[base + k]
+        # A zero weight adds exactly ±0 (the table is finite) to a sum that is never −0 (it starts
+        # at +0, and x + y = 0 rounds to +0): skipping the slot gives the same bits, and sparse
+        # weights (falloff, vertex groups) leave most of the K slots empty.
+        if wv == 0.0:
+            continue
         # A negative index becomes huge as unsigned and is clamped like a too-large one.
         c = min(np.uint64(I[base + k]), last) * np.uint64(12)
         a0 += wv * T[c]
