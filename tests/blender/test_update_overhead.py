@@ -29,8 +29,8 @@ def test_only_changed_controls_are_recomputed(bl, installed, monkeypatch):
     probes[0].location.x += 0.2
     bpy.context.view_layer.update()
     rows, params = [], []
-    real_row, real_params = kinds._probe_row, evaluate._params_of_rows
-    monkeypatch.setattr(kinds, "_probe_row", lambda *a: rows.append(a[1].copy()) or real_row(*a))
+    real_rows, real_params = kinds._probe_rows, evaluate._params_of_rows
+    monkeypatch.setattr(kinds, "_probe_rows", lambda *a: rows.extend(a[1].copy()) or real_rows(*a))
     monkeypatch.setattr(evaluate, "_params_of_rows",
                         lambda m, r, *a: params.append(r.tolist()) or real_params(m, r, *a))
     probes[2].rotation_euler.z += 0.4
@@ -281,3 +281,57 @@ def test_two_scenes_at_different_frames_do_not_fight_over_the_mesh(bl, installed
     scene_a.collection.objects.unlink(target)
     handlers.on_depsgraph_update_post(scene_b, graph_b)
     assert len(writes) >= 1
+
+
+def test_probe_rows_in_a_batch_equal_each_alone_bit_for_bit(installed):
+    """kinds.probe._probe_rows computes the probes that moved in one batch: every row must get the bits
+    it gets alone (the memo stores rows whatever batch made them), the at-rest test must see the bits
+    local_matrix gives (those of the stored rest matrices), and a probe with a problem gets its message."""
+    kinds = importlib.import_module(f"{installed.package}.blender.kinds.probe")
+    transforms = importlib.import_module(f"{installed.package}.blender.kinds.transforms")
+    rng = np.random.default_rng(21)
+
+    def affine(scale: float) -> np.ndarray:
+        q = mathutils.Quaternion(rng.normal(size=4)).normalized()
+        m = np.eye(4)
+        m[:3, :3] = np.array(q.to_matrix()) @ np.diag(rng.uniform(0.5, 2.0, 3) * scale)
+        m[:3, 3] = rng.normal(size=3) * 3.0
+        return np.float32(m).astype(np.float64)  # Blender's matrices are float32
+
+    target = affine(1.0)
+    n = 9
+    worlds = np.stack([affine(1.0) for _ in range(n)])
+    modes = ["XYZ", "ZXY", "QUATERNION", "AXIS_ANGLE", "XYZ", "YZX", "QUATERNION", "XYZ", "XYZ"]
+    channels = [tuple(rng.normal(size=4) * 4.0) if mode != "XYZ" else (*rng.normal(size=3) * 7.0, 0.0)
+                for mode in modes]
+    scales = [tuple(rng.uniform(0.5, 2.0, 6)) for _ in range(n)]
+    rests = np.stack([transforms.local_matrix(target, affine(1.0)) for _ in range(n)])
+    rest_rotations = rng.normal(size=(n, 4))
+    rest_modes = list(modes)
+    rests[1] = transforms.local_matrix(target, worlds[1])  # probe 1 at rest (its channels too)
+    rest_rotations[1] = np.float32(np.array(channels[1])).astype(np.float64)
+    worlds[4, 0, 3] = np.nan  # probe 4: not finite
+    worlds[7, :3, :3] *= -1.0  # probe 7: mirrored
+    batch = kinds._probe_rows(target, worlds, channels, modes, scales, rests, rest_modes, rest_rotations)
+    for i in range(n):
+        alone = kinds._probe_rows(target, worlds[i : i + 1], channels[i : i + 1], modes[i : i + 1],
+                                  scales[i : i + 1], rests[i : i + 1], rest_modes[i : i + 1],
+                                  rest_rotations[i : i + 1])[0]
+        row = batch[i]
+        assert row.error == alone.error and row.at_rest == alone.at_rest and row.mode == alone.mode, i
+        for a, b in ((row.matrix, alone.matrix), (row.frame, alone.frame), (row.pivot, alone.pivot)):
+            assert a.tobytes() == b.tobytes(), i
+        assert row.rotation == alone.rotation
+        if not row.error:  # the per-probe function agrees (to rounding: it is another formula)
+            single = kinds._probe_row(target, worlds[i], channels[i], modes[i], scales[i], rests[i],
+                                      rest_modes[i], rest_rotations[i])
+            assert single.at_rest == row.at_rest
+            assert np.allclose(single.matrix, row.matrix, rtol=0, atol=1e-12)
+            assert np.allclose(single.frame, row.frame, rtol=0, atol=1e-12)
+            assert single.pivot.tobytes() == row.pivot.tobytes()
+    assert batch[1].at_rest and np.array_equal(batch[1].matrix, np.eye(4))
+    assert "non-finite" in batch[4].error and "mirrored" in batch[7].error
+    assert not any(batch[i].error for i in (0, 2, 3, 5, 6, 8))
+    current, _ = transforms.local_solves(target, worlds[[0, 2, 3]])
+    for j, i in enumerate((0, 2, 3)):
+        assert current[j].tobytes() == transforms.local_matrix(target, worlds[i]).tobytes()

@@ -20,11 +20,15 @@ from ...core import surface, weights
 from .. import nodes
 from .base import Adopted, BindError, ChannelTurns, Motions, draw_weight_options, ignored_note
 from .transforms import (
+    MAX_COORDINATE,
     finite_transform,
     frame_rotation,
+    frame_rotations,
     in_a_scene,
+    inverse3,
     local_matrix,
     local_solve,
+    local_solves,
     motion_problem,
     relative_motion,
     rotation_channels,
@@ -170,18 +174,21 @@ class ProbeKind:
         # holds it plus its index, instead of hashing its own copies of the rest data per update.
         shared = b"".join((target_world.tobytes(), rests.tobytes(), flat.tobytes(),
                            "\0".join(rest_modes).encode()))
-        rows: list[_ProbeRow] = []
+        rows: list[_ProbeRow | None] = []
+        misses: list[tuple[int, tuple, np.ndarray, tuple, str, tuple]] = []
+        problem = ""
         for i, item in enumerate(probes):
             probe = item.object
             if probe is None:
-                return Motions.invalid(m, f"Probe '{item.name or '?'}' was deleted or unassigned: "
-                                       "remove it from the deformer or pick another object")
-            if not in_a_scene(probe):
-                return Motions.invalid(m, f"Probe '{probe.name}' is not in any scene (deleted?): "
-                                       "remove it from the deformer or link it back")
-            if probe == obj:  # kept here too: a message set when it was picked must not be wiped
-                return Motions.invalid(m, f"'{obj.name}' cannot be a probe of itself: pick another object "
-                                       f"for probe {i + 1}")
+                problem = (f"Probe '{item.name or '?'}' was deleted or unassigned: remove it from the "
+                           "deformer or pick another object")
+            elif not in_a_scene(probe):
+                problem = (f"Probe '{probe.name}' is not in any scene (deleted?): remove it from the "
+                           "deformer or link it back")
+            elif probe == obj:  # kept here too: a message set when it was picked must not be wiped
+                problem = f"'{obj.name}' cannot be a probe of itself: pick another object for probe {i + 1}"
+            if problem:
+                break
             evaluated = probe.evaluated_get(depsgraph)
             world = np.array(evaluated.matrix_world, dtype=np.float64)
             mode = evaluated.rotation_mode
@@ -190,14 +197,24 @@ class ProbeKind:
             key = (shared, i, world.tobytes(), mode, _bits(channels + scale))
             row = _rows.get(key)
             if row is None:
-                row = _probe_row(target_world, world, channels, mode, scale, rests[i], rest_modes[i],
-                                 rest_rotations[i])
-                if len(_rows) >= ROW_MEMO_SIZE:
-                    _rows.clear()
-                _rows[key] = row
-            if row.error:
-                return Motions.invalid(m, row.error.format(probe=probe.name, target=obj.name))
+                misses.append((i, key, world, channels, mode, scale))
             rows.append(row)
+        if misses:
+            # The probes that moved, in one batch: every row is computed on its own (same bits alone).
+            index = [i for i, *_ in misses]
+            computed = _probe_rows(target_world, np.stack([miss[2] for miss in misses]),
+                                   [miss[3] for miss in misses], [miss[4] for miss in misses],
+                                   [miss[5] for miss in misses], rests[index], [rest_modes[i] for i in index],
+                                   rest_rotations[index])
+            if len(_rows) + len(misses) > ROW_MEMO_SIZE:
+                _rows.clear()
+            for (i, key, *_), row in zip(misses, computed, strict=True):
+                _rows[key] = rows[i] = row
+        for i, row in enumerate(rows):  # the first probe in order with a problem names it
+            if row.error:
+                return Motions.invalid(m, row.error.format(probe=probes[i].object.name, target=obj.name))
+        if problem:
+            return Motions.invalid(m, problem)
         if m == 0:
             return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool),
                            turns=ChannelTurns(rest_modes, rest_rotations, [], rest_rotations.copy(),
@@ -246,6 +263,7 @@ class ProbeKind:
         """Drop the per-probe and surface-weight memos (keyed on their inputs, so shared by all
         deformers: `key` is ignored; they only hold recomputable values)."""
         _rows.clear()
+        _rest_inverses.clear()
         _surface_memo.clear()
 
 
@@ -331,6 +349,78 @@ _rows: dict[tuple, _ProbeRow] = {}
 def _bits(values: tuple[float, ...]) -> bytes:
     """The exact float64 bits of a short tuple of numbers (−0.0 and NaN payloads included)."""
     return struct.pack(f"{len(values)}d", *values)
+
+
+def _probe_rows(target_world: np.ndarray, worlds: np.ndarray, channels: list[tuple[float, ...]],
+                modes: list[str], scales: list[tuple[float, ...]], rests: np.ndarray, rest_modes: list[str],
+                rest_rotations: np.ndarray) -> list[_ProbeRow]:
+    """`_probe_row` of n probes at once (worlds (n, 4, 4) float64, rests (n, 4, 4) float32, the other
+    arguments one entry per probe), in a few stacked numpy calls instead of a few dozen per probe.
+
+    Every row is computed on its own (stacked products and SVDs run matrix by matrix, the rest is
+    elementwise), so a probe gets the same bits in any batch, alone included. C = target⁻¹ · world
+    has the bits `local_matrix` gives (the at-rest test compares it with the stored rest matrix);
+    A = C · C_rest⁻¹ with C_rest⁻¹ memoised per rest matrix (`_rest_inverse`). Probes with a problem
+    (non-finite transform, singular rest, a motion outside Aff+(3)) and a target scaled to zero go
+    through `_probe_row`, which words the message."""
+    n = len(worlds)
+    with np.errstate(all="ignore"):
+        finite = (np.abs(worlds) < MAX_COORDINATE).all(axis=(1, 2))
+        try:
+            current, solved = local_solves(target_world, worlds if finite.all()
+                                           else np.where(finite[:, None, None], worlds, 0.0))
+        except np.linalg.LinAlgError:
+            finite[:] = False  # the target is singular: every probe gets its message
+            current, solved = np.zeros((n, 4, 4), dtype=np.float32), np.zeros((n, 3, 4))
+        rotations = [tuple(float(c) for c in ch) + (0.0,) * (4 - len(ch)) for ch in channels]
+        rotation_array = np.array(rotations)
+        frames = frame_rotations(solved[:, :, :3], modes, rotation_array, np.array(scales, dtype=np.float64))
+        at_rest = ((current.reshape(n, 16) == rests.reshape(n, 16)).all(axis=1)
+                   & np.array([mode == rest for mode, rest in zip(modes, rest_modes, strict=True)])
+                   & (np.float32(rotation_array) == np.float32(rest_rotations)).all(axis=1))
+        inverses = [_rest_inverse(rest) for rest in rests]
+        moved = current.astype(np.float64)
+        lin = moved[:, :3, :3] @ np.stack([inverse for inverse, _ in inverses])
+        matrices = np.zeros((n, 4, 4))
+        matrices[:, :3, :3] = lin
+        matrices[:, :3, 3] = moved[:, :3, 3] - (lin @ rests[:, :3, 3, None].astype(np.float64))[:, :, 0]
+        matrices[:, 3, 3] = 1.0
+        motion_ok = ((np.abs(matrices) < MAX_COORDINATE).all(axis=(1, 2)) & (np.linalg.det(lin) > 0.0)
+                     & np.array([ok for _, ok in inverses]))
+    out = []
+    identity = np.eye(4)
+    for i in range(n):
+        if not finite[i] or not (at_rest[i] or motion_ok[i]):
+            out.append(_probe_row(target_world, worlds[i], channels[i], modes[i], scales[i], rests[i],
+                                  rest_modes[i], rest_rotations[i]))
+            continue
+        pivot = current[i, :3, 3].astype(np.float64)
+        if at_rest[i]:
+            out.append(_ProbeRow(identity, True, modes[i], rotations[i], frames[i], pivot))
+        else:
+            out.append(_ProbeRow(matrices[i], False, modes[i], rotations[i], frames[i], pivot))
+    return out
+
+
+#: Inverses of stored rest matrices' 3×3 parts, keyed on their bits (recomputable; cleared when full).
+_rest_inverses: dict[bytes, tuple[np.ndarray, bool]] = {}
+
+
+def _rest_inverse(rest: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(C_rest⁻¹'s 3×3 part (float64, the adjugate over the determinant), whether it is usable) of a
+    stored rest matrix (4, 4) float32."""
+    key = rest.tobytes()
+    found = _rest_inverses.get(key)
+    if found is None:
+        try:
+            inverse = inverse3(rest[:3, :3].astype(np.float64))
+            found = (inverse, bool(np.isfinite(inverse).all()))
+        except np.linalg.LinAlgError:
+            found = (np.eye(3), False)
+        if len(_rest_inverses) >= ROW_MEMO_SIZE:
+            _rest_inverses.clear()
+        _rest_inverses[key] = found
+    return found
 
 
 def _probe_row(target_world: np.ndarray, world: np.ndarray, channels: tuple[float, ...], mode: str,

@@ -60,6 +60,53 @@ def local_solve(target_world: np.ndarray, control_world: np.ndarray) -> tuple[np
     return out.astype(np.float32), solved
 
 
+def local_solves(target_world: np.ndarray, control_worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`local_solve` of n controls at once, (C (n, 4, 4) float32, solved (n, 3, 4) float64): the same
+    matrix product per control as `local_solve` (numpy's matmul runs it slice by slice), so each C
+    has the bits `local_matrix` gives it alone — the bits a rest matrix stored at bind has.
+    Raises numpy.linalg.LinAlgError when the target's matrix is singular."""
+    rhs = control_worlds[:, :3, :].copy()
+    rhs[:, :, 3] -= target_world[:3, 3]
+    solved = inverse3(target_world[:3, :3]) @ rhs
+    out = np.zeros((len(control_worlds), 4, 4), dtype=np.float64)
+    out[:, :3, :] = solved
+    out[:, 3, 3] = 1.0
+    return out.astype(np.float32), solved
+
+
+def frame_rotations(linear: np.ndarray, modes: list[str], channels: np.ndarray,
+                    scales: np.ndarray) -> np.ndarray:
+    """`frame_rotation` of n controls at once (linear (n, 3, 3), channels (n, 4), scales (n, 6)),
+    every row on its own (the polar split by one stacked SVD, R = U Vᵀ)."""
+    n = len(linear)
+    kinds_of_mode = set(modes)
+    if len(kinds_of_mode) == 1:
+        R = _channel_matrices(modes[0], channels)
+    else:
+        R = np.empty((n, 3, 3))
+        for mode in kinds_of_mode:
+            rows = [i for i, m in enumerate(modes) if m == mode]
+            R[rows] = _channel_matrices(mode, channels[rows])
+    with np.errstate(all="ignore"):
+        frame = (linear / (scales[:, :3] * scales[:, 3:])[:, None, :]) @ R.transpose(0, 2, 1)
+        det = np.linalg.det(frame)  # non-finite entries give a non-finite det
+        usable = np.isfinite(det) & (np.abs(det) > 1e-30)
+    if usable.all():
+        U, _, Vh = np.linalg.svd(frame * np.sign(det)[:, None, None])  # a mirrored frame negated
+        return U @ Vh
+    out = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    if usable.any():
+        U, _, Vh = np.linalg.svd((frame * np.sign(det)[:, None, None])[usable])
+        out[usable] = U @ Vh
+    return out
+
+
+def _channel_matrices(mode: str, channels: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of channels (n, 4) in the layout of `rotation_channels`."""
+    euler = mode not in ("QUATERNION", "AXIS_ANGLE")
+    return unwrap.channels_to_matrix(mode, channels[:, :3] if euler else channels)
+
+
 def relative_motion(current: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """A = current · rest⁻¹ for affine 4×4 matrices, with an exact (0, 0, 0, 1) bottom row."""
     out = np.eye(4)
