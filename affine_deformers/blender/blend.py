@@ -113,8 +113,23 @@ def _changed_rows(bound: BoundData, previous: np.ndarray | None, params: np.ndar
     if previous is None or bound.state != state or bound.params.shape != params.shape:
         return None
     changed = np.flatnonzero((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1))
-    rows = bound.affected_rows(changed)
-    return rows if len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points) else None
+    return _rows_to_recompute(bound, changed, len(params), bound.affected_rows)
+
+
+def _rows_to_recompute(bound: BoundData, changed: np.ndarray, m: int, affected) -> np.ndarray | None:
+    """The rows an incremental update recomputes when the controls `changed` (of m) changed, or None
+    for a full recompute; `affected(changed)` gives the vertices reading them.
+
+    With the compiled kernel its row path is taken however many rows there are: it costs no more than
+    a full pass and rounds the rows into the attribute's copy as it goes, so the write needs neither a
+    cast nor a compare; when every control changed, every vertex is listed without forming the union.
+    The numpy kernel recomputes everything above INCREMENTAL_MAX_FRACTION of the vertices (its gathers
+    and scatters would cost more than they save). Either way the result is bit-identical."""
+    compiled = accel.active()
+    if compiled and m and len(changed) == m:
+        return bound.every_row()
+    rows = affected(changed)
+    return rows if compiled or len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points) else None
 
 
 def blend_motions(deformer, motions: Motions, bound: BoundData,
@@ -208,9 +223,8 @@ def _chain_inputs(deformer, motions: Motions, bound: BoundData, state: tuple
         return params, prefixes, layout, state, None
     changed = ((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1)
                | (prefixes[:-1].view(np.int64) != bound.prefixes[:-1].view(np.int64)).any(axis=1))
-    rows = layout.affected_rows(np.flatnonzero(changed))
-    few = len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points)
-    return params, prefixes, layout, state, rows if few else None
+    rows = _rows_to_recompute(bound, np.flatnonzero(changed), len(params), layout.affected_rows)
+    return params, prefixes, layout, state, rows
 
 
 def _chain_args(bound: BoundData, params: np.ndarray, prefixes: np.ndarray,

@@ -52,6 +52,13 @@ class BoundData:
     motions_written: np.ndarray | None = None  # (4, N, 3) float32 the motion attributes hold (None = unknown)
     prefixes: np.ndarray | None = None  # (m + 1, 12) the bones' prefix matrices of the last result
     layout: tuple[tuple, hierarchy.ChainLayout] | None = None  # ((parents, strength), layout)
+    every: np.ndarray | None = None  # (N,) intp 0 … N − 1, once asked for (`every_row`)
+
+    def every_row(self) -> np.ndarray:
+        """All vertex indices (N,) intp, as a row list for the kernel's row path (made once)."""
+        if self.every is None:
+            self.every = np.arange(len(self.points), dtype=np.intp)
+        return self.every
 
     def scaled_values(self, strength: float) -> np.ndarray:
         if self.scaled is None or self.scaled[0] != strength:

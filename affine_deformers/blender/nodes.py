@@ -59,8 +59,15 @@ _READER_ATTR = "affdef_tmp_vg{}"
 
 def _is_our_group(ng: bpy.types.NodeTree | None) -> bool:
     """Our group, of the current or an older version (older ones still deform; see upgrade_group)."""
-    return (ng is not None and ng.bl_idname == "GeometryNodeTree" and ng.library is None
-            and ng.get(GROUP_MARK) in KNOWN_VERSIONS and offset_socket_identifier(ng) is not None)
+    return _our_offset_identifier(ng) is not None
+
+
+def _our_offset_identifier(ng: bpy.types.NodeTree | None) -> str | None:
+    """The offset input's identifier when `ng` is our group (`_is_our_group`), else None."""
+    if (ng is None or ng.bl_idname != "GeometryNodeTree" or ng.library is not None
+            or ng.get(GROUP_MARK) not in KNOWN_VERSIONS):
+        return None
+    return offset_socket_identifier(ng)
 
 
 def _input_identifier(ng: bpy.types.NodeTree, name: str, socket_type: str) -> str | None:
@@ -191,8 +198,8 @@ def is_modifier_for(mod: bpy.types.Modifier | None, offset_attr: str) -> bool:
     """`mod` is a Geometry Nodes modifier with our group that reads `offset_attr`."""
     if mod is None or mod.type != "NODES":
         return False
-    ng = mod.node_group
-    return _is_our_group(ng) and mod.get(offset_socket_identifier(ng)) == offset_attr
+    identifier = _our_offset_identifier(mod.node_group)
+    return identifier is not None and mod.get(identifier) == offset_attr
 
 
 def ensure_modifier(obj: bpy.types.Object, offset_attr: str, motion_attrs: tuple[str, ...], label: str,

@@ -46,10 +46,6 @@ def modifier(obj: bpy.types.Object, uid: str) -> bpy.types.Modifier | None:
     return mod
 
 
-def has_modifier(obj: bpy.types.Object, uid: str) -> bool:
-    return modifier(obj, uid) is not None
-
-
 #: Modifier types that rebuild the mesh from scratch and drop its point attributes: a deformer after
 #: one of them receives no motions (measured on 4.2 and 5.0; Subdivision, Multires, Mirror, Array,
 #: Bevel, Solidify, Triangulate, Decimate, Weld, Edge Split, Screw, Wireframe and Boolean keep or
@@ -57,7 +53,8 @@ def has_modifier(obj: bpy.types.Object, uid: str) -> bool:
 DROPS_ATTRIBUTES = frozenset({"REMESH", "SKIN", "OCEAN"})
 
 
-def output_path(obj: bpy.types.Object, deformer, rest32: np.ndarray) -> tuple[str, str]:
+def output_path(obj: bpy.types.Object, deformer, rest32: np.ndarray,
+                mod: bpy.types.Modifier | None = None) -> tuple[str, str]:
     """('OFFSET' or 'MOTION', error) for the deformer's modifier where it stands in the stack.
 
     OFFSET (v' − v from the rest shape, 3 floats per vertex) is exact only when the positions that
@@ -65,8 +62,10 @@ def output_path(obj: bpy.types.Object, deformer, rest32: np.ndarray) -> tuple[st
     the viewport or in renders, and the mesh has no shape keys, or only its reference key holding
     exactly those positions (a Basis nothing is keyed on yet). Otherwise MOTION: each vertex's affine
     map, applied to whatever reaches the modifier. A modifier before it that drops point attributes is
-    an error naming it (the modifier then passes its input through)."""
-    mod = modifier(obj, deformer.uid)
+    an error naming it (the modifier then passes its input through). `mod`: the deformer's modifier
+    when the caller has looked it up already."""
+    if mod is None:
+        mod = modifier(obj, deformer.uid)
     before = []
     for other in obj.modifiers:
         if other == mod:

@@ -81,15 +81,16 @@ class Snapshot:
         return (self.path, strength, branch_rule, self.backend)
 
 
-def precheck(obj: bpy.types.Object, deformer) -> str:
-    """Why the deformer cannot be evaluated at all ('' when it can be)."""
+def precheck(obj: bpy.types.Object, deformer, mod: bpy.types.Modifier | None = None) -> str:
+    """Why the deformer cannot be evaluated at all ('' when it can be); `mod`: its modifier, when
+    the caller has looked it up (outputs.modifier) already."""
     if obj.type != "MESH":
         return f"'{obj.name}' is not a mesh: the deformer has no effect"
     if kinds.get(deformer.kind) is None:
         return f"Deformer kind '{deformer.kind}' is not available in this version"
     if not deformer.is_bound:
         return "Not bound: press Bind" + (f" ({deformer.bind_warning})" if deformer.bind_warning else "")
-    if not outputs.has_modifier(obj, deformer.uid):
+    if (mod if mod is not None else outputs.modifier(obj, deformer.uid)) is None:
         return "The deformer's modifier was removed or applied: Rebind to recreate it"
     n = len(obj.data.vertices)
     if n != deformer.bound_vertex_count:
@@ -100,7 +101,8 @@ def precheck(obj: bpy.types.Object, deformer) -> str:
 
 def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Snapshot:
     """Read the inputs of an update of `deformer` on `obj` (a mesh) from the evaluated `depsgraph`."""
-    error = precheck(obj, deformer)
+    mod = outputs.modifier(obj, deformer.uid) if kinds.get(deformer.kind) is not None else None
+    error = precheck(obj, deformer, mod)
     motions = bound = None
     path = "OFFSET"
     if not error:
@@ -112,7 +114,7 @@ def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Sna
         except storage.StorageError as exc:
             error = str(exc)
     if not error:
-        path, error = outputs.output_path(obj, deformer, bound.rest32)
+        path, error = outputs.output_path(obj, deformer, bound.rest32, mod)
     return Snapshot(
         obj.data.session_uid, None if bound is None else bound.serial, error, path,
         tuple(getattr(deformer, name) for name in SETTINGS),
