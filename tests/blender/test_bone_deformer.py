@@ -482,3 +482,52 @@ def test_random_pose_changes_match_a_full_recompute_bit_for_bit(bl, installed, p
         previous = incremental
         bpy.context.view_layer.update()  # warm the caches again for the next step
     assert moved > 10
+
+
+def test_bone_rows_in_a_batch_equal_each_alone_bit_for_bit(installed):
+    """kinds.bone._bone_rows computes the bones that moved in one batch: every row must get the bits it
+    gets alone (the memo stores rows whatever batch made them) and agree with the one-bone function;
+    a bone with a problem gets its message, channels that cannot be unwrapped a NaN turn."""
+    import importlib
+
+    import mathutils
+
+    bone = importlib.import_module(f"{installed.package}.blender.kinds.bone")
+    rng = np.random.default_rng(3)
+
+    def affine(scale: float = 1.0) -> np.ndarray:
+        q = mathutils.Quaternion(rng.normal(size=4)).normalized()
+        m = np.eye(4)
+        m[:3, :3] = np.array(q.to_matrix()) * scale
+        m[:3, 3] = rng.normal(size=3)
+        return np.float32(m).astype(np.float64)
+
+    frame = affine(1.3)
+    frame_inverse = bone._inverse_affine(frame)
+    n = 8
+    rests = np.stack([affine() for _ in range(n)])
+    poses = np.stack([affine() for _ in range(n)])
+    modes = ["XYZ", "QUATERNION", "AXIS_ANGLE", "ZYX", "XYZ", "QUATERNION", "XYZ", "XYZ"]
+    channels = [(*rng.normal(size=3) * 5.0, 0.0) if m not in ("QUATERNION", "AXIS_ANGLE")
+                else tuple(rng.normal(size=4)) for m in modes]
+    poses[4] = rests[4]  # bone 4 at rest (unturned channels)
+    channels[4] = (0.0, 0.0, 0.0, 0.0)
+    poses[6, 1, 3] = np.inf  # bone 6: not finite
+    channels[7] = (1e9, 0.0, 0.0, 0.0)  # bone 7: too many turns to unwrap
+    batch = bone._bone_rows(frame, frame_inverse, poses, rests, modes, channels)
+    for i in range(n):
+        alone = bone._bone_rows(frame, frame_inverse, poses[i : i + 1], rests[i : i + 1], modes[i : i + 1],
+                                channels[i : i + 1])[0]
+        row = batch[i]
+        assert (row.error, row.at_rest, row.unturned) == (alone.error, alone.at_rest, alone.unturned), i
+        for a, b in ((row.matrix, alone.matrix), (row.turn, alone.turn), (row.head, alone.head)):
+            assert a.tobytes() == b.tobytes(), i
+        single = bone._bone_row(frame, frame_inverse, poses[i], rests[i], modes[i], channels[i])
+        assert (single.error, single.at_rest, single.unturned) == (row.error, row.at_rest, row.unturned), i
+        assert np.allclose(single.matrix, row.matrix, rtol=0, atol=1e-12), i
+        assert np.allclose(single.turn, row.turn, rtol=0, atol=1e-9, equal_nan=True), i
+        assert np.array_equal(single.head, row.head), i
+    assert batch[4].at_rest and np.array_equal(batch[4].matrix, np.eye(4))
+    assert "non-finite" in batch[6].error
+    assert np.isnan(batch[7].turn).all() and not batch[7].error
+    assert not any(batch[i].error for i in (0, 1, 2, 3, 5))

@@ -50,6 +50,7 @@ from .base import (
 )
 from .probe import harmonic_surface_weights, surface_warning
 from .transforms import (
+    MAX_COORDINATE,
     finite_transform,
     frame_rotation,
     in_a_scene,
@@ -164,6 +165,82 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
         return _BoneRow(identity, False, unturned, turn, head,
                         "Bone '{bone}' " + reason + ": the mesh shows its input")
     return _BoneRow(matrix, False, unturned, turn, head)
+
+
+def _bone_rows(frame_matrix: np.ndarray, frame_inverse: np.ndarray, poses: np.ndarray, rests: np.ndarray,
+               modes: list[str], channels: list[tuple[float, ...]]) -> list[_BoneRow]:
+    """`_bone_row` of n pose bones at once (poses, rests (n, 4, 4) float64), in a few stacked numpy
+    calls: every row is computed on its own (stacked products run matrix by matrix, the channel
+    unwrap row by row), so a bone gets the same bits in any batch, alone included. Bones with a
+    problem (non-finite pose, zero-length rest, a motion outside Aff+(3)) go through `_bone_row`,
+    which words the message; a turn whose channels cannot be unwrapped is NaN, as there."""
+    n = len(poses)
+    rotations = [tuple(float(c) for c in ch) + (0.0,) * (4 - len(ch)) for ch in channels]
+    rotation_array = np.array(rotations)
+    identities = np.array([identity_channels(mode) for mode in modes])
+    euler = np.array([mode not in ("QUATERNION", "AXIS_ANGLE") for mode in modes])
+    with np.errstate(all="ignore"):
+        rested = frame_matrix @ rests
+        finite = ((np.abs(poses) < MAX_COORDINATE).all(axis=(1, 2))
+                  & (np.abs(frame_matrix @ poses) < MAX_COORDINATE).all(axis=(1, 2)))
+        inverses = [_rest_inverse(rest) for rest in rests]
+        local = poses @ np.stack([inverse for inverse, _ in inverses])
+        frames = np.stack([_rest_frame(r) for r in rested])
+        try:
+            rotvecs = unwrap.channel_rotvec(modes, identities, rotation_array)
+        except ValueError:  # some row cannot be unwrapped: the others keep their (row-independent) turn
+            rotvecs = np.stack([_channel_turn(mode, identities[i], rotation_array[i])
+                                for i, mode in enumerate(modes)])
+        turns = (frames @ rotvecs[:, :, None])[:, :, 0]
+        # Euler channels compare three values, the others four (the fourth Euler slot is padding).
+        same = np.float32(rotation_array) == np.float32(identities)
+        unturned = same[:, :3].all(axis=1) & (euler | same[:, 3])
+        at_rest = unturned & (np.abs(local - np.eye(4)).reshape(n, 16).max(axis=1) <= AT_REST_TOL)
+        matrices = frame_matrix @ local @ frame_inverse
+        matrices[:, 3] = (0.0, 0.0, 0.0, 1.0)
+        motion_ok = ((np.abs(matrices) < MAX_COORDINATE).all(axis=(1, 2))
+                     & (np.linalg.det(matrices[:, :3, :3]) > 0.0))
+    out = []
+    identity = np.eye(4)
+    for i in range(n):
+        if not (finite[i] and inverses[i][1] and (at_rest[i] or motion_ok[i])):
+            out.append(_bone_row(frame_matrix, frame_inverse, poses[i], rests[i], modes[i], channels[i]))
+            continue
+        head = rested[i, :3, 3].copy()
+        if at_rest[i]:
+            out.append(_BoneRow(identity, True, True, turns[i], head))
+        else:
+            out.append(_BoneRow(matrices[i], False, bool(unturned[i]), turns[i], head))
+    return out
+
+
+def _channel_turn(mode: str, rest: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """unwrap.channel_rotvec of one row (n = 1), NaN when its channels cannot be unwrapped."""
+    try:
+        return unwrap.channel_rotvec([mode], rest[None], current[None])[0]
+    except ValueError:
+        return np.full(3, np.nan)
+
+
+#: Inverses of bones' rest matrices (armature space), keyed on their bits: the rest pose changes only
+#: in Edit Mode. Bounded like `_rows`.
+_rest_inverses: dict[bytes, tuple[np.ndarray, bool]] = {}
+
+
+def _rest_inverse(rest: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(`_inverse_affine`(rest), whether it exists and is finite) of a rest matrix (4, 4) float64."""
+    key = rest.tobytes()
+    found = _rest_inverses.get(key)
+    if found is None:
+        try:
+            inverse = _inverse_affine(rest)
+            found = (inverse, bool(np.isfinite(inverse).all()))
+        except np.linalg.LinAlgError:
+            found = (np.eye(4), False)
+        if len(_rest_inverses) >= ROW_MEMO_SIZE:
+            _rest_inverses.clear()
+        _rest_inverses[key] = found
+    return found
 
 
 class BoneKind:
@@ -281,13 +358,31 @@ class BoneKind:
             return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' has a non-finite "
                                    "transform: the mesh shows its input")
         pose = armature.evaluated_get(depsgraph).pose
-        rows: dict[str, _BoneRow] = {}
+        rows: dict[str, _BoneRow | None] = {}
+        misses: list[tuple] = []
+        missing = ""
         for item in deformer.bones:
-            error = _chain_rows(item.name, pose, frame, frame_inverse, rows)
-            if error:
-                # replace, not format: a bone name may hold braces
-                message = error.replace("{armature}", armature.name).replace("{bone}", item.name)
+            if not _chain_rows(item.name, pose, frame, rows, misses):
+                missing = item.name
+                break
+        if misses:
+            # The bones that moved, in one batch: every row is computed on its own (same bits alone).
+            computed = _bone_rows(frame, frame_inverse, np.stack([miss[2] for miss in misses]),
+                                  np.stack([miss[3] for miss in misses]), [miss[4] for miss in misses],
+                                  [miss[5] for miss in misses])
+            if len(_rows) + len(misses) > ROW_MEMO_SIZE:
+                _rows.clear()
+            for (name, key, *_), row in zip(misses, computed, strict=True):
+                _rows[key] = rows[name] = row
+        # The first problem in the order the chains were walked; replace, not format: a bone name may
+        # hold braces.
+        for name, row in rows.items():
+            if row.error:
+                message = row.error.replace("{armature}", armature.name).replace("{bone}", name)
                 return Motions.invalid(m, message)
+        if missing:
+            return Motions.invalid(m, f"Armature '{armature.name}' has no bone named '{missing}' (renamed "
+                                   "or deleted?): rename it back, remove it from the deformer or rebind")
         chosen = [rows[item.name] for item in deformer.bones]
         if m == 0:
             return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool))
@@ -325,6 +420,7 @@ class BoneKind:
         """Drop the per-bone memo (keyed on its inputs: shared by all deformers, `key` is ignored)."""
         _rows.clear()
         _rest_frames.clear()
+        _rest_inverses.clear()
 
 
 def _frame_matrix(obj: bpy.types.Object, armature: bpy.types.Object,
@@ -347,15 +443,15 @@ def _inverse_affine(matrix: np.ndarray) -> np.ndarray:
     return out
 
 
-def _chain_rows(name: str, pose, frame: np.ndarray, frame_inverse: np.ndarray,
-                rows: dict[str, _BoneRow]) -> str:
-    """Fill `rows` with the `_BoneRow` of bone `name` and of its parents (their turns add up); returns
-    the first error ('' when none), with {bone} / {armature} placeholders."""
+def _chain_rows(name: str, pose, frame: np.ndarray, rows: dict[str, _BoneRow | None],
+                misses: list[tuple]) -> bool:
+    """Walk bone `name` and its parents (their turns add up) into `rows` (in walk order): a bone whose
+    inputs are in the memo gets its `_BoneRow`, the others None and an entry (name, key, pose matrix,
+    rest matrix, mode, channels) in `misses`. False when the armature has no bone `name`."""
     while name and name not in rows:
         pose_bone = pose.bones.get(name)
         if pose_bone is None:
-            return ("Armature '{armature}' has no bone named '{bone}' (renamed or deleted?): rename it "
-                    "back, remove it from the deformer or rebind")
+            return False
         posed = np.array(pose_bone.matrix, dtype=np.float64)
         rest = np.array(pose_bone.bone.matrix_local, dtype=np.float64)
         mode = pose_bone.rotation_mode
@@ -363,16 +459,11 @@ def _chain_rows(name: str, pose, frame: np.ndarray, frame_inverse: np.ndarray,
         key = (frame.tobytes(), posed.tobytes(), rest.tobytes(), mode, _bits(channels))
         row = _rows.get(key)
         if row is None:
-            row = _bone_row(frame, frame_inverse, posed, rest, mode, channels)
-            if len(_rows) >= ROW_MEMO_SIZE:
-                _rows.clear()
-            _rows[key] = row
+            misses.append((name, key, posed, rest, mode, channels))
         rows[name] = row
-        if row.error:
-            return row.error.replace("{bone}", name)
         parent = pose_bone.parent
         name = parent.name if parent is not None else ""
-    return ""
+    return True
 
 
 def _hierarchy(names: list[str], pose, rows: dict[str, _BoneRow], matrices: np.ndarray) -> Chain:
