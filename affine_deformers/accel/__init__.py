@@ -180,12 +180,14 @@ def _fail(reason: str, warn: bool = True) -> None:
         warnings.warn(f"affine_deformers: compiled kernel disabled ({reason}); using numpy", stacklevel=3)
 
 
-#: How long an idle helper thread busy-waits (without the GIL) for the next call before it sleeps.
-#: Calls back to back (several deformers in one update, rows then motions) then find it awake; a
-#: sleeping thread can take 0.05–4 ms to get a core back (measured on a shared 2-vCPU VM). numba's
-#: OpenMP threads, used before, spun ~10 ms of CPU after every call; longer spins than this one
-#: made later wake-ups slower there.
-SPIN_MS = 1.0
+#: How long an idle helper thread busy-waits (without the GIL) for the next call before it sleeps
+#: (0: it sleeps at once). A spin lets calls back to back find it awake, but the core it holds is
+#: the one Blender's own threads need right after our handler returns (the depsgraph pass that
+#: applies the result, Geometry Nodes, drawing), and a caller no longer waits for a helper that is
+#: still asleep (`_Helper.defer`: the caller claims every chunk itself). Measured on a 2-vCPU VM,
+#: one probe moving among 8, interleaved runs: 10k vertices 2.15 ms per update with a 1 ms spin,
+#: 1.19 ms with 0.1 ms, 1.10 ms with none; 130k vertices 6.99 / 6.13 / 5.67 ms.
+SPIN_MS = 0.0
 
 
 class _Helper:
@@ -253,8 +255,8 @@ _helpers: list[_Helper] = []  # grown on demand; used under _state.lock only
 
 
 def _spin(module: ModuleType) -> tuple[Callable[[np.ndarray, int, int], bool], int] | None:
-    """(compiled.spin_wait, iterations for SPIN_MS), measured once; None when it does not compile
-    (the helpers then just sleep between calls)."""
+    """(compiled.spin_wait, iterations for SPIN_MS), measured once; None when SPIN_MS is 0 or it
+    does not compile (the helpers then just sleep between calls)."""
     if _state.spin is None:
         try:
             fn = module.spin_wait
@@ -267,7 +269,7 @@ def _spin(module: ModuleType) -> tuple[Callable[[np.ndarray, int, int], bool], i
             _state.spin = (fn, max(1, int(SPIN_MS * per_ms)))
         except Exception:
             _state.spin = False
-    return _state.spin or None
+    return (_state.spin or None) if SPIN_MS > 0.0 else None
 
 
 def _run_chunks(
