@@ -61,6 +61,7 @@ from ... import accel
 from ...core import aff3
 from ...core.cage import (
     CageTopology,
+    FaceMotions,
     affected_faces,
     cage_weights,
     check_cage,
@@ -441,7 +442,9 @@ class CageKind:
             controls = cached[1]
         else:
             current = to_target(stored, state.points)
-            volume = signed_volume(current, topology)
+            # The compiled kernel does the faces and the volume in one call (None: numpy does them).
+            compiled = accel.cage_faces(rest, current, topology)
+            volume = signed_volume(current, topology) if compiled is None else compiled[2]
             if np.isfinite(volume) and volume <= 0.0:  # non-finite vertices: collapsed faces, below
                 # Mirrored vertices (an animated inside-out cage) or a collapse to a plane or point:
                 # every face motion would be mirrored or singular, so nothing of it is blended.
@@ -449,7 +452,7 @@ class CageKind:
                                               "current shape (its volume is not positive): the mesh shows "
                                               "its rest shape")
             else:
-                controls = _face_motions(rest, current, topology, linear)
+                controls = _face_motions(rest, current, topology, linear, compiled)
                 if nodes is not None:
                     controls = _node_motions(controls, *nodes, linear=linear)
             _last_motions[(obj.session_uid, deformer.uid)] = (key, controls)
@@ -482,20 +485,26 @@ def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgra
     return outer, reference, matrix[:3, 3].astype(np.float64)
 
 
-def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
-                  linear: bool) -> Motions:
+def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology, linear: bool,
+                  compiled: tuple[FaceMotions, np.ndarray, float] | None = None) -> Motions:
     """Motions of the faces the cage's shape change can reach (core.cage.affected_faces); all other
     faces are exactly at rest (zero parameters, so the vertices they alone drive stay bit-for-bit).
     The matrices φ(P_f) are formed only for the 'LINEAR' blend (`linear`), the only reader of them;
-    otherwise they stay the identity and the parameters carry the motion."""
+    otherwise they stay the identity and the parameters carry the motion. `compiled`: the result of
+    `accel.cage_faces` for these cages (the same motions to ~1e-15), or None to compute them here."""
     F = topology.n_faces
-    face_moved = affected_faces(rest, current, topology)
+    if compiled is not None:
+        motion, face_moved, _ = compiled
+    else:
+        face_moved = affected_faces(rest, current, topology)
+        motion = None
+        if np.any(face_moved):
+            motion = face_motions(rest, current, topology, faces=face_moved, polar=accel.polar_log)
     at_rest = ~face_moved
     params = np.zeros((F, 12))
     valid = np.ones(F, dtype=bool)
     warning = ""
-    if np.any(face_moved):
-        motion = face_motions(rest, current, topology, faces=face_moved, polar=accel.polar_log)
+    if motion is not None and np.any(face_moved):
         params[face_moved] = motion.params[face_moved]
         valid = motion.valid | at_rest
         if motion.messages:
