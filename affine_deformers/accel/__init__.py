@@ -62,6 +62,7 @@ __all__ = [
     "active",
     "backend",
     "cage_faces",
+    "cage_nodes",
     "chain_motions",
     "chain_points",
     "deform_points_params",
@@ -148,6 +149,7 @@ def warm_up() -> str:
         moved = corners.copy()
         moved[3, 0] = 0.1
         cage_faces(corners, moved, tetra)  # cage_faces
+        cage_nodes(np.zeros((1, 3)), np.ones((1, 4)), params.repeat(4, axis=0), np.arange(4))  # cage_nodes
         prefixes = np.zeros((1, 12))
         prefixes[0, [0, 4, 8]] = 1.0
         chain_points(pts, params, idx[None], val[None], idx[:, 0], prefixes)  # chain_points_entry
@@ -682,6 +684,41 @@ def cage_faces(rest: ArrayLike, current: ArrayLike, topology: _cage.CageTopology
         lifted = _unwrap.lift_params(corner_params[rows], corner_params[rows[0], 0:3])
         params[f] = (tables.weight[rows, None] * lifted).sum(axis=0)
     return _cage.FaceMotions(params, valid, _cage.face_messages(has_corner, valid)), reached, float(volume)
+
+
+def cage_nodes(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, reached: ArrayLike,
+               valid: ArrayLike | None = None) -> tuple[FloatArray, NDArray[np.bool_]] | None:
+    """(params (G, 12), touched (G,)): `core.cage_harmonic.node_params(node_points, node_weights,
+    face_params, faces=reached, valid=valid)` for the nodes with weight on a reached face (touched),
+    zeros for the others, in one compiled call (`compiled.cage_nodes`; the same parameters to
+    ~1e-15). node_weights (G, F), best column-major (its transpose is then read without a copy);
+    reached: the indices of the faces that moved; valid (F,) bool or None (all valid). None when the
+    compiled kernel is not active now (the caller then uses `node_params`)."""
+    module = _usable()
+    if module is None:
+        return None
+    W = np.asarray(node_weights, dtype=np.float64)
+    x = _c(node_points, np.float64)
+    P = np.asarray(face_params, dtype=np.float64)
+    reached = _c(reached, np.int64)
+    G, F = W.shape
+    keep = np.ones(F, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    faces = reached[keep[reached]]
+    terms = np.empty((faces.size, 21))
+    blend = np.empty((22, G))
+    out = np.empty((G, 12))
+    touched = np.empty(G, dtype=np.bool_)
+    with _state.lock:
+        try:
+            module.cage_nodes(_c(W.T, np.float64), reached, faces, _c(P[faces], np.float64),
+                              keep.astype(np.float64), x, terms, blend, out, touched)
+        except Exception as exc:
+            if "cage_nodes" in _state.compiled:
+                raise
+            _fail(f"compiling cage_nodes failed: {type(exc).__name__}: {exc}")
+            return None
+        _state.compiled.add("cage_nodes")
+    return out, touched
 
 
 def linear_maps(params: ArrayLike) -> FloatArray:

@@ -101,7 +101,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["CHUNK", "ENTRIES", "cage_faces", "chain_motion_entry", "chain_points_entry",
+__all__ = ["CHUNK", "ENTRIES", "cage_faces", "cage_nodes", "chain_motion_entry", "chain_points_entry",
            "deform_points_entry", "motion_params", "node_pivot", "polar_log", "spin_wait"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
@@ -117,7 +117,7 @@ _N_CHAIN_SCRATCH = 21  # as _N_SCRATCH, plus the original point (offsets)
 _N_CHAIN_MOTION_SCRATCH = 36  # as _N_MOTION_SCRATCH, plus the product so far
 #: The compiled kernel entries, one specialisation each (`warm_up` runs exactly these and `spin_wait`).
 ENTRIES = ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
-           "chain_motion_entry", "cage_faces")
+           "chain_motion_entry", "cage_faces", "cage_nodes")
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -1177,6 +1177,87 @@ def cage_faces(
                               centres, inverses, sv, sg, smom, sspread, sactive, params[f], corner_params,
                               scratch, sig)
     return _fan_volume(cur, fan)
+
+
+@_entry
+def cage_nodes(
+    Wt: np.ndarray, reached: np.ndarray, faces: np.ndarray, face_params: np.ndarray, keep: np.ndarray,
+    x: np.ndarray, terms: np.ndarray, blend: np.ndarray, out: np.ndarray, touched: np.ndarray,
+) -> int:
+    """core.cage_harmonic.node_params for the nodes a moved face reaches, in one call; returns how
+    many nodes that is.
+
+    Wt (F, G) f64: the node weights transposed (face by face; W_cf = Wt[f, c]); reached (n_r,)
+    int64: the faces that moved (valid or not); faces (n,) int64 those of them to blend (valid),
+    face_params (n, 12) their parameters (ω, u, Y); keep (F,) f64 1 for a valid face, 0 for one left
+    out (scale_c = 1 / Σ_f W_cf keep_f, 0 for a node without any valid face); x (G, 3) the node
+    points. Scratch: terms (n, 21), blend (22, G) (row 21: the scale).
+
+    touched[c] = W_cf > 0 for some reached face f; out[c] (G, 12) = (ω̄, ū + V(ω̄)⁻¹ (x − M̄ x), Ȳ)
+    for those (zeros for the others) with (ω̄, ū, Ȳ, B̄) = scale_c Σ_f W_cf (ω_f, u_f, Y_f, B_f),
+    ū ← ū + B̄ x_c, B_f = V(ω_f)⁻¹ (M_f − I) (`node_pivot`'s two steps). The sums run over `faces`
+    in the given order, so a node's result depends on its own weights and those faces only. Scalar
+    and loops over all G nodes (LLVM may vectorise the blend across nodes: every node is in the same
+    loop whatever the call, so its bits do not depend on which nodes are touched)."""
+    G = Wt.shape[1]
+    n = faces.shape[0]
+    for c in range(G):
+        touched[c] = False
+    for i in range(reached.shape[0]):
+        f = reached[i]
+        for c in range(G):
+            if Wt[f, c] > 0.0:
+                touched[c] = True
+    for i in range(n):
+        w0, w1, w2 = face_params[i, 0], face_params[i, 1], face_params[i, 2]
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = _linear_columns(w0, w1, w2, face_params[i], 6)
+        b00, b10, b20 = _jacobian_inv_apply(w0, w1, w2, c00 - 1.0, c10, c20)
+        b01, b11, b21 = _jacobian_inv_apply(w0, w1, w2, c01, c11 - 1.0, c21)
+        b02, b12, b22 = _jacobian_inv_apply(w0, w1, w2, c02, c12, c22 - 1.0)
+        for k in range(12):
+            terms[i, k] = face_params[i, k]
+        terms[i, 12], terms[i, 13], terms[i, 14] = b00, b01, b02
+        terms[i, 15], terms[i, 16], terms[i, 17] = b10, b11, b12
+        terms[i, 18], terms[i, 19], terms[i, 20] = b20, b21, b22
+    for k in range(22):
+        for c in range(G):
+            blend[k, c] = 0.0
+    for f in range(Wt.shape[0]):
+        kf = keep[f]
+        for c in range(G):
+            blend[21, c] += Wt[f, c] * kf
+    for i in range(n):
+        f = faces[i]
+        for k in range(21):
+            term = terms[i, k]
+            for c in range(G):
+                blend[k, c] += Wt[f, c] * term
+    count = 0
+    y = np.empty(12)
+    for c in range(G):
+        for k in range(12):
+            out[c, k] = 0.0
+        if not touched[c]:
+            continue
+        count += 1
+        s = 1.0 / blend[21, c] if blend[21, c] > 0.0 else 0.0
+        w0, w1, w2 = blend[0, c] * s, blend[1, c] * s, blend[2, c] * s
+        for k in range(6, 12):
+            y[k] = blend[k, c] * s
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = _linear_columns(w0, w1, w2, y, 6)
+        p0, p1, p2 = x[c, 0], x[c, 1], x[c, 2]
+        v0 = p0 - (c00 * p0 + c01 * p1 + c02 * p2)
+        v1 = p1 - (c10 * p0 + c11 * p1 + c12 * p2)
+        v2 = p2 - (c20 * p0 + c21 * p1 + c22 * p2)
+        j0, j1, j2 = _jacobian_inv_apply(w0, w1, w2, v0, v1, v2)
+        u0 = blend[3, c] * s + (blend[12, c] * s * p0 + blend[13, c] * s * p1 + blend[14, c] * s * p2)
+        u1 = blend[4, c] * s + (blend[15, c] * s * p0 + blend[16, c] * s * p1 + blend[17, c] * s * p2)
+        u2 = blend[5, c] * s + (blend[18, c] * s * p0 + blend[19, c] * s * p1 + blend[20, c] * s * p2)
+        out[c, 0], out[c, 1], out[c, 2] = w0, w1, w2
+        out[c, 3], out[c, 4], out[c, 5] = u0 + j0, u1 + j1, u2 + j2
+        for k in range(6, 12):
+            out[c, k] = y[k]
+    return count
 
 
 # ---------------------------------------------------------------------------------------------

@@ -156,3 +156,57 @@ def test_inactive_kernel_returns_none(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(accel.ACCEL_ENV, "0")
     points, topology = box_cage((2, 2, 2), (1.0, 1.0, 1.0))
     assert accel.cage_faces(points, points * 1.1, topology) is None
+
+
+# --------------------------------------------------------------------------------------------------
+# the harmonic weights' nodes
+
+
+def node_case(rng: np.random.Generator, G: int = 60, F: int = 40) -> tuple[np.ndarray, ...]:
+    """Node points, column-major weights (rows summing to 1, some zeros, two nodes without weight
+    on any moved face) and face parameters with moderate rotations and stretches."""
+    x = rng.normal(scale=2.0, size=(G, 3))
+    W = rng.random((G, F)) ** 2 * (rng.random((G, F)) < 0.7)
+    W[:2, :] = 0.0
+    W[:2, -1] = 1.0  # face F − 1 never moves
+    W /= W.sum(axis=1, keepdims=True)
+    P = np.concatenate([rng.normal(scale=0.5, size=(F, 6)), rng.normal(scale=0.2, size=(F, 6))], axis=1)
+    P[-1] = 0.0
+    return x, np.asfortranarray(W), P
+
+
+@pytest.mark.parametrize("broken", [False, True])
+def test_compiled_nodes_match_numpy(compiled: ModuleType, broken: bool) -> None:
+    from affine_deformers.core.cage_harmonic import node_params
+
+    rng = np.random.default_rng(157)
+    x, W, P = node_case(rng)
+    reached = np.flatnonzero(np.arange(W.shape[1]) % 3 != 2)[:-1]
+    valid = None
+    if broken:
+        valid = np.ones(W.shape[1], dtype=bool)
+        valid[reached[:4]] = False
+        P[reached[:4]] = 0.0
+    params, touched = accel.cage_nodes(x, W, P, reached, valid)
+    want = node_params(x, W, P, faces=reached, valid=valid)
+    assert np.array_equal(touched, (W[:, reached] > 0.0).any(axis=1)) and not touched[:2].any()
+    assert np.array_equal(params[~touched], np.zeros((int((~touched).sum()), 12)))
+    assert np.abs(params[touched] - want[touched]).max() <= 1e-14 * max(1.0, np.abs(want).max())
+
+
+def test_compiled_nodes_of_a_common_motion_are_exact(compiled: ModuleType) -> None:
+    """Every face with the same motion: each node gets exactly ψ of it (to rounding), whatever its
+    position (the blend is pivoted at the node)."""
+    rng = np.random.default_rng(163)
+    x, W, _ = node_case(rng)
+    G = similarity(0.8, [0.3, -1.0, 0.5], 1.2, [1.0, 2.0, -0.5])
+    P = np.broadcast_to(aff3.params_from_matrices(G), (W.shape[1], 12)).copy()
+    params, touched = accel.cage_nodes(x, W, P, np.arange(W.shape[1]))
+    assert touched.all()
+    np.testing.assert_allclose(params, np.broadcast_to(P[0], params.shape), atol=1e-12)
+
+
+def test_compiled_nodes_inactive_kernel_returns_none(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(accel.ACCEL_ENV, "0")
+    x, W, P = node_case(np.random.default_rng(1))
+    assert accel.cage_nodes(x, W, P, np.arange(3)) is None

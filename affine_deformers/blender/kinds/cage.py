@@ -515,6 +515,11 @@ def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
     return Motions(matrices, at_rest, "", params=params, valid=valid, warning=warning)
 
 
+def _identities(n: int) -> np.ndarray:
+    """(n, 4, 4) identity matrices (a fresh array: Motions may be modified by their reader)."""
+    return np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+
+
 def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndarray, *,
                   linear: bool = False) -> Motions:
     """The faces' motions as the grid nodes' ('HARMONIC' weights): node c's parameters are the
@@ -526,11 +531,15 @@ def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndar
     G = len(node_points)
     moved = np.flatnonzero(~faces.at_rest)
     valid = None if faces.valid is None or np.all(faces.valid) else faces.valid
+    compiled = None if linear else accel.cage_nodes(node_points, node_weights, faces.params, moved, valid)
+    if compiled is not None:  # the compiled kernel: every touched node in one call
+        params, touched = compiled
+        return Motions(_identities(G), ~touched, "", params=params, warning=faces.warning)
     touched = np.zeros(node_weights.shape[1])
     touched[moved] = 1.0
     rows = np.flatnonzero(node_weights @ touched > 0.0)
     params = np.zeros((G, 12))
-    matrices = np.broadcast_to(np.eye(4), (G, 4, 4)).copy()
+    matrices = _identities(G)
     if rows.size:
         # Most nodes (the usual case: harmonic weights reach far): every node is computed and the rows
         # kept, rather than copying those rows of the (G, F) weights (column-major: `node_data`).
