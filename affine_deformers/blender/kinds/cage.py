@@ -505,7 +505,10 @@ def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
     valid = np.ones(F, dtype=bool)
     warning = ""
     if motion is not None and np.any(face_moved):
-        params[face_moved] = motion.params[face_moved]
+        if compiled is not None:  # a fresh array, zero outside the faces reached
+            params = motion.params
+        else:
+            params[face_moved] = motion.params[face_moved]
         valid = motion.valid | at_rest
         if motion.messages:
             warning = "; ".join(motion.messages) + f" ({_COLLAPSE_NOTE})"
