@@ -52,6 +52,8 @@ STAGE_POINTS = (
     ("core.cage", "face_motions", "psi"),
     ("core.cage_harmonic", "node_params", "psi"),  # harmonic cage weights: the nodes' blended faces
     ("core.cage_harmonic", "node_matrices_linear", "psi"),
+    ("accel", "cage_faces", "psi"),  # the same two steps in the compiled kernel
+    ("accel", "cage_nodes", "psi"),
     ("core.deform", "deform_points_params", "kernel"),
     ("core.deform", "deform_points_params_rows", "kernel"),
     ("core.deform", "blend_linear_sparse", "kernel"),

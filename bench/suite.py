@@ -405,6 +405,8 @@ def _part_b_suzanne(plan: Plan, have_ours: bool, report: Report) -> None:
             samples, bind = _ours_cage(plan, target, cage, f"ours: Suzanne, {name}", report, weights,
                                        vertex)
             rows.append((f"Affine cage (ours), {name}", samples, bind))
+            if samples is not None:
+                report.split_rows.append((f"(b) Suzanne in {faces} quads, {name}, {n:,} verts", samples))
             common.clear_scene()
     target, cage = cage_field.add_pair(scene, "MD")
     rig_md = native.mesh_deform(target, cage, plan.precision)

@@ -38,9 +38,11 @@ from types import ModuleType
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..core import cage as _cage
 from ..core import cage_harmonic as _harmonic
 from ..core import deform as _np_kernel
 from ..core import hierarchy as _np_hierarchy
+from ..core import unwrap as _unwrap
 from ..core.checks import (
     check_given_out,
     check_indices,
@@ -59,6 +61,8 @@ __all__ = [
     "ACCEL_ENV",
     "active",
     "backend",
+    "cage_faces",
+    "cage_nodes",
     "chain_motions",
     "chain_points",
     "deform_points_params",
@@ -140,6 +144,12 @@ def warm_up() -> str:
         vertex_motions(params, idx, val)  # motion_params
         polar_log(np.eye(3)[None])  # polar_log
         node_params(np.zeros((1, 3)), np.ones((1, 1)), params)  # node_pivot
+        tetra = _cage.CageTopology.from_polygons([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+        corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+        moved = corners.copy()
+        moved[3, 0] = 0.1
+        cage_faces(corners, moved, tetra)  # cage_faces
+        cage_nodes(np.zeros((1, 3)), np.ones((1, 4)), params.repeat(4, axis=0), np.arange(4))  # cage_nodes
         prefixes = np.zeros((1, 12))
         prefixes[0, [0, 4, 8]] = 1.0
         chain_points(pts, params, idx[None], val[None], idx[:, 0], prefixes)  # chain_points_entry
@@ -629,6 +639,88 @@ def node_params(node_points: ArrayLike, node_weights: ArrayLike, face_params: Ar
                                          maps=linear_maps)
         _state.compiled.add("node_pivot")
     return nodes
+
+
+def cage_faces(rest: ArrayLike, current: ArrayLike, topology: _cage.CageTopology
+               ) -> tuple[_cage.FaceMotions, NDArray[np.bool_], float] | None:
+    """(`core.cage.face_motions(rest, current, topology, faces=reached)`, reached (F,) bool =
+    `core.cage.affected_faces(rest, current, topology)`, `core.cage.signed_volume(current, topology)`)
+    with the 'NEIGHBOURS' apex, in one compiled call (`compiled.cage_faces`: corner frames, stencil
+    apex, fold guard, ψ with the polar split of `polar_log`, the mean over each face's corners, for
+    the faces reached only; agreeing with the numpy functions to ~1e-15). Faces whose corners need a
+    lift onto the first corner's rotation branch (past a half turn from it) are lifted and averaged
+    here with `unwrap.lift_params`, as face_motions does. None when the compiled kernel is not
+    active now (the caller then uses the numpy functions)."""
+    module = _usable()
+    if module is None:
+        return None
+    tables = _cage.face_tables(rest, topology)
+    cur = _c(np.asarray(current, dtype=np.float64), np.float64)
+    if cur.shape != tables.rest.shape:
+        raise ValueError(f"current must have shape {tables.rest.shape}, got {cur.shape}")
+    F = topology.n_faces
+    params = np.empty((F, 12))
+    corner_params = np.empty((tables.triples.shape[0], 12))
+    flags = np.empty(F, dtype=np.int64)
+    moved = np.empty(cur.shape[0], dtype=np.bool_)
+    with _state.lock:
+        try:
+            volume = module.cage_faces(
+                cur, tables.rest, tables.triples, tables.first, tables.usable, tables.weight, tables.rest_ok,
+                tables.centres, tables.inverses, tables.stencil_vertices, tables.stencil_gamma,
+                tables.stencil_moments, tables.stencil_spread, tables.stencil_active, tables.fan, moved,
+                params, corner_params, flags)
+        except Exception as exc:
+            if "cage_faces" in _state.compiled:
+                raise
+            _fail(f"compiling cage_faces failed: {type(exc).__name__}: {exc}")
+            return None
+        _state.compiled.add("cage_faces")
+    reached = (flags & module.FACE_REACHED) != 0
+    has_corner = (flags & module.FACE_HAS_CORNER) != 0
+    valid = has_corner & (((flags & module.FACE_VALID) != 0) | ~reached)
+    lift = np.flatnonzero(flags & module.FACE_NEEDS_LIFT)
+    for f in lift.tolist():  # rare: a face whose corners straddle a half turn
+        span = np.arange(tables.first[f], tables.first[f + 1])
+        rows = span[tables.usable[span]]
+        lifted = _unwrap.lift_params(corner_params[rows], corner_params[rows[0], 0:3])
+        params[f] = (tables.weight[rows, None] * lifted).sum(axis=0)
+    return _cage.FaceMotions(params, valid, _cage.face_messages(has_corner, valid)), reached, float(volume)
+
+
+def cage_nodes(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, reached: ArrayLike,
+               valid: ArrayLike | None = None) -> tuple[FloatArray, NDArray[np.bool_]] | None:
+    """(params (G, 12), touched (G,)): `core.cage_harmonic.node_params(node_points, node_weights,
+    face_params, faces=reached, valid=valid)` for the nodes with weight on a reached face (touched),
+    zeros for the others, in one compiled call (`compiled.cage_nodes`; the same parameters to
+    ~1e-15). node_weights (G, F), best column-major (its transpose is then read without a copy);
+    reached: the indices of the faces that moved; valid (F,) bool or None (all valid). None when the
+    compiled kernel is not active now (the caller then uses `node_params`)."""
+    module = _usable()
+    if module is None:
+        return None
+    W = np.asarray(node_weights, dtype=np.float64)
+    x = _c(node_points, np.float64)
+    P = np.asarray(face_params, dtype=np.float64)
+    reached = _c(reached, np.int64)
+    G, F = W.shape
+    keep = np.ones(F, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    faces = reached[keep[reached]]
+    terms = np.empty((faces.size, 21))
+    blend = np.empty((22, G))
+    out = np.empty((G, 12))
+    touched = np.empty(G, dtype=np.bool_)
+    with _state.lock:
+        try:
+            module.cage_nodes(_c(W.T, np.float64), reached, faces, _c(P[faces], np.float64),
+                              keep.astype(np.float64), x, terms, blend, out, touched)
+        except Exception as exc:
+            if "cage_nodes" in _state.compiled:
+                raise
+            _fail(f"compiling cage_nodes failed: {type(exc).__name__}: {exc}")
+            return None
+        _state.compiled.add("cage_nodes")
+    return out, touched
 
 
 def linear_maps(params: ArrayLike) -> FloatArray:

@@ -47,8 +47,9 @@ the same bits however it was reached. The rules:
 
 * One compiled entry per map, one specialisation each: `deform_points_entry` (full call and rows,
   offsets and float32 copy are runtime flags; unused arrays are passed empty), `motion_params`, and
-  `polar_log` (the polar split of ψ for a batch of 3×3 matrices: a cage's corner tetrahedra) and
-  `node_pivot` (the per-face and per-node steps of a harmonic cage's pivoted node blend).
+  `polar_log` (the polar split of ψ for a batch of 3×3 matrices), `node_pivot` (the per-face and
+  per-node steps of a harmonic cage's pivoted node blend) and `cage_faces` (a cage's whole face path:
+  corner tetrahedra, stencil apex, ψ, the mean over each face's corners, and the signed volume).
 * Each entry is one LLVM module: every other jitted function here is inline="always" (numba IR
   inlining), and the entries have no prange. A call between separately compiled numba functions —
   a plain njit callee, or the gufunc numba makes of a prange body — links a copy of the callee's
@@ -100,8 +101,8 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["CHUNK", "ENTRIES", "chain_motion_entry", "chain_points_entry", "deform_points_entry",
-           "motion_params", "node_pivot", "polar_log", "spin_wait"]
+__all__ = ["CHUNK", "ENTRIES", "cage_faces", "cage_nodes", "chain_motion_entry", "chain_points_entry",
+           "deform_points_entry", "motion_params", "node_pivot", "polar_log", "spin_wait"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -116,7 +117,7 @@ _N_CHAIN_SCRATCH = 21  # as _N_SCRATCH, plus the original point (offsets)
 _N_CHAIN_MOTION_SCRATCH = 36  # as _N_MOTION_SCRATCH, plus the product so far
 #: The compiled kernel entries, one specialisation each (`warm_up` runs exactly these and `spin_wait`).
 ENTRIES = ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
-           "chain_motion_entry")
+           "chain_motion_entry", "cage_faces", "cage_nodes")
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -745,6 +746,53 @@ _JACOBI_TOL = 4.0 * 2.220446049250313e-16
 _JACOBI_SWEEPS = 16
 
 
+@_inline
+def _polar_split(A: np.ndarray, V: np.ndarray, sig: np.ndarray, lsig: np.ndarray, R: np.ndarray,
+                 Yh: np.ndarray) -> None:
+    """R (3, 3) = U Vᵀ and Yh (3, 3) = V diag(log σ) Vᵀ for the SVD U diag(σ) Vᵀ of the matrix in A
+    (3, 3), by the one-sided Jacobi sweeps of `polar_log` (its doc); A, V, sig, lsig are scratch (A
+    is overwritten)."""
+    for r in range(3):
+        for c in range(3):
+            V[r, c] = 1.0 if r == c else 0.0
+    for _ in range(_JACOBI_SWEEPS):
+        rotated = False
+        for p in range(2):
+            for q in range(p + 1, 3):
+                alpha = A[0, p] * A[0, p] + A[1, p] * A[1, p] + A[2, p] * A[2, p]
+                beta = A[0, q] * A[0, q] + A[1, q] * A[1, q] + A[2, q] * A[2, q]
+                gamma = A[0, p] * A[0, q] + A[1, p] * A[1, q] + A[2, p] * A[2, q]
+                if abs(gamma) > _JACOBI_TOL * math.sqrt(alpha * beta):
+                    rotated = True
+                    zeta = (beta - alpha) / (2.0 * gamma)
+                    t = math.copysign(1.0, zeta) / (abs(zeta) + math.sqrt(1.0 + zeta * zeta))
+                    cs = 1.0 / math.sqrt(1.0 + t * t)
+                    sn = cs * t
+                    for r in range(3):
+                        ap = A[r, p]
+                        aq = A[r, q]
+                        A[r, p] = cs * ap - sn * aq
+                        A[r, q] = sn * ap + cs * aq
+                        vp = V[r, p]
+                        vq = V[r, q]
+                        V[r, p] = cs * vp - sn * vq
+                        V[r, q] = sn * vp + cs * vq
+        if not rotated:
+            break
+    for c in range(3):
+        sig[c] = math.sqrt(A[0, c] * A[0, c] + A[1, c] * A[1, c] + A[2, c] * A[2, c])
+        lsig[c] = math.log(sig[c])
+    for r in range(3):
+        for k in range(3):
+            rr = 0.0
+            yy = 0.0
+            for c in range(3):
+                rr += (A[r, c] / sig[c]) * V[k, c]
+                yy += (V[r, c] * lsig[c]) * V[k, c]
+            R[r, k] = rr
+            Yh[r, k] = yy
+
+
 @_entry
 def polar_log(M: np.ndarray, R: np.ndarray, Yh: np.ndarray) -> int:
     """The polar split of ψ for each M[i] (n, 3, 3) f64 with det > 0: R[i] = U Vᵀ and
@@ -767,43 +815,7 @@ def polar_log(M: np.ndarray, R: np.ndarray, Yh: np.ndarray) -> int:
         for r in range(3):
             for c in range(3):
                 A[r, c] = M[i, r, c]
-                V[r, c] = 1.0 if r == c else 0.0
-        for _ in range(_JACOBI_SWEEPS):
-            rotated = False
-            for p in range(2):
-                for q in range(p + 1, 3):
-                    alpha = A[0, p] * A[0, p] + A[1, p] * A[1, p] + A[2, p] * A[2, p]
-                    beta = A[0, q] * A[0, q] + A[1, q] * A[1, q] + A[2, q] * A[2, q]
-                    gamma = A[0, p] * A[0, q] + A[1, p] * A[1, q] + A[2, p] * A[2, q]
-                    if abs(gamma) > _JACOBI_TOL * math.sqrt(alpha * beta):
-                        rotated = True
-                        zeta = (beta - alpha) / (2.0 * gamma)
-                        t = math.copysign(1.0, zeta) / (abs(zeta) + math.sqrt(1.0 + zeta * zeta))
-                        cs = 1.0 / math.sqrt(1.0 + t * t)
-                        sn = cs * t
-                        for r in range(3):
-                            ap = A[r, p]
-                            aq = A[r, q]
-                            A[r, p] = cs * ap - sn * aq
-                            A[r, q] = sn * ap + cs * aq
-                            vp = V[r, p]
-                            vq = V[r, q]
-                            V[r, p] = cs * vp - sn * vq
-                            V[r, q] = sn * vp + cs * vq
-            if not rotated:
-                break
-        for c in range(3):
-            sig[c] = math.sqrt(A[0, c] * A[0, c] + A[1, c] * A[1, c] + A[2, c] * A[2, c])
-            lsig[c] = math.log(sig[c])
-        for r in range(3):
-            for k in range(3):
-                rr = 0.0
-                yy = 0.0
-                for c in range(3):
-                    rr += (A[r, c] / sig[c]) * V[k, c]
-                    yy += (V[r, c] * lsig[c]) * V[k, c]
-                R[i, r, k] = rr
-                Yh[i, r, k] = yy
+        _polar_split(A, V, sig, lsig, R[i], Yh[i])
     return n
 
 
@@ -885,6 +897,372 @@ def node_pivot(finish: bool, A: np.ndarray, x: np.ndarray, out: np.ndarray) -> i
             out[i, 3], out[i, 4], out[i, 5] = b10, b11, b12
             out[i, 6], out[i, 7], out[i, 8] = b20, b21, b22
     return n
+
+
+# ---------------------------------------------------------------------------------------------
+# a cage's faces (core.cage.face_motions for the faces a shape change reaches), one call per update
+
+#: core.cage's constants, repeated here because numba's cache is keyed on this file alone (a changed
+#: constant in core/cage.py would not recompile a cached entry); tests/core/test_accel_cage.py checks
+#: they are equal.
+COLLAPSED_SIN = 1e-10
+FOLD_KAPPA = 0.5
+#: unwrap._no_row_lifts' bounds: |ω_ref − ω|² below the first and |ω|² below the second prove that
+#: lifting ω onto ω_ref's branch is a no-op.
+NO_LIFT_DIST_SQ = 9.0
+NO_LIFT_NORM_SQ = 1e12
+#: cage_faces' per-face flags.
+FACE_REACHED = 1
+FACE_HAS_CORNER = 2
+FACE_VALID = 4
+FACE_NEEDS_LIFT = 8
+
+
+@_inline
+def _finite3(a: float, b: float, c: float) -> bool:
+    return math.isfinite(a) and math.isfinite(b) and math.isfinite(c)
+
+
+@_inline
+def _so3_log(R: np.ndarray) -> tuple[float, float, float]:
+    """The principal rotation vector of R (3, 3), as core.aff3.so3_log: θ = atan2(|s|, (tr R − 1)/2)
+    with s = vee(R); ω = (θ/|s|) s for cos θ ≥ 0, else θ times the largest column of
+    (R + Rᵀ)/2 − cos θ I normalised, signed by s."""
+    s0 = 0.5 * (R[2, 1] - R[1, 2])
+    s1 = 0.5 * (R[0, 2] - R[2, 0])
+    s2 = 0.5 * (R[1, 0] - R[0, 1])
+    sin_t = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+    cos_t = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    cos_t = 1.0 if cos_t > 1.0 else cos_t
+    cos_t = -1.0 if cos_t < -1.0 else cos_t
+    theta = math.atan2(sin_t, cos_t)
+    if cos_t < 0.0:
+        k = 0
+        best = R[0, 0] - cos_t
+        for j in range(1, 3):
+            if R[j, j] - cos_t > best:
+                best = R[j, j] - cos_t
+                k = j
+        c0 = 0.5 * (R[0, k] + R[k, 0]) - (cos_t if k == 0 else 0.0)
+        c1 = 0.5 * (R[1, k] + R[k, 1]) - (cos_t if k == 1 else 0.0)
+        c2 = 0.5 * (R[2, k] + R[k, 2]) - (cos_t if k == 2 else 0.0)
+        norm = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        if norm > 0.0:
+            c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
+        st = -theta if c0 * s0 + c1 * s1 + c2 * s2 < 0.0 else theta
+        return st * c0, st * c1, st * c2
+    ratio = theta / sin_t if sin_t > 0.0 else 1.0
+    return ratio * s0, ratio * s1, ratio * s2
+
+
+@_inline
+def _corner_affine(
+    cur: np.ndarray, moved: np.ndarray, t: int, triples: np.ndarray, rest_ok: np.ndarray, centres: np.ndarray,
+    inverses: np.ndarray, sv: np.ndarray, sg: np.ndarray, smom: np.ndarray, sspread: np.ndarray,
+    sactive: np.ndarray, out: np.ndarray,
+) -> bool:
+    """core.cage.corner_matrices for corner t: out[t, 0:9] = M = E′ E⁻¹ row-major and out[t, 9:12] =
+    c′ − M c, E′ = [e1′, e2′, h′] the current frame with the fitted, fold-guarded stencil apex where
+    the corner has a stencil, an input of it moved bitwise and the fit is finite (the normal apex
+    n′/√|n′| otherwise). Returns ok: both corners uncollapsed (sin > COLLAPSED_SIN), everything
+    finite and det M > 0 (out is not meaningful otherwise)."""
+    i0, i1, i2 = triples[t, 0], triples[t, 1], triples[t, 2]
+    p00, p01, p02 = cur[i0, 0], cur[i0, 1], cur[i0, 2]
+    a0, a1, a2 = cur[i1, 0] - p00, cur[i1, 1] - p01, cur[i1, 2] - p02  # e1′
+    b0, b1, b2 = cur[i2, 0] - p00, cur[i2, 1] - p01, cur[i2, 2] - p02  # e2′
+    n0, n1, n2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    area2 = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    edges = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2) * math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+    sin_cur = area2 / edges if edges > 0.0 else 0.0
+    root = math.sqrt(area2)
+    h0, h1, h2 = n0 / root, n1 / root, n2 / root
+    c0 = (cur[i0, 0] + cur[i1, 0] + cur[i2, 0]) / 3.0
+    c1 = (cur[i0, 1] + cur[i1, 1] + cur[i2, 1]) / 3.0
+    c2 = (cur[i0, 2] + cur[i1, 2] + cur[i2, 2]) / 3.0
+    if sactive[t]:
+        reached = moved[i0] or moved[i1] or moved[i2]
+        for s in range(sv.shape[1]):
+            if sg[t, s] != 0.0 and moved[sv[t, s]]:
+                reached = True
+        if reached:
+            u0, u1, u2 = n0 / area2, n1 / area2, n2 / area2
+            f0 = 0.0
+            f1 = 0.0
+            f2 = 0.0
+            m = 0.0
+            for s in range(sv.shape[1]):
+                g = sg[t, s]
+                v = sv[t, s]
+                q0, q1, q2 = cur[v, 0] - c0, cur[v, 1] - c1, cur[v, 2] - c2
+                f0 += g * q0
+                f1 += g * q1
+                f2 += g * q2
+                m += abs(g) * abs(q0 * u0 + q1 * u1 + q2 * u2)
+            f0 -= smom[t, 1] * a0 + smom[t, 2] * b0
+            f1 -= smom[t, 1] * a1 + smom[t, 2] * b1
+            f2 -= smom[t, 1] * a2 + smom[t, 2] * b2
+            x = f0 * u0 + f1 * u1 + f2 * u2
+            floor = FOLD_KAPPA * m / sspread[t]
+            if x < floor:  # the fold guard: x ↦ floor²/(2 floor − x) below the floor
+                lift = floor * floor / (2.0 * floor - x) - x
+                f0 += lift * u0
+                f1 += lift * u1
+                f2 += lift * u2
+            if _finite3(f0, f1, f2):
+                h0, h1, h2 = f0, f1, f2
+    ok = rest_ok[t] and sin_cur > COLLAPSED_SIN
+    ok = ok and _finite3(a0, a1, a2) and _finite3(b0, b1, b2)
+    ok = ok and _finite3(h0, h1, h2) and _finite3(c0, c1, c2)
+    if not ok:
+        return False
+    # M = E′ E⁻¹, E′ with columns e1′, e2′, h′: M_ij = e1′_i E⁻¹_0j + e2′_i E⁻¹_1j + h′_i E⁻¹_2j
+    m00 = a0 * inverses[t, 0, 0] + b0 * inverses[t, 1, 0] + h0 * inverses[t, 2, 0]
+    m01 = a0 * inverses[t, 0, 1] + b0 * inverses[t, 1, 1] + h0 * inverses[t, 2, 1]
+    m02 = a0 * inverses[t, 0, 2] + b0 * inverses[t, 1, 2] + h0 * inverses[t, 2, 2]
+    m10 = a1 * inverses[t, 0, 0] + b1 * inverses[t, 1, 0] + h1 * inverses[t, 2, 0]
+    m11 = a1 * inverses[t, 0, 1] + b1 * inverses[t, 1, 1] + h1 * inverses[t, 2, 1]
+    m12 = a1 * inverses[t, 0, 2] + b1 * inverses[t, 1, 2] + h1 * inverses[t, 2, 2]
+    m20 = a2 * inverses[t, 0, 0] + b2 * inverses[t, 1, 0] + h2 * inverses[t, 2, 0]
+    m21 = a2 * inverses[t, 0, 1] + b2 * inverses[t, 1, 1] + h2 * inverses[t, 2, 1]
+    m22 = a2 * inverses[t, 0, 2] + b2 * inverses[t, 1, 2] + h2 * inverses[t, 2, 2]
+    r0, r1, r2 = centres[t, 0], centres[t, 1], centres[t, 2]
+    out[t, 0], out[t, 1], out[t, 2] = m00, m01, m02
+    out[t, 3], out[t, 4], out[t, 5] = m10, m11, m12
+    out[t, 6], out[t, 7], out[t, 8] = m20, m21, m22
+    out[t, 9] = c0 - (m00 * r0 + m01 * r1 + m02 * r2)
+    out[t, 10] = c1 - (m10 * r0 + m11 * r1 + m12 * r2)
+    out[t, 11] = c2 - (m20 * r0 + m21 * r1 + m22 * r2)
+    det = m00 * (m11 * m22 - m12 * m21) + m01 * (m12 * m20 - m10 * m22) + m02 * (m10 * m21 - m11 * m20)
+    good = det > 0.0
+    for k in range(12):
+        good = good and math.isfinite(out[t, k])
+    return good
+
+
+@_inline
+def _psi_row(out: np.ndarray, t: int, A: np.ndarray, Vs: np.ndarray, sig: np.ndarray, lsig: np.ndarray,
+             R: np.ndarray, Yh: np.ndarray) -> bool:
+    """out[t] (M row-major, then t) ← ψ in the 12-number layout (ω, u = V(ω)⁻¹ t, Y₆), as
+    core.aff3.params_from_matrices with the polar split of `polar_log`; returns whether it is finite.
+    A, Vs, sig, lsig, R, Yh: scratch."""
+    for r in range(3):
+        for c in range(3):
+            A[r, c] = out[t, 3 * r + c]
+    t0, t1, t2 = out[t, 9], out[t, 10], out[t, 11]
+    _polar_split(A, Vs, sig, lsig, R, Yh)
+    w0, w1, w2 = _so3_log(R)
+    u0, u1, u2 = _jacobian_inv_apply(w0, w1, w2, t0, t1, t2)
+    out[t, 0], out[t, 1], out[t, 2] = w0, w1, w2
+    out[t, 3], out[t, 4], out[t, 5] = u0, u1, u2
+    out[t, 6], out[t, 7], out[t, 8] = Yh[0, 0], Yh[1, 1], Yh[2, 2]
+    out[t, 9] = 0.5 * (Yh[0, 1] + Yh[1, 0])
+    out[t, 10] = 0.5 * (Yh[0, 2] + Yh[2, 0])
+    out[t, 11] = 0.5 * (Yh[1, 2] + Yh[2, 1])
+    finite = True
+    for k in range(12):
+        finite = finite and math.isfinite(out[t, k])
+    return finite
+
+
+@_inline
+def _cage_face(
+    cur: np.ndarray, moved: np.ndarray, a: int, b: int, triples: np.ndarray, usable: np.ndarray,
+    weight: np.ndarray, rest_ok: np.ndarray, centres: np.ndarray, inverses: np.ndarray, sv: np.ndarray,
+    sg: np.ndarray, smom: np.ndarray, sspread: np.ndarray, sactive: np.ndarray, out: np.ndarray,
+    corner_params: np.ndarray, scratch: np.ndarray, sig: np.ndarray,
+) -> int:
+    """`cage_faces` for the face owning corners a … b − 1: out (12,) its parameters, corner_params
+    its corners' ψ; returns its flags. scratch (4, 3, 3), sig (2, 3): scratch."""
+    reached = False
+    has = False
+    for t in range(a, b):
+        has = has or usable[t]
+        if moved[triples[t, 0]] or moved[triples[t, 1]] or moved[triples[t, 2]]:
+            reached = True
+        for s in range(sv.shape[1]):
+            if sg[t, s] != 0.0 and moved[sv[t, s]]:
+                reached = True
+    for k in range(12):
+        out[k] = 0.0
+    flag = (FACE_REACHED if reached else 0) | (FACE_HAS_CORNER if has else 0)
+    if not reached:
+        return flag
+    valid = has
+    for t in range(a, b):
+        ok = _corner_affine(cur, moved, t, triples, rest_ok, centres, inverses, sv, sg, smom, sspread,
+                            sactive, corner_params)
+        if usable[t] and not ok:
+            valid = False
+    if valid:
+        for t in range(a, b):
+            if usable[t] and not _psi_row(corner_params, t, scratch[0], scratch[1], sig[0], sig[1],
+                                          scratch[2], scratch[3]):
+                valid = False
+    ref = -1
+    lift = False
+    for t in range(a, b):
+        if not (valid and usable[t]):
+            for k in range(12):
+                corner_params[t, k] = 0.0
+            continue
+        if ref < 0:
+            ref = t
+        w0, w1, w2 = corner_params[t, 0], corner_params[t, 1], corner_params[t, 2]
+        d0, d1, d2 = corner_params[ref, 0] - w0, corner_params[ref, 1] - w1, corner_params[ref, 2] - w2
+        near = d0 * d0 + d1 * d1 + d2 * d2 < NO_LIFT_DIST_SQ
+        if not (near and w0 * w0 + w1 * w1 + w2 * w2 < NO_LIFT_NORM_SQ):
+            lift = True
+    if not valid:
+        return flag
+    if lift:
+        return flag | FACE_VALID | FACE_NEEDS_LIFT
+    for t in range(a, b):
+        if usable[t]:
+            for k in range(12):
+                out[k] += weight[t] * corner_params[t, k]
+    return flag | FACE_VALID
+
+
+@_inline
+def _fan_volume(cur: np.ndarray, fan: np.ndarray) -> float:
+    """Σ a·(b × c)/6 over the fan triangles (a, b, c) of `fan` (Tf, 3), about the mean of cur (V, 3)."""
+    V = cur.shape[0]
+    o0 = 0.0
+    o1 = 0.0
+    o2 = 0.0
+    for v in range(V):
+        o0 += cur[v, 0]
+        o1 += cur[v, 1]
+        o2 += cur[v, 2]
+    o0, o1, o2 = o0 / V, o1 / V, o2 / V
+    volume = 0.0
+    for i in range(fan.shape[0]):
+        j0, j1, j2 = fan[i, 0], fan[i, 1], fan[i, 2]
+        x0, x1, x2 = cur[j0, 0] - o0, cur[j0, 1] - o1, cur[j0, 2] - o2
+        y0, y1, y2 = cur[j1, 0] - o0, cur[j1, 1] - o1, cur[j1, 2] - o2
+        z0, z1, z2 = cur[j2, 0] - o0, cur[j2, 1] - o1, cur[j2, 2] - o2
+        volume += x0 * (y1 * z2 - y2 * z1) + x1 * (y2 * z0 - y0 * z2) + x2 * (y0 * z1 - y1 * z0)
+    return volume / 6.0
+
+
+@_entry
+def cage_faces(
+    cur: np.ndarray, rest: np.ndarray, triples: np.ndarray, first: np.ndarray, usable: np.ndarray,
+    weight: np.ndarray, rest_ok: np.ndarray, centres: np.ndarray, inverses: np.ndarray, sv: np.ndarray,
+    sg: np.ndarray, smom: np.ndarray, sspread: np.ndarray, sactive: np.ndarray, fan: np.ndarray,
+    moved: np.ndarray, params: np.ndarray, corner_params: np.ndarray, flags: np.ndarray,
+) -> float:
+    """core.cage.face_motions (apex 'NEIGHBOURS', no w_ref or pivot) for the faces the shape change
+    reaches (core.cage.affected_faces), and the signed volume Σ a·(b × c)/6 over the fan triangles
+    `fan` about the mean vertex (core.cage.signed_volume), which it returns.
+
+    cur, rest (V, 3) f64: the current and rest cage; corners t (rows of CageTopology.corner_triples,
+    grouped by face: face f owns first[f] … first[f+1] − 1): triples (T, 3) int64, usable (T,) bool
+    and weight (T,) f64 (core.cage.RestCorners), rest_ok (T,) bool (rest corner uncollapsed and
+    finite), centres (T, 3) and inverses (T, 3, 3) the rest centroids and E⁻¹; the stencils
+    (core.cage.ApexStencil): vertices sv (T, S) int64, gamma sg (T, S), moments smom (T, 3), spread
+    sspread (T,), active sactive (T,) bool. moved (V,) bool: scratch (a vertex moved bitwise; NaN
+    counts as moved).
+
+    Per face f: flags[f] has FACE_REACHED when a corner or stencil vertex of it moved (the others get
+    params 0 and nothing else is computed), FACE_HAS_CORNER when it has a usable rest corner,
+    FACE_VALID when it is reached, has one, and every usable corner's tetrahedron is uncollapsed with
+    det > 0 and a finite ψ. Then corner_params[t] = ψ(A_t) of its usable corners (principal branch)
+    and params[f] = Σ_t weight[t] corner_params[t] in corner order — unless lifting the corners onto
+    the first one's rotation branch might change one (|ω_ref − ω|² ≥ NO_LIFT_DIST_SQ or |ω|² ≥
+    NO_LIFT_NORM_SQ): then FACE_NEEDS_LIFT is set, params[f] is 0 and the caller lifts and sums
+    (`affine_deformers.accel.cage_faces`). A face's results depend on its own inputs only (scalar code,
+    one thread), so they are the same bits whichever other faces moved."""
+    for v in range(cur.shape[0]):
+        moved[v] = cur[v, 0] != rest[v, 0] or cur[v, 1] != rest[v, 1] or cur[v, 2] != rest[v, 2]
+    scratch = np.empty((4, 3, 3))
+    sig = np.empty((2, 3))
+    for f in range(first.shape[0] - 1):
+        flags[f] = _cage_face(cur, moved, first[f], first[f + 1], triples, usable, weight, rest_ok,
+                              centres, inverses, sv, sg, smom, sspread, sactive, params[f], corner_params,
+                              scratch, sig)
+    return _fan_volume(cur, fan)
+
+
+@_entry
+def cage_nodes(
+    Wt: np.ndarray, reached: np.ndarray, faces: np.ndarray, face_params: np.ndarray, keep: np.ndarray,
+    x: np.ndarray, terms: np.ndarray, blend: np.ndarray, out: np.ndarray, touched: np.ndarray,
+) -> int:
+    """core.cage_harmonic.node_params for the nodes a moved face reaches, in one call; returns how
+    many nodes that is.
+
+    Wt (F, G) f64: the node weights transposed (face by face; W_cf = Wt[f, c]); reached (n_r,)
+    int64: the faces that moved (valid or not); faces (n,) int64 those of them to blend (valid),
+    face_params (n, 12) their parameters (ω, u, Y); keep (F,) f64 1 for a valid face, 0 for one left
+    out (scale_c = 1 / Σ_f W_cf keep_f, 0 for a node without any valid face); x (G, 3) the node
+    points. Scratch: terms (n, 21), blend (22, G) (row 21: the scale).
+
+    touched[c] = W_cf > 0 for some reached face f; out[c] (G, 12) = (ω̄, ū + V(ω̄)⁻¹ (x − M̄ x), Ȳ)
+    for those (zeros for the others) with (ω̄, ū, Ȳ, B̄) = scale_c Σ_f W_cf (ω_f, u_f, Y_f, B_f),
+    ū ← ū + B̄ x_c, B_f = V(ω_f)⁻¹ (M_f − I) (`node_pivot`'s two steps). The sums run over `faces`
+    in the given order, so a node's result depends on its own weights and those faces only. Scalar
+    and loops over all G nodes (LLVM may vectorise the blend across nodes: every node is in the same
+    loop whatever the call, so its bits do not depend on which nodes are touched)."""
+    G = Wt.shape[1]
+    n = faces.shape[0]
+    for c in range(G):
+        touched[c] = False
+    for i in range(reached.shape[0]):
+        f = reached[i]
+        for c in range(G):
+            if Wt[f, c] > 0.0:
+                touched[c] = True
+    for i in range(n):
+        w0, w1, w2 = face_params[i, 0], face_params[i, 1], face_params[i, 2]
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = _linear_columns(w0, w1, w2, face_params[i], 6)
+        b00, b10, b20 = _jacobian_inv_apply(w0, w1, w2, c00 - 1.0, c10, c20)
+        b01, b11, b21 = _jacobian_inv_apply(w0, w1, w2, c01, c11 - 1.0, c21)
+        b02, b12, b22 = _jacobian_inv_apply(w0, w1, w2, c02, c12, c22 - 1.0)
+        for k in range(12):
+            terms[i, k] = face_params[i, k]
+        terms[i, 12], terms[i, 13], terms[i, 14] = b00, b01, b02
+        terms[i, 15], terms[i, 16], terms[i, 17] = b10, b11, b12
+        terms[i, 18], terms[i, 19], terms[i, 20] = b20, b21, b22
+    for k in range(22):
+        for c in range(G):
+            blend[k, c] = 0.0
+    for f in range(Wt.shape[0]):
+        kf = keep[f]
+        for c in range(G):
+            blend[21, c] += Wt[f, c] * kf
+    for i in range(n):
+        f = faces[i]
+        for k in range(21):
+            term = terms[i, k]
+            for c in range(G):
+                blend[k, c] += Wt[f, c] * term
+    count = 0
+    y = np.empty(12)
+    for c in range(G):
+        for k in range(12):
+            out[c, k] = 0.0
+        if not touched[c]:
+            continue
+        count += 1
+        s = 1.0 / blend[21, c] if blend[21, c] > 0.0 else 0.0
+        w0, w1, w2 = blend[0, c] * s, blend[1, c] * s, blend[2, c] * s
+        for k in range(6, 12):
+            y[k] = blend[k, c] * s
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = _linear_columns(w0, w1, w2, y, 6)
+        p0, p1, p2 = x[c, 0], x[c, 1], x[c, 2]
+        v0 = p0 - (c00 * p0 + c01 * p1 + c02 * p2)
+        v1 = p1 - (c10 * p0 + c11 * p1 + c12 * p2)
+        v2 = p2 - (c20 * p0 + c21 * p1 + c22 * p2)
+        j0, j1, j2 = _jacobian_inv_apply(w0, w1, w2, v0, v1, v2)
+        u0 = blend[3, c] * s + (blend[12, c] * s * p0 + blend[13, c] * s * p1 + blend[14, c] * s * p2)
+        u1 = blend[4, c] * s + (blend[15, c] * s * p0 + blend[16, c] * s * p1 + blend[17, c] * s * p2)
+        u2 = blend[5, c] * s + (blend[18, c] * s * p0 + blend[19, c] * s * p1 + blend[20, c] * s * p2)
+        out[c, 0], out[c, 1], out[c, 2] = w0, w1, w2
+        out[c, 3], out[c, 4], out[c, 5] = u0 + j0, u1 + j1, u2 + j2
+        for k in range(6, 12):
+            out[c, k] = y[k]
+    return count
 
 
 # ---------------------------------------------------------------------------------------------

@@ -43,7 +43,8 @@ class BoundData:
     indices: np.ndarray  # (N, K) int32
     values: np.ndarray  # (N, K) float64, strength not applied
     scaled: tuple[float, np.ndarray] | None = None  # (strength, values · strength)
-    csr: tuple[np.ndarray, np.ndarray] | None = None  # per control: the rows it influences
+    # per control: the rows it influences (ptr, rows), and the rows with any weight
+    csr: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     state: tuple | None = None  # settings `params` and `offsets` were computed with
     params: np.ndarray | None = None  # (m, 12) blend parameters of the last result
     offsets: np.ndarray | None = None  # (N, 3) float64 last offsets
@@ -75,8 +76,10 @@ class BoundData:
             order = np.argsort(cols, kind="stable")
             ptr = np.zeros(m + 1, dtype=np.intp)
             np.cumsum(np.bincount(cols, minlength=m), out=ptr[1:])
-            self.csr = (ptr, rows[order].astype(np.intp))
-        ptr, rows = self.csr
+            self.csr = (ptr, rows[order].astype(np.intp), np.flatnonzero((self.values != 0.0).any(axis=1)))
+        ptr, rows, weighted = self.csr
+        if len(controls) == len(ptr) - 1:  # every control (a cage's nodes after any edit): all weighted rows
+            return weighted
         if len(controls) == 1:  # one control's rows are already sorted and distinct
             return rows[ptr[controls[0]] : ptr[controls[0] + 1]]
         if len(controls) > 32:  # many controls (cage nodes): one pass over the weights, no loop

@@ -744,6 +744,11 @@ def face_motions(
     params = np.stack([np.bincount(face, contrib[:, k], F) for k in range(12)], axis=1)
     params[~valid] = 0.0
 
+    return FaceMotions(params=params, valid=valid, messages=face_messages(has_corner, valid))
+
+
+def face_messages(has_corner: np.ndarray, valid: np.ndarray) -> tuple[str, ...]:
+    """`FaceMotions.messages` from has_corner (F,) (a usable rest corner) and valid (F,)."""
     messages: list[str] = []
     no_rest = np.flatnonzero(~has_corner)
     if no_rest.size:
@@ -758,7 +763,66 @@ def face_motions(
             f"{collapsed.size} cage face(s) collapsed (zero area or non-finite) in the current pose and "
             f"are ignored: {_list_indices(collapsed)}"
         )
-    return FaceMotions(params=params, valid=valid, messages=tuple(messages))
+    return tuple(messages)
+
+
+@dataclass(frozen=True, eq=False)
+class FaceTables:
+    """The rest cage's per-corner data of `face_motions` (apex 'NEIGHBOURS') as flat contiguous
+    arrays, for one compiled call over all faces (`affine_deformers.accel.cage_faces`): corners t are
+    the rows of `CageTopology.corner_triples` (grouped by face, face f owning first[f] … first[f+1] −
+    1); usable, weight (`RestCorners`); rest_ok = rest corner uncollapsed (sin > COLLAPSED_SIN) with
+    a finite frame and centroid; centres and inverses the rest centroids and E_rest⁻¹; the stencil
+    (`ApexStencil`: vertices, gamma, moments, spread, active); fan the fan triangles
+    (`CageTopology.fan_triangles`, for the signed volume). Index arrays int64, flags bool, the rest
+    float64."""
+
+    rest: np.ndarray
+    triples: np.ndarray
+    first: np.ndarray
+    usable: np.ndarray
+    weight: np.ndarray
+    rest_ok: np.ndarray
+    centres: np.ndarray
+    inverses: np.ndarray
+    stencil_vertices: np.ndarray
+    stencil_gamma: np.ndarray
+    stencil_moments: np.ndarray
+    stencil_spread: np.ndarray
+    stencil_active: np.ndarray
+    fan: np.ndarray
+
+
+def face_tables(rest_points: np.ndarray, topology: CageTopology) -> FaceTables:
+    """`FaceTables` of the rest cage, kept on the topology for the last rest cage it was asked for
+    (compared by content: an update passes the same rest cage as a new array, and comparing its bytes
+    costs far less than hashing them as `apex_stencils` does)."""
+    rest = _check_points(rest_points, topology, "rest_points")
+    key = rest.tobytes()
+    found = topology._cache.get("face_tables")
+    if found is not None and found[0] == key:
+        return found[1]
+    triples, face, _ = topology.corner_triples()
+    corners = rest_corners(rest, topology)
+    stencil = apex_stencils(rest, topology)
+    count = np.bincount(face, minlength=topology.n_faces)
+    first = np.zeros(topology.n_faces + 1, dtype=np.int64)
+    np.cumsum(count, out=first[1:])
+    rest_ok = (corners.sin > COLLAPSED_SIN) & np.isfinite(corners.frame).all(axis=(1, 2))
+    rest_ok &= np.isfinite(corners.centre).all(axis=1)
+    fan, _ = topology.fan_triangles()
+
+    def c(a: np.ndarray, dtype: type) -> np.ndarray:
+        return np.ascontiguousarray(a, dtype=dtype)
+
+    tables = FaceTables(
+        c(rest, np.float64), c(triples, np.int64), first, c(corners.usable, np.bool_),
+        c(corners.weight, np.float64), c(rest_ok, np.bool_), c(corners.centre, np.float64),
+        c(corners.inverse, np.float64), c(stencil.vertices, np.int64), c(stencil.gamma, np.float64),
+        c(stencil.moments, np.float64), c(stencil.spread, np.float64), c(stencil.active, np.bool_),
+        c(fan, np.int64))
+    topology._cache["face_tables"] = (key, tables)
+    return tables
 
 
 def _check_pose_pair(

@@ -636,7 +636,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache"] * 6  # one per entry
+    assert res.stdout.split() == ["NullCache"] * 8  # one per entry
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
@@ -949,7 +949,7 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     assert accel.warm_up().startswith("numba ")
     assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params",
                                                            "polar_log", "node_pivot", "chain_points_entry",
-                                                           "chain_motion_entry"}
+                                                           "chain_motion_entry", "cage_faces", "cage_nodes"}
     assert fresh_state.spin and fresh_state.spin[0] is kernel.spin_wait  # the helpers' busy-wait
     jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
     for name, f in jitted.items():
@@ -970,6 +970,12 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     accel.vertex_motions(params, idx, val, rows=np.arange(9))
     accel.polar_log(np.eye(3)[None] * 2.0)
     accel.node_params(rng.normal(size=(4, 3)), rng.random((4, 3)), params[:3], faces=np.array([0, 2]))
+    from tests.core.test_cage import box_cage
+
+    cage, topology = box_cage((2, 2, 2), (1.0, 1.0, 1.0))
+    faces, reached, _ = accel.cage_faces(cage, cage * 1.1, topology)
+    accel.cage_nodes(pts[:5], rng.random((5, topology.n_faces)), faces.params, np.flatnonzero(reached),
+                     valid=np.arange(topology.n_faces) != 3)
     prefixes = np.eye(4)[:3].T.reshape(1, 12).repeat(2, axis=0)
     chain = (idx[None], val[None], np.zeros(300, np.int32), prefixes)
     accel.chain_points(pts, params, *chain)
@@ -1074,6 +1080,16 @@ for step in sys.argv[3].split(","):
         res["polar-R"], res["polar-Y"] = accel.polar_log(case["polar"])
     elif step == "nodes":
         res["nodes"] = accel.node_params(pts[:300], val[:300], params[: val.shape[1]])
+    elif step == "cage":  # a box cage, a few vertices moved (the faces they reach, and the volume)
+        from tests.core.test_cage import box_cage
+
+        cage, topology = box_cage((3, 4, 2), (2.0, 1.5, 1.0))
+        moved = cage + np.where(np.arange(len(cage))[:, None] % 7 == 0, 0.1 * pts[: len(cage)], 0.0)
+        faces, reached, volume = accel.cage_faces(cage, moved, topology)
+        res["cage"], res["cage-volume"] = faces.params, np.array([volume])
+        reached = np.flatnonzero(reached)
+        weights = np.asfortranarray(val[: 2 * len(faces.params), :4].reshape(-1, len(faces.params)))
+        res["cage-nodes"] = accel.cage_nodes(pts[: len(weights)], weights, faces.params, reached)[0]
 np.savez(sys.argv[2], **res)
 stats = {name: getattr(compiled, name).stats for name in compiled.ENTRIES}
 print(json.dumps({n: [sum(s.cache_hits.values()), sum(s.cache_misses.values())] for n, s in stats.items()}))
@@ -1123,21 +1139,23 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
         assert proc.returncode == 0, stderr
         return json.loads(stdout.strip().splitlines()[-1])
 
-    a = start("cache-a", "a.npz", "points-full,motions-rows,polar,nodes,chain-points-full,chain-motions-rows")
+    a = start("cache-a", "a.npz",
+              "points-full,motions-rows,polar,nodes,cage,chain-points-full,chain-motions-rows")
     b = start("cache-b", "b.npz", "points-rows,chain-points-rows")
     stats_a, stats_b = finish(a), finish(b)
     c = start("cache-a", "c.npz",
-              "points-rows,points-full,motions-full,motions-rows,lifted-alone,polar,nodes,"
+              "points-rows,points-full,motions-full,motions-rows,lifted-alone,polar,nodes,cage,"
               "chain-points-rows,chain-points-full,chain-motions-full,chain-motions-rows")
     stats_c = finish(c)
     assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1], "polar_log": [0, 1],
                        "node_pivot": [0, 1], "chain_points_entry": [0, 1],
-                       "chain_motion_entry": [0, 1]}, stats_a  # compiled there
+                       "chain_motion_entry": [0, 1], "cage_faces": [0, 1],
+                       "cage_nodes": [0, 1]}, stats_a  # compiled there
     assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0], "polar_log": [0, 0],
                        "node_pivot": [0, 0], "chain_points_entry": [0, 1],
-                       "chain_motion_entry": [0, 0]}, stats_b
+                       "chain_motion_entry": [0, 0], "cage_faces": [0, 0], "cage_nodes": [0, 0]}, stats_b
     for name in ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
-                 "chain_motion_entry"):
+                 "chain_motion_entry", "cage_faces", "cage_nodes"):
         assert stats_c[name][0] >= 1 and stats_c[name][1] == 0, (name, stats_c)  # loaded from A's cache
     ra, rb, rc = (np.load(tmp_path / f"{x}.npz") for x in "abc")
     full, motions = ra["points-full"], rc["motions-full"]
@@ -1148,6 +1166,9 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert np.array_equal(rc["motions-rows"], motions[:, rows])
     assert np.array_equal(ra["polar-R"], rc["polar-R"]) and np.array_equal(ra["polar-Y"], rc["polar-Y"])
     assert np.array_equal(ra["nodes"], rc["nodes"])
+    assert np.array_equal(ra["cage"], rc["cage"]) and np.array_equal(ra["cage-volume"], rc["cage-volume"])
+    assert np.array_equal(ra["cage-nodes"], rc["cage-nodes"]) and np.abs(ra["cage-nodes"]).max() > 0.0
+    assert np.abs(ra["cage"]).max() > 0.0  # some face moved
     assert np.array_equal(rc["points-alone"], full[lifted])  # every θ > 1.8π row alone, cached
     assert np.array_equal(rc["motions-alone"], motions[:, lifted])
     chain_full, chain_motions = ra["chain-points-full"], rc["chain-motions-full"]

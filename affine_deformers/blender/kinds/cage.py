@@ -61,6 +61,7 @@ from ... import accel
 from ...core import aff3
 from ...core.cage import (
     CageTopology,
+    FaceMotions,
     affected_faces,
     cage_weights,
     check_cage,
@@ -441,7 +442,9 @@ class CageKind:
             controls = cached[1]
         else:
             current = to_target(stored, state.points)
-            volume = signed_volume(current, topology)
+            # The compiled kernel does the faces and the volume in one call (None: numpy does them).
+            compiled = accel.cage_faces(rest, current, topology)
+            volume = signed_volume(current, topology) if compiled is None else compiled[2]
             if np.isfinite(volume) and volume <= 0.0:  # non-finite vertices: collapsed faces, below
                 # Mirrored vertices (an animated inside-out cage) or a collapse to a plane or point:
                 # every face motion would be mirrored or singular, so nothing of it is blended.
@@ -449,7 +452,7 @@ class CageKind:
                                               "current shape (its volume is not positive): the mesh shows "
                                               "its rest shape")
             else:
-                controls = _face_motions(rest, current, topology, linear)
+                controls = _face_motions(rest, current, topology, linear, compiled)
                 if nodes is not None:
                     controls = _node_motions(controls, *nodes, linear=linear)
             _last_motions[(obj.session_uid, deformer.uid)] = (key, controls)
@@ -482,21 +485,30 @@ def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgra
     return outer, reference, matrix[:3, 3].astype(np.float64)
 
 
-def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
-                  linear: bool) -> Motions:
+def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology, linear: bool,
+                  compiled: tuple[FaceMotions, np.ndarray, float] | None = None) -> Motions:
     """Motions of the faces the cage's shape change can reach (core.cage.affected_faces); all other
     faces are exactly at rest (zero parameters, so the vertices they alone drive stay bit-for-bit).
     The matrices φ(P_f) are formed only for the 'LINEAR' blend (`linear`), the only reader of them;
-    otherwise they stay the identity and the parameters carry the motion."""
+    otherwise they stay the identity and the parameters carry the motion. `compiled`: the result of
+    `accel.cage_faces` for these cages (the same motions to ~1e-15), or None to compute them here."""
     F = topology.n_faces
-    face_moved = affected_faces(rest, current, topology)
+    if compiled is not None:
+        motion, face_moved, _ = compiled
+    else:
+        face_moved = affected_faces(rest, current, topology)
+        motion = None
+        if np.any(face_moved):
+            motion = face_motions(rest, current, topology, faces=face_moved, polar=accel.polar_log)
     at_rest = ~face_moved
     params = np.zeros((F, 12))
     valid = np.ones(F, dtype=bool)
     warning = ""
-    if np.any(face_moved):
-        motion = face_motions(rest, current, topology, faces=face_moved, polar=accel.polar_log)
-        params[face_moved] = motion.params[face_moved]
+    if motion is not None and np.any(face_moved):
+        if compiled is not None:  # a fresh array, zero outside the faces reached
+            params = motion.params
+        else:
+            params[face_moved] = motion.params[face_moved]
         valid = motion.valid | at_rest
         if motion.messages:
             warning = "; ".join(motion.messages) + f" ({_COLLAPSE_NOTE})"
@@ -504,6 +516,11 @@ def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology,
     if linear and np.any(face_moved):
         matrices[face_moved] = aff3.matrices_from_params(params[face_moved])
     return Motions(matrices, at_rest, "", params=params, valid=valid, warning=warning)
+
+
+def _identities(n: int) -> np.ndarray:
+    """(n, 4, 4) identity matrices (a fresh array: Motions may be modified by their reader)."""
+    return np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
 
 
 def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndarray, *,
@@ -517,11 +534,15 @@ def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndar
     G = len(node_points)
     moved = np.flatnonzero(~faces.at_rest)
     valid = None if faces.valid is None or np.all(faces.valid) else faces.valid
+    compiled = None if linear else accel.cage_nodes(node_points, node_weights, faces.params, moved, valid)
+    if compiled is not None:  # the compiled kernel: every touched node in one call
+        params, touched = compiled
+        return Motions(_identities(G), ~touched, "", params=params, warning=faces.warning)
     touched = np.zeros(node_weights.shape[1])
     touched[moved] = 1.0
     rows = np.flatnonzero(node_weights @ touched > 0.0)
     params = np.zeros((G, 12))
-    matrices = np.broadcast_to(np.eye(4), (G, 4, 4)).copy()
+    matrices = _identities(G)
     if rows.size:
         # Most nodes (the usual case: harmonic weights reach far): every node is computed and the rows
         # kept, rather than copying those rows of the (G, F) weights (column-major: `node_data`).

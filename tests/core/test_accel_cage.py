@@ -1,0 +1,212 @@
+"""The compiled face path of a cage (accel.cage_faces) against core.cage's numpy functions: the same
+motions to ~1e-15, the same validity and messages, per-face results independent of which other faces
+moved, and the numpy fallback."""
+
+from __future__ import annotations
+
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+from affine_deformers import accel
+from affine_deformers.core import aff3, unwrap
+from affine_deformers.core import cage as cage_module
+from affine_deformers.core.cage import affected_faces, face_motions, signed_volume
+from tests.core.test_cage import box_cage, mixed_prism, similarity
+
+
+@pytest.fixture
+def compiled(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
+    """The compiled module, enabled and loaded (skips without numba)."""
+    pytest.importorskip("numba")
+    monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
+    module = accel._load()
+    assert module is not None, accel.backend()
+    return module
+
+
+def numpy_faces(rest: np.ndarray, current: np.ndarray, topology: cage_module.CageTopology
+                ) -> tuple[cage_module.FaceMotions, np.ndarray, float]:
+    """What accel.cage_faces stands for, from the numpy functions (with the compiled polar split)."""
+    reached = affected_faces(rest, current, topology)
+    return (face_motions(rest, current, topology, faces=reached, polar=accel.polar_log), reached,
+            signed_volume(current, topology))
+
+
+def assert_agree(got: tuple, want: tuple, tol: float = 1e-13) -> None:
+    (fg, rg, vg), (fw, rw, vw) = got, want
+    assert np.array_equal(rg, rw)
+    assert np.array_equal(fg.valid, fw.valid)
+    assert fg.messages == fw.messages
+    scale = np.maximum(1.0, np.abs(fw.params).max(axis=1, keepdims=True))
+    assert np.abs(fg.params - fw.params).max(initial=0.0) <= tol * scale.max()
+    assert np.array_equal(fg.params[~rg], np.zeros((int((~rg).sum()), 12)))
+    assert abs(vg - vw) <= 1e-13 * max(1.0, abs(vw))
+
+
+def edits(points: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
+    """Local edits (one to a few vertices), a common affine map, a turn with noise."""
+    out = []
+    for k in (1, 2, 5):
+        cur = points.copy()
+        pick = rng.choice(len(points), k, replace=False)
+        cur[pick] += 0.15 * rng.normal(size=(k, 3))
+        out.append(cur)
+    G = np.array([[1.1, 0.3, 0.0], [0.0, 0.9, 0.2], [0.1, 0.0, 1.2]])
+    out.append(points @ G.T + 0.5)
+    turned = points @ aff3.so3_exp(np.array([0.3, -1.2, 2.0])).T
+    out.append(turned + 0.02 * rng.normal(size=points.shape))
+    return out
+
+
+@pytest.mark.parametrize("case", ["box", "prism"])
+def test_compiled_faces_match_numpy(compiled: ModuleType, case: str) -> None:
+    rng = np.random.default_rng(151)
+    points, topology = box_cage((4, 3, 5), (2.0, 1.5, 3.0)) if case == "box" else mixed_prism()
+    for cur in edits(points, rng):
+        assert_agree(accel.cage_faces(points, cur, topology), numpy_faces(points, cur, topology))
+    at_rest = accel.cage_faces(points, points.copy(), topology)
+    assert not at_rest[1].any() and np.array_equal(at_rest[0].params, np.zeros((topology.n_faces, 12)))
+
+
+def test_common_affine_motion_is_exact(compiled: ModuleType) -> None:
+    points, topology = box_cage((3, 3, 3), (2.0, 2.0, 2.0))
+    G = similarity(0.7, [0.2, 1.0, -0.4], 1.3, [0.5, -1.0, 2.0])
+    G[:3, :3] = G[:3, :3] @ np.array([[1.0, 0.4, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.7]])  # shear, stretch
+    faces, reached, _ = accel.cage_faces(points, points @ G[:3, :3].T + G[:3, 3], topology)
+    assert reached.all() and faces.valid.all()
+    A = aff3.matrices_from_params(faces.params)
+    np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-12)
+
+
+def test_faces_near_a_half_turn_are_lifted_like_numpy(compiled: ModuleType,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Corners of one face on both sides of a half turn: their principal logs differ by ~2π, so the
+    face is lifted onto its first corner's branch (here with unwrap.lift_params, as face_motions)."""
+    calls = []
+    real = unwrap.lift_params
+
+    def counting(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(accel._unwrap, "lift_params", counting)
+    rng = np.random.default_rng(153)
+    points, topology = box_cage((3, 3, 3), (2.0, 2.0, 2.0))
+    cur = points @ aff3.so3_exp(np.array([0.0, 0.0, np.pi - 0.004])).T + 0.01 * rng.normal(size=points.shape)
+    got = accel.cage_faces(points, cur, topology)
+    assert calls  # some face took the lift
+    assert_agree(got, numpy_faces(points, cur, topology), tol=1e-11)
+
+
+def test_collapsed_and_broken_faces_match_numpy(compiled: ModuleType) -> None:
+    points = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float)
+    faces = [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
+    topology = cage_module.CageTopology.from_polygons(faces)
+    current = points.copy()
+    current[4] = [0.5, 0.5, 0.0]  # face 0 collinear
+    got = accel.cage_faces(points, current, topology)
+    assert got[0].valid.tolist() == [False] + [True] * 7 and "collapsed" in got[0].messages[0]
+    assert_agree(got, numpy_faces(points, current, topology))
+    current[4] = [np.nan, 0.0, 1.0]
+    got = accel.cage_faces(points, current, topology)
+    assert np.all(np.isfinite(got[0].params)) and not np.isfinite(got[2])
+    want = numpy_faces(points, current, topology)
+    assert np.array_equal(got[0].valid, want[0].valid) and np.array_equal(got[1], want[1])
+    rest = points.copy()
+    rest[4] = [0.5, 0.5, 0.0]  # degenerate at rest: reported whether it moves or not
+    assert_agree(accel.cage_faces(rest, points, topology), numpy_faces(rest, points, topology))
+
+
+def test_a_face_does_not_depend_on_which_other_faces_moved(compiled: ModuleType) -> None:
+    """Two edits far apart, alone and together: every face reached by one of them only gets the
+    same bits either way (the results of a face depend on its own inputs only)."""
+    points, topology = box_cage((8, 2, 2), (8.0, 1.0, 1.0))
+    left, right = np.argmin(points[:, 0]), np.argmax(points[:, 0])
+    a, b = points.copy(), points.copy()
+    a[left] += (0.1, 0.05, -0.08)
+    b[right] += (-0.07, 0.1, 0.04)
+    both = a.copy()
+    both[right] = b[right]
+    fa, ra, _ = accel.cage_faces(points, a, topology)
+    fb, rb, _ = accel.cage_faces(points, b, topology)
+    fab, rab, _ = accel.cage_faces(points, both, topology)
+    assert ra.any() and rb.any() and not (ra & rb).any() and np.array_equal(rab, ra | rb)
+    assert np.array_equal(fab.params[ra], fa.params[ra]) and np.array_equal(fab.params[rb], fb.params[rb])
+
+
+def test_face_tables_are_kept_per_rest_cage(compiled: ModuleType) -> None:
+    points, topology = box_cage((2, 2, 2), (1.0, 1.0, 1.0))
+    first = cage_module.face_tables(points, topology)
+    assert cage_module.face_tables(points.copy(), topology) is first  # same content: kept
+    other = points * 1.5
+    assert cage_module.face_tables(other, topology) is not first
+    assert np.array_equal(cage_module.face_tables(other, topology).rest, other)
+
+
+def test_constants_repeat_the_core_ones(compiled: ModuleType) -> None:
+    assert compiled.COLLAPSED_SIN == cage_module.COLLAPSED_SIN
+    assert compiled.FOLD_KAPPA == cage_module.FOLD_KAPPA
+    assert compiled.NO_LIFT_DIST_SQ == unwrap._NO_LIFT_DIST_SQ
+    assert compiled.NO_LIFT_NORM_SQ == unwrap._NO_LIFT_NORM_SQ
+
+
+def test_inactive_kernel_returns_none(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(accel.ACCEL_ENV, "0")
+    points, topology = box_cage((2, 2, 2), (1.0, 1.0, 1.0))
+    assert accel.cage_faces(points, points * 1.1, topology) is None
+
+
+# --------------------------------------------------------------------------------------------------
+# the harmonic weights' nodes
+
+
+def node_case(rng: np.random.Generator, G: int = 60, F: int = 40) -> tuple[np.ndarray, ...]:
+    """Node points, column-major weights (rows summing to 1, some zeros, two nodes without weight
+    on any moved face) and face parameters with moderate rotations and stretches."""
+    x = rng.normal(scale=2.0, size=(G, 3))
+    W = rng.random((G, F)) ** 2 * (rng.random((G, F)) < 0.7)
+    W[:2, :] = 0.0
+    W[:2, -1] = 1.0  # face F − 1 never moves
+    W /= W.sum(axis=1, keepdims=True)
+    P = np.concatenate([rng.normal(scale=0.5, size=(F, 6)), rng.normal(scale=0.2, size=(F, 6))], axis=1)
+    P[-1] = 0.0
+    return x, np.asfortranarray(W), P
+
+
+@pytest.mark.parametrize("broken", [False, True])
+def test_compiled_nodes_match_numpy(compiled: ModuleType, broken: bool) -> None:
+    from affine_deformers.core.cage_harmonic import node_params
+
+    rng = np.random.default_rng(157)
+    x, W, P = node_case(rng)
+    reached = np.flatnonzero(np.arange(W.shape[1]) % 3 != 2)[:-1]
+    valid = None
+    if broken:
+        valid = np.ones(W.shape[1], dtype=bool)
+        valid[reached[:4]] = False
+        P[reached[:4]] = 0.0
+    params, touched = accel.cage_nodes(x, W, P, reached, valid)
+    want = node_params(x, W, P, faces=reached, valid=valid)
+    assert np.array_equal(touched, (W[:, reached] > 0.0).any(axis=1)) and not touched[:2].any()
+    assert np.array_equal(params[~touched], np.zeros((int((~touched).sum()), 12)))
+    assert np.abs(params[touched] - want[touched]).max() <= 1e-14 * max(1.0, np.abs(want).max())
+
+
+def test_compiled_nodes_of_a_common_motion_are_exact(compiled: ModuleType) -> None:
+    """Every face with the same motion: each node gets exactly ψ of it (to rounding), whatever its
+    position (the blend is pivoted at the node)."""
+    rng = np.random.default_rng(163)
+    x, W, _ = node_case(rng)
+    G = similarity(0.8, [0.3, -1.0, 0.5], 1.2, [1.0, 2.0, -0.5])
+    P = np.broadcast_to(aff3.params_from_matrices(G), (W.shape[1], 12)).copy()
+    params, touched = accel.cage_nodes(x, W, P, np.arange(W.shape[1]))
+    assert touched.all()
+    np.testing.assert_allclose(params, np.broadcast_to(P[0], params.shape), atol=1e-12)
+
+
+def test_compiled_nodes_inactive_kernel_returns_none(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(accel.ACCEL_ENV, "0")
+    x, W, P = node_case(np.random.default_rng(1))
+    assert accel.cage_nodes(x, W, P, np.arange(3)) is None
