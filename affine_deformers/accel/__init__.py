@@ -38,6 +38,7 @@ from types import ModuleType
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..core import aff3 as _aff3
 from ..core import cage as _cage
 from ..core import cage_harmonic as _harmonic
 from ..core import deform as _np_kernel
@@ -69,6 +70,7 @@ __all__ = [
     "deform_points_params_rows",
     "linear_maps",
     "node_params",
+    "params_from_matrices",
     "polar_log",
     "set_enabled",
     "vertex_motions",
@@ -143,6 +145,7 @@ def warm_up() -> str:
         deform_points_params(pts, params, idx, val)  # deform_points_entry
         vertex_motions(params, idx, val)  # motion_params
         polar_log(np.eye(3)[None])  # polar_log
+        params_from_matrices(np.eye(4)[None])  # psi_rows
         node_params(np.zeros((1, 3)), np.ones((1, 1)), params)  # node_pivot
         tetra = _cage.CageTopology.from_polygons([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
         corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -605,6 +608,34 @@ def polar_log(M: ArrayLike) -> tuple[FloatArray, FloatArray] | None:
             return None
         _state.compiled.add("polar_log")
     return R, Yh
+
+
+def params_from_matrices(A: ArrayLike) -> FloatArray | None:
+    """`core.aff3.params_from_matrices(A)`: ψ in the 12-number layout, A (..., 4, 4) ↦ (..., 12),
+    with the same ValueError for a motion outside Aff+(3), in one compiled call (`compiled.psi_rows`;
+    the same parameters to ~1e-15). The few controls that moved in an update cost microseconds
+    instead of numpy's per-call overhead on a handful of 3×3 matrices. None when the compiled kernel
+    is not active now (the caller then uses the numpy function)."""
+    module = _usable()
+    if module is None:
+        return None
+    checked = _aff3.validate_affine(A)
+    flat = checked.reshape(-1, 4, 4)
+    rows = np.empty((flat.shape[0], 12))
+    rows[:, :9] = flat[:, :3, :3].reshape(-1, 9)
+    rows[:, 9:] = flat[:, :3, 3]
+    with _state.lock:
+        try:
+            bad = module.psi_rows(rows)
+        except Exception as exc:
+            if "psi_rows" in _state.compiled:
+                raise
+            _fail(f"compiling psi_rows failed: {type(exc).__name__}: {exc}")
+            return None
+        _state.compiled.add("psi_rows")
+    if bad >= 0:  # numpy names the transform in its error (or finds the row finite after all)
+        return _aff3.params_from_matrices(checked)
+    return rows.reshape(*checked.shape[:-2], 12)
 
 
 def node_params(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, *,

@@ -102,7 +102,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 __all__ = ["CHUNK", "ENTRIES", "cage_faces", "cage_nodes", "chain_motion_entry", "chain_points_entry",
-           "deform_points_entry", "motion_params", "node_pivot", "polar_log", "spin_wait"]
+           "deform_points_entry", "motion_params", "node_pivot", "polar_log", "psi_rows", "spin_wait"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -117,7 +117,7 @@ _N_CHAIN_SCRATCH = 21  # as _N_SCRATCH, plus the original point (offsets)
 _N_CHAIN_MOTION_SCRATCH = 36  # as _N_MOTION_SCRATCH, plus the product so far
 #: The compiled kernel entries, one specialisation each (`warm_up` runs exactly these and `spin_wait`).
 ENTRIES = ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
-           "chain_motion_entry", "cage_faces", "cage_nodes")
+           "chain_motion_entry", "cage_faces", "cage_nodes", "psi_rows")
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -1062,6 +1062,26 @@ def _psi_row(out: np.ndarray, t: int, A: np.ndarray, Vs: np.ndarray, sig: np.nda
     for k in range(12):
         finite = finite and math.isfinite(out[t, k])
     return finite
+
+
+@_entry
+def psi_rows(out: np.ndarray) -> int:
+    """ψ of every row of out (n, 12) f64 in place: (M row-major, t) ↦ (ω, u, Y₆), the 12-number
+    layout of core.aff3.params_from_matrices (`_psi_row`: the polar split of `polar_log`, ω the
+    principal log of R, u = V(ω)⁻¹ t), agreeing with it to ~1e-15; det M > 0 is checked by the
+    caller. Returns the first row that is not finite, −1 when every row is. Scalar code, one thread:
+    the controls that moved in one update, a handful of rows."""
+    A = np.empty((3, 3))
+    Vs = np.empty((3, 3))
+    sig = np.empty(3)
+    lsig = np.empty(3)
+    R = np.empty((3, 3))
+    Yh = np.empty((3, 3))
+    bad = -1
+    for t in range(out.shape[0]):
+        if not _psi_row(out, t, A, Vs, sig, lsig, R, Yh) and bad < 0:
+            bad = t
+    return bad
 
 
 @_inline

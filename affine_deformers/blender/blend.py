@@ -47,6 +47,7 @@ def blend_offsets(deformer, motions: Motions, bound: BoundData,
     any may); `state` is what the result is computed with (Snapshot.result_state). The returned
     array may be the cache's own (`bound.offsets`): callers must not modify it.
     """
+    bound.proven = False
     outer = parameters.outer_at_strength(motions, deformer.strength, deformer.branch_rule)
     points = bound.points
     if deformer.strength == 0.0 or len(motions.matrices) == 0 or (np.all(motions.at_rest) and outer is None):
@@ -95,12 +96,30 @@ def _offsets_affine(deformer, motions: Motions, bound: BoundData,
             accel.deform_points_params_rows(points, params, bound.indices, values, rows, offsets,
                                              offsets=True, key=key, out32=out32)
         bound.params = params
+        bound.proven = _storable_by_bound(bound, params, deformer.strength, offsets=True)
         return offsets, rows
     bound.forget_result()
     offsets = accel.deform_points_params(points, params, bound.indices, values, key=key)
     offsets -= points
     bound.state, bound.params, bound.offsets = state, params, offsets
+    bound.proven = _storable_by_bound(bound, params, deformer.strength, offsets=True)
     return offsets, None
+
+
+#: A result proven below this magnitude (a quarter of float32's largest) is stored without a pass
+#: over it; the margin covers the kernel's rounding many times over.
+PROVEN_LIMIT = 0.25 * float(np.finfo(np.float32).max)
+
+
+def _storable_by_bound(bound: BoundData, params: np.ndarray, strength: float, offsets: bool) -> bool:
+    """Whether every vertex's result of the plain affine blend with `params` is provably finite and
+    storable as float32 (core.deform.motion_bound over the bound points, or over unit columns for
+    motions), so the output check needs no pass over the vertices. A cached row computed with
+    older parameters passed this check or the full one when it was computed."""
+    radius, weight_sum = bound.reach(strength)
+    if offsets:
+        return deform.motion_bound(params, weight_sum, radius) + radius < PROVEN_LIMIT
+    return deform.motion_bound(params, weight_sum, 1.0) < PROVEN_LIMIT
 
 
 def _changed_rows(bound: BoundData, previous: np.ndarray | None, params: np.ndarray,
@@ -113,21 +132,23 @@ def _changed_rows(bound: BoundData, previous: np.ndarray | None, params: np.ndar
     if previous is None or bound.state != state or bound.params.shape != params.shape:
         return None
     changed = np.flatnonzero((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1))
-    return _rows_to_recompute(bound, changed, len(params), bound.affected_rows)
+    return _rows_to_recompute(bound, changed, len(params), bound.affected_rows, bound.weighted_rows)
 
 
-def _rows_to_recompute(bound: BoundData, changed: np.ndarray, m: int, affected) -> np.ndarray | None:
+def _rows_to_recompute(bound: BoundData, changed: np.ndarray, m: int, affected,
+                       every=None) -> np.ndarray | None:
     """The rows an incremental update recomputes when the controls `changed` (of m) changed, or None
-    for a full recompute; `affected(changed)` gives the vertices reading them.
+    for a full recompute; `affected(changed)` gives the vertices reading them, `every()` (default:
+    every vertex) those reading any control.
 
     With the compiled kernel its row path is taken however many rows there are: it costs no more than
     a full pass and rounds the rows into the attribute's copy as it goes, so the write needs neither a
-    cast nor a compare; when every control changed, every vertex is listed without forming the union.
+    cast nor a compare; when every control changed, `every()` lists the rows without forming the union.
     The numpy kernel recomputes everything above INCREMENTAL_MAX_FRACTION of the vertices (its gathers
     and scatters would cost more than they save). Either way the result is bit-identical."""
     compiled = accel.active()
     if compiled and m and len(changed) == m:
-        return bound.every_row()
+        return every() if every is not None else bound.every_row()
     rows = affected(changed)
     return rows if compiled or len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points) else None
 
@@ -137,6 +158,7 @@ def blend_motions(deformer, motions: Motions, bound: BoundData,
     """(each rest vertex's motion x ↦ M x + t as (4, N, 3) float32 columns M e_x, M e_y, M e_z, t,
     rows): the motion path's counterpart of `blend_offsets` (same rules, same `rows` meaning); exactly the
     identity when every control is at rest. The array may be the cache's own: do not modify it."""
+    bound.proven = False
     outer = parameters.outer_at_strength(motions, deformer.strength, deformer.branch_rule)
     n = len(bound.points)
     at_rest = deformer.strength == 0.0 or len(motions.matrices) == 0 or np.all(motions.at_rest)
@@ -198,11 +220,13 @@ def _motions_affine(deformer, motions: Motions, bound: BoundData,
         if len(rows):
             accel.vertex_motions(params, bound.indices, values, out=result, rows=rows, key=key)
         bound.params = params
+        bound.proven = _storable_by_bound(bound, params, deformer.strength, offsets=False)
         return result, rows
     bound.forget_result()
     result = accel.vertex_motions(params, bound.indices, values,
                                   out=np.empty((4, len(bound.points), 3), dtype=np.float32), key=key)
     bound.state, bound.params, bound.motions = state, params, result
+    bound.proven = _storable_by_bound(bound, params, deformer.strength, offsets=False)
     return result, None
 
 

@@ -54,6 +54,17 @@ class BoundData:
     prefixes: np.ndarray | None = None  # (m + 1, 12) the bones' prefix matrices of the last result
     layout: tuple[tuple, hierarchy.ChainLayout] | None = None  # ((parents, strength), layout)
     every: np.ndarray | None = None  # (N,) intp 0 … N − 1, once asked for (`every_row`)
+    reach_at: tuple[float, float, float] | None = None  # (strength, max |point|, max row Σ|w|)
+    proven: bool = False  # the last result is finite and storable by `core.deform.motion_bound`
+
+    def reach(self, strength: float) -> tuple[float, float]:
+        """(max |rest point|, max over vertices of Σ_k |w_vk| at `strength`), the inputs of
+        core.deform.motion_bound for this bind (kept while the strength is the same)."""
+        if self.reach_at is None or self.reach_at[0] != strength:
+            radius = float(np.sqrt((self.points ** 2).sum(axis=1)).max(initial=0.0))
+            weight_sum = float(np.abs(self.scaled_values(strength)).sum(axis=1).max(initial=0.0))
+            self.reach_at = (strength, radius, weight_sum)
+        return self.reach_at[1], self.reach_at[2]
 
     def every_row(self) -> np.ndarray:
         """All vertex indices (N,) intp, as a row list for the kernel's row path (made once)."""
@@ -66,9 +77,9 @@ class BoundData:
             self.scaled = (strength, self.values * strength)
         return self.scaled[1]
 
-    def affected_rows(self, controls: np.ndarray) -> np.ndarray:
-        """Sorted vertices with a non-zero weight on any of `controls`; O(affected) to gather (plus
-        one boolean pass over the vertices), from per-control row lists built once per generation."""
+    def _rows_by_control(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ptr, rows, weighted): control i's rows are rows[ptr[i] : ptr[i + 1]], `weighted` the rows
+        with any non-zero weight; built once per generation."""
         if self.csr is None:
             m = len(self.params) if self.params is not None else int(self.indices.max(initial=-1)) + 1
             rows, slots = np.nonzero(self.values)
@@ -77,7 +88,17 @@ class BoundData:
             ptr = np.zeros(m + 1, dtype=np.intp)
             np.cumsum(np.bincount(cols, minlength=m), out=ptr[1:])
             self.csr = (ptr, rows[order].astype(np.intp), np.flatnonzero((self.values != 0.0).any(axis=1)))
-        ptr, rows, weighted = self.csr
+        return self.csr
+
+    def weighted_rows(self) -> np.ndarray:
+        """Sorted vertices with any non-zero weight: all a change of every control can move (the
+        others keep φ(0) v = v, their offset exactly 0)."""
+        return self._rows_by_control()[2]
+
+    def affected_rows(self, controls: np.ndarray) -> np.ndarray:
+        """Sorted vertices with a non-zero weight on any of `controls`; O(affected) to gather (plus
+        one boolean pass over the vertices), from per-control row lists built once per generation."""
+        ptr, rows, weighted = self._rows_by_control()
         if len(controls) == len(ptr) - 1:  # every control (a cage's nodes after any edit): all weighted rows
             return weighted
         if len(controls) == 1:  # one control's rows are already sorted and distinct
@@ -101,6 +122,7 @@ class BoundData:
 
     def forget_result(self) -> None:
         self.state = self.params = self.offsets = self.motions = self.prefixes = None
+        self.proven = False
 
 
 def forget(key: tuple[int, str] | None = None) -> None:

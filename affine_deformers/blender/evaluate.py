@@ -81,7 +81,8 @@ def _compute(deformer, snap: snapshot.Snapshot) -> tuple[np.ndarray | None, np.n
         error = str(exc)
     except ValueError as exc:  # core refuses to blend (e.g. a motion too degenerate for its log)
         error = f"The controls' motions cannot be blended ({exc}): the mesh shows its rest shape"
-    if not error and not finite(output, rows):
+    # A result the blend proved bounded (bound.proven) needs no pass over its vertices.
+    if not error and not snap.bound.proven and not finite(output, rows):
         error = "The deformation is not finite: the mesh shows its rest shape"
     if error:
         snap.bound.forget_result()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import accel
 from ..core import aff3, unwrap
 from .kinds import ChannelTurns, Motions
 from .kinds.transforms import reference_rotvecs
@@ -42,9 +43,12 @@ def lifted_params(matrices: np.ndarray, reference: np.ndarray | None,
                   pivots: np.ndarray | None) -> np.ndarray:
     """ψ(A) (m, 12) for motions (m, 4, 4), each rotation log lifted to the branch nearest its
     reference rotation vector (m, 3) about its pivot (m, 3) (core.unwrap.lift_params) when a
-    reference is given; the principal branch (|ω| ≤ π) otherwise. ValueError from core.aff3 for a
+    reference is given; the principal branch (|ω| ≤ π) otherwise. ψ runs in the compiled kernel when
+    it is active (accel.params_from_matrices), in numpy otherwise. ValueError from core.aff3 for a
     motion outside Aff+(3)."""
-    params = np.asarray(aff3.params_from_matrices(matrices), dtype=np.float64)
+    params = accel.params_from_matrices(matrices)
+    if params is None:
+        params = np.asarray(aff3.params_from_matrices(matrices), dtype=np.float64)
     if reference is None:
         return params
     return unwrap.lift_params(params, reference, pivots, damping=LIFT_DAMPING, axis_tol=LIFT_AXIS_TOL)
@@ -115,9 +119,11 @@ def _param_keys(motions: Motions, lift: bool) -> list[tuple]:
         parts += [turns.rest_rotations.reshape(m, -1), turns.rotations.reshape(m, -1),
                   turns.frames.reshape(m, 9), turns.pivots.reshape(m, 3)]
     bits = np.ascontiguousarray(np.concatenate(parts, axis=1, dtype=np.float64))
+    # The compiled ψ and numpy's agree to ~1e-15, not bit for bit: a row is kept per backend.
+    compiled = accel.active()
     if not lift:
-        return [(row.tobytes(),) for row in bits]
-    return [(row.tobytes(), rest_mode, mode)
+        return [(row.tobytes(), compiled) for row in bits]
+    return [(row.tobytes(), compiled, rest_mode, mode)
             for row, rest_mode, mode in zip(bits, turns.rest_modes, turns.modes, strict=True)]
 
 

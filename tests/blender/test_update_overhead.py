@@ -152,6 +152,33 @@ def test_finiteness_check_of_changed_rows(installed):
     assert outputs.finite_offsets(offsets, None)
 
 
+def test_bounded_results_skip_the_pass_and_overflow_is_still_caught(bl, installed, monkeypatch):
+    """An ordinary update is proven storable from its parameters (core.deform.motion_bound) and is
+    written without the pass over its vertices; a probe scaled so far that the offsets overflow
+    float32 is not proven, takes the full check, and the deformer says so and passes its input
+    through (offsets zero)."""
+    outputs = importlib.import_module(f"{installed.package}.blender.outputs")
+    target, probes, deformer = _rig(bl, n_probes=2)
+    passes = []
+    real = outputs.finite_offsets
+    monkeypatch.setattr(outputs, "finite_offsets", lambda *a: passes.append(1) or real(*a))
+    probes[0].location.x += 0.2
+    probes[0].rotation_euler.z += 0.3
+    bpy.context.view_layer.update()
+    assert deformer.status == "" and passes == []
+    assert np.abs(bl.stored_offsets(target, deformer)).max() > 0.01
+    me = target.data
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    me.vertices.foreach_set("co", co * 1e17)  # far from the probes' rest frames: huge arms
+    me.update()
+    probes[0].scale = (1e22, 1e22, 1e22)
+    bpy.context.view_layer.update()
+    assert passes, "an unbounded result must take the full check"
+    assert "not finite" in deformer.status
+    assert not np.abs(bl.stored_offsets(target, deformer)).any()
+
+
 def test_scene_membership_and_cached_modifier_lookup(bl, installed):
     transforms = importlib.import_module(f"{installed.package}.blender.kinds.transforms")
     target, probes, deformer = _rig(bl, n_probes=2)

@@ -636,7 +636,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache"] * 8  # one per entry
+    assert res.stdout.split() == ["NullCache"] * 9  # one per entry
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
@@ -949,7 +949,8 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     assert accel.warm_up().startswith("numba ")
     assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params",
                                                            "polar_log", "node_pivot", "chain_points_entry",
-                                                           "chain_motion_entry", "cage_faces", "cage_nodes"}
+                                                           "chain_motion_entry", "cage_faces", "cage_nodes",
+                                                           "psi_rows"}
     assert fresh_state.spin and fresh_state.spin[0] is kernel.spin_wait  # the helpers' busy-wait
     jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
     for name, f in jitted.items():
@@ -969,6 +970,7 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     accel.vertex_motions(params, idx, val, np.zeros((4, 300, 3), np.float32), rows=[5])
     accel.vertex_motions(params, idx, val, rows=np.arange(9))
     accel.polar_log(np.eye(3)[None] * 2.0)
+    accel.params_from_matrices(np.eye(4)[None] * 2.0 + np.diag([0.0, 0.0, 0.0, -1.0]))
     accel.node_params(rng.normal(size=(4, 3)), rng.random((4, 3)), params[:3], faces=np.array([0, 2]))
     from tests.core.test_cage import box_cage
 
@@ -1078,6 +1080,9 @@ for step in sys.argv[3].split(","):
         res["points-alone"], res["motions-alone"] = out[lifted], mot[:, lifted]
     elif step == "polar":
         res["polar-R"], res["polar-Y"] = accel.polar_log(case["polar"])
+        motions = np.broadcast_to(np.eye(4), (len(case["polar"]), 4, 4)).copy()
+        motions[:, :3, :3] = case["polar"]
+        res["psi"] = accel.params_from_matrices(motions)
     elif step == "nodes":
         res["nodes"] = accel.node_params(pts[:300], val[:300], params[: val.shape[1]])
     elif step == "cage":  # a box cage, a few vertices moved (the faces they reach, and the volume)
@@ -1150,12 +1155,13 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1], "polar_log": [0, 1],
                        "node_pivot": [0, 1], "chain_points_entry": [0, 1],
                        "chain_motion_entry": [0, 1], "cage_faces": [0, 1],
-                       "cage_nodes": [0, 1]}, stats_a  # compiled there
+                       "cage_nodes": [0, 1], "psi_rows": [0, 1]}, stats_a  # compiled there
     assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0], "polar_log": [0, 0],
                        "node_pivot": [0, 0], "chain_points_entry": [0, 1],
-                       "chain_motion_entry": [0, 0], "cage_faces": [0, 0], "cage_nodes": [0, 0]}, stats_b
+                       "chain_motion_entry": [0, 0], "cage_faces": [0, 0], "cage_nodes": [0, 0],
+                       "psi_rows": [0, 0]}, stats_b
     for name in ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
-                 "chain_motion_entry", "cage_faces", "cage_nodes"):
+                 "chain_motion_entry", "cage_faces", "cage_nodes", "psi_rows"):
         assert stats_c[name][0] >= 1 and stats_c[name][1] == 0, (name, stats_c)  # loaded from A's cache
     ra, rb, rc = (np.load(tmp_path / f"{x}.npz") for x in "abc")
     full, motions = ra["points-full"], rc["motions-full"]
@@ -1165,6 +1171,7 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert np.array_equal(ra["motions-rows"], motions[:, rows])  # A: compiled, rows; C: loaded, full first
     assert np.array_equal(rc["motions-rows"], motions[:, rows])
     assert np.array_equal(ra["polar-R"], rc["polar-R"]) and np.array_equal(ra["polar-Y"], rc["polar-Y"])
+    assert np.array_equal(ra["psi"], rc["psi"])
     assert np.array_equal(ra["nodes"], rc["nodes"])
     assert np.array_equal(ra["cage"], rc["cage"]) and np.array_equal(ra["cage-volume"], rc["cage-volume"])
     assert np.array_equal(ra["cage-nodes"], rc["cage-nodes"]) and np.abs(ra["cage-nodes"]).max() > 0.0
@@ -1215,6 +1222,74 @@ def test_polar_log_matches_numpys_svd(compiled: ModuleType) -> None:
     accel.set_enabled(False)
     try:
         assert accel.polar_log(M) is None
+    finally:
+        accel.set_enabled(True)
+
+
+def _psi_cases(rng: np.random.Generator) -> np.ndarray:
+    """Motions (n, 4, 4) in Aff+(3) where ψ is delicate: rotations of θ = 0, 1e-9, 0.19 / 0.21 (the
+    series switch of V⁻¹), π − 1e-7, π exactly, 1.9π-looking (principal ≤ π), strong anisotropy,
+    shear, repeated singular values, tiny and huge scale, translations far from the origin."""
+    angles = np.array([0.0, 1e-9, 0.19, 0.21, 1.0, np.pi - 1e-7, np.pi, 2.5])
+    axes = rng.normal(size=(len(angles), 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    rotations = aff3.so3_exp(angles[:, None] * axes)
+    stretches = [np.eye(3), np.diag([1e-3, 1.0, 1e3]), np.diag([2.0, 2.0, 0.5]),
+                 np.array([[1.0, 0.7, 0.0], [0.0, 1.0, 0.3], [0.0, 0.0, 1.0]]),
+                 1e-4 * np.eye(3), 1e4 * np.eye(3)]
+    motions = []
+    for R in rotations:
+        for S in stretches:
+            A = np.eye(4)
+            A[:3, :3] = R @ S
+            A[:3, 3] = rng.normal(size=3) * 10.0 ** rng.integers(-6, 4)
+            motions.append(A)
+    random = np.broadcast_to(np.eye(4), (200, 4, 4)).copy()
+    M = rng.normal(size=(200, 3, 3))
+    M[np.linalg.det(M) < 0.0] *= -1.0
+    random[:, :3, :3] = M
+    random[:, :3, 3] = rng.normal(size=(200, 3))
+    return np.concatenate([np.array(motions), random])
+
+
+def test_compiled_psi_matches_numpy_and_scipy(compiled: ModuleType) -> None:
+    """`accel.params_from_matrices` (ψ of the moved controls in one compiled call) agrees with
+    core.aff3's numpy ψ to ~1e-14 relative on the delicate cases of `_psi_cases`, and with an
+    independent reference: scipy's polar decomposition and matrix logarithms, X = logm([R t; 0 1]),
+    Y = logm(S) (except at a half turn, where ±ω are both principal and logm has no real value).
+    A motion outside Aff+(3) raises numpy's own ValueError; None when the kernel is off."""
+    from scipy.linalg import logm, polar
+
+    rng = np.random.default_rng(151)
+    A = _psi_cases(rng)
+    P = aff3.params_from_matrices(A)
+    Pc = accel.params_from_matrices(A)
+    sigma = np.linalg.svd(A[:, :3, :3], compute_uv=False)
+    kappa = np.maximum(sigma[:, 0] / sigma[:, 2], 10.0)
+    scale = kappa * np.maximum(1.0, np.abs(P).max(axis=1))
+    assert Pc.shape == P.shape and (np.abs(Pc - P).max(axis=1) < 1e-14 * scale).all()
+    for a, p in zip(A, Pc, strict=True):
+        R, S = polar(a[:3, :3], side="right")  # M = R S
+        X = np.real(logm(np.block([[R, a[:3, 3:]], [np.zeros((1, 3)), np.ones((1, 1))]])))
+        Y = np.real(logm(S))
+        w = np.array([X[2, 1], X[0, 2], X[1, 0]])
+        if abs(np.linalg.norm(p[:3]) - np.pi) < 1e-6:  # half turn: ±ω both principal, no real logm
+            continue
+        ref = np.concatenate([w, X[:3, 3], [Y[0, 0], Y[1, 1], Y[2, 2], Y[0, 1], Y[0, 2], Y[1, 2]]])
+        cond = np.linalg.cond(a[:3, :3])
+        assert np.abs(p - ref).max() < 1e-8 * max(cond, 1.0) * max(1.0, np.abs(ref).max()), (a, p, ref)
+    single = accel.params_from_matrices(A[3])
+    assert single.shape == (12,) and np.array_equal(single, Pc[3])
+    mirrored = A[:2].copy()
+    mirrored[1, :3, :3] *= -1.0
+    for bad in (mirrored, np.full((1, 4, 4), np.nan)):
+        with pytest.raises(ValueError) as numpy_error:
+            aff3.params_from_matrices(bad)
+        with pytest.raises(ValueError, match=re.escape(str(numpy_error.value))):
+            accel.params_from_matrices(bad)
+    accel.set_enabled(False)
+    try:
+        assert accel.params_from_matrices(A) is None
     finally:
         accel.set_enabled(True)
 
