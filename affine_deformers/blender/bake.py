@@ -115,7 +115,9 @@ class _Capture:
         try:
             self.object = self._stand_in(scene, obj)
             capture = nodes.ensure_modifier(self.object, offset_attr, motion_attrs, "Capture")
-            # Keeps the controls evaluated while the live modifier is muted (a re-bake).
+            # Keeps the controls evaluated while the live modifier is muted (a re-bake); synced
+            # first: a visibility change since the last depsgraph update may need a relation now.
+            relations.sync(obj, _find(obj, uid)[1])
             relations.copy_controls(nodes.find_modifier(obj, offset_attr), capture)
             if with_input:
                 self.input = self._stand_in(scene, obj)

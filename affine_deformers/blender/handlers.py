@@ -13,16 +13,50 @@ import bpy
 from bpy.app.handlers import persistent
 
 from . import caches, evaluate, relations
+from .kinds import transforms
+
+_syncing = False  # relations.sync_scene is running (its depsgraph.update() calls this handler again)
 
 
 @persistent
 def on_frame_change_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None) -> None:
     evaluate.run(scene, depsgraph)
+    if transforms.take_resync():
+        _sync(scene, depsgraph)
+        evaluate.run(scene, depsgraph)
 
 
 @persistent
 def on_depsgraph_update_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None) -> None:
+    if _syncing:
+        return
+    try:
+        # Visibility, collection and view layer changes all list the scene; moving a control does not.
+        if depsgraph is not None and any(isinstance(u.id, bpy.types.Scene) for u in depsgraph.updates):
+            _sync(scene, depsgraph)
+    except Exception:
+        traceback.print_exc()
     evaluate.run(scene, depsgraph)
+    if transforms.take_resync():
+        _sync(scene, depsgraph)
+        evaluate.run(scene, depsgraph)
+
+
+def _sync(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None) -> None:
+    """relations.sync_scene; when a relation changed, evaluate `depsgraph` again (a control named just
+    now was not evaluated in this pass, and may have moved) — not a render's, whose relations were
+    synced when it started (on_render_start)."""
+    global _syncing
+    if _syncing or depsgraph is None:
+        return
+    _syncing = True
+    try:
+        if relations.sync_scene(scene) and depsgraph.mode != "RENDER":
+            depsgraph.update()
+    except Exception:
+        traceback.print_exc()
+    finally:
+        _syncing = False
 
 
 @persistent
@@ -51,6 +85,10 @@ def on_render_start(scene: bpy.types.Scene, *_args) -> None:
     try:
         if not scene.render.use_lock_interface:
             scene.render.use_lock_interface = True
+    except Exception:
+        traceback.print_exc()
+    try:
+        relations.sync_scene(scene)  # before the render depsgraph is built: controls hidden in renders
     except Exception:
         traceback.print_exc()
 

@@ -327,21 +327,32 @@ def vertex_group_weights(obj: bpy.types.Object, names: list[str]) -> np.ndarray:
 def evaluates(obj: bpy.types.Object, attr: str, control: bpy.types.Object,
               depsgraph: bpy.types.Depsgraph) -> bool:
     """Whether `depsgraph` evaluates `control` because a modifier of ours that is enabled in its mode
-    (viewport or render) reads the offset attribute `attr` and names `control` on its inputs: the
-    target's own, or the one of another object sharing its mesh (the bake's stand-in, which keeps
-    the controls evaluated while a baked deformer's modifier is muted)."""
-    flag = "show_render" if depsgraph.mode == "RENDER" else "show_viewport"
+    (viewport or render) reads the offset attribute `attr` and names `control` on its inputs."""
+    return control in named_controls(obj, attr, depsgraph)
 
-    def names_control(host: bpy.types.Object) -> bool:
+
+def named_controls(obj: bpy.types.Object, attr: str, depsgraph: bpy.types.Depsgraph) -> set:
+    """The controls that modifiers of ours enabled in `depsgraph`'s mode (viewport or render) and
+    reading the offset attribute `attr` name on their inputs: the target's own, and the one of
+    another object sharing its mesh (the bake's stand-in, which keeps the controls evaluated while a
+    baked deformer's modifier is muted)."""
+    flag = "show_render" if depsgraph.mode == "RENDER" else "show_viewport"
+    named: set = set()
+
+    def add(host: bpy.types.Object) -> None:
         mod = find_modifier(host, attr)
         if mod is None or not getattr(mod, flag):
-            return False
+            return
         cage, collection = controls(mod)
-        return control == cage or (collection is not None and any(o == control for o in collection.objects))
+        if cage is not None:
+            named.add(cage)
+        if collection is not None:
+            named.update(collection.objects)
 
-    if names_control(obj):
-        return True
+    add(obj)
     mesh = obj.data
-    if obj.type != "MESH" or mesh.users <= 1:
-        return False
-    return any(names_control(other) for other in bpy.data.objects if other.data == mesh and other != obj)
+    if obj.type == "MESH" and mesh.users > 1:
+        for other in bpy.data.objects:
+            if other.data == mesh and other != obj:
+                add(other)
+    return named

@@ -14,6 +14,14 @@ PROBES_MARK and linked to no scene (the Collection input is the only way to name
 objects on one shared node group). `sync` keeps it and the inputs in step with the deformer; it is
 called at bind / re-weight, when a control is picked or cleared, and for every deformer when a file is
 loaded (which also upgrades node groups saved by older versions, see nodes.upgrade_group).
+
+Only controls the depsgraph would not evaluate anyway are named (`evaluated_anyway`). A relation
+also re-evaluates the target whenever a named control moves, before our handler has written the
+new result: the target's stack ran twice per update, once with stale data. A control enabled in
+viewports and renders in every view layer that holds the target is evaluated without one. Its
+visibility can change later: every depsgraph update that lists a Scene (visibility and collection
+changes do) re-runs `sync_scene`, and so does every render start; visibility that is animated or
+driven counts as disabled, since a frame change re-syncs nothing.
 """
 
 from __future__ import annotations
@@ -30,12 +38,61 @@ def _is_ours(collection: bpy.types.Collection | None) -> bool:
     return collection is not None and collection.library is None and bool(collection.get(PROBES_MARK))
 
 
+HIDE_PATHS = frozenset({"hide_viewport", "hide_render"})
+
+
+def evaluated_anyway(target: bpy.types.Object, control: bpy.types.Object) -> bool:
+    """Whether every depsgraph that evaluates `target` (viewport and render, each view layer of each
+    scene holding it) evaluates `control` without a relation: the control is enabled in both (the eye
+    icon only hides: hidden objects are still evaluated) on some path of collections that is neither
+    excluded nor disabled, in each of those view layers, and its visibility is not animated."""
+    if control.hide_viewport or control.hide_render or _visibility_animated(control):
+        return False
+    scenes = target.users_scene
+    return bool(scenes) and all(_enabled_under(layer.layer_collection, control)
+                                for scene in scenes for layer in scene.view_layers)
+
+
+def _enabled_under(layer: bpy.types.LayerCollection, control: bpy.types.Object) -> bool:
+    collection = layer.collection
+    if layer.exclude or collection.hide_viewport or collection.hide_render:
+        return False
+    if collection.objects.get(control.name) == control:
+        return True
+    return any(_enabled_under(child, control) for child in layer.children)
+
+
+def _visibility_animated(obj: bpy.types.Object) -> bool:
+    """Whether an F-curve or driver of `obj` (its action, its NLA strips' actions) writes a hide flag."""
+    anim = obj.animation_data
+    if anim is None:
+        return False
+    if any(d.data_path in HIDE_PATHS for d in anim.drivers):
+        return True
+    actions = [anim.action] + [strip.action for track in anim.nla_tracks for strip in track.strips]
+    return any(fc.data_path in HIDE_PATHS for action in actions if action is not None
+               for fc in _fcurves(action))
+
+
+def _fcurves(action: bpy.types.Action) -> list:
+    """Every F-curve of `action`: its channel bags' on layered actions (Blender 4.4+; the only kind
+    in 5.0), `action.fcurves` before."""
+    layers = getattr(action, "layers", None)
+    if layers is None:
+        return list(action.fcurves)
+    curves = [fc for layer in layers for strip in layer.strips
+              for bag in getattr(strip, "channelbags", ()) for fc in bag.fcurves]
+    legacy = getattr(action, "fcurves", None)  # 4.4–4.5 still show the first slot's curves here
+    return curves + (list(legacy) if legacy is not None and not curves else [])
+
+
 def _wanted(obj: bpy.types.Object, deformer) -> tuple[bpy.types.Object | None, list[bpy.types.Object]]:
     """(object, collection members) the deformer's modifier should name: a kind with one control
     object (a cage) names it on the Object input, others (probes) put theirs in the collection; the
-    target itself never."""
+    target itself never, nor controls the depsgraph evaluates anyway."""
     kind = kinds.get(deformer.kind)
     controls = kind.controls(obj, deformer) if kind is not None else []
+    controls = [control for control in controls if not evaluated_anyway(obj, control)]
     if kind is not None and kind.single_control:
         return (controls[0] if controls else None), []
     return None, controls
@@ -99,6 +156,17 @@ def copy_controls(source: bpy.types.NodesModifier | None, target: bpy.types.Node
     controls are evaluated with it even while `source` is muted."""
     if source is not None:
         nodes.set_controls(target, *nodes.controls(source))
+
+
+def sync_scene(scene: bpy.types.Scene) -> bool:
+    """`sync` every local deformer of the scene's meshes (visibility may have changed); True when a
+    relation changed."""
+    changed = False
+    for obj in scene.objects:
+        if obj.type == "MESH" and obj.library is None and len(obj.affine_deformers):
+            for deformer in obj.affine_deformers:
+                changed = sync(obj, deformer) or changed
+    return changed
 
 
 def upgrade_all() -> None:

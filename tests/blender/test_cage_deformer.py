@@ -636,6 +636,8 @@ def test_deleted_unlinked_or_zero_scaled_cage(bl):
 # ---------------------------------------------------------------------------------------------- relations
 # The deformer's modifier names its controls on the node group's Cage / Probes inputs, so the depsgraph
 # evaluates them with the target even when they are disabled in viewports or renders (relations.py).
+# Controls the depsgraph evaluates anyway are not named: a relation would re-evaluate the target a
+# second time per update, before our handler has written the new result.
 
 
 @pytest.fixture
@@ -659,7 +661,7 @@ def test_cage_disabled_in_viewports_is_evaluated_while_the_deformer_is_on(bl, no
     cage = box_cage()
     deformer = add_cage_deformer(target, cage)
     mod = our_modifier(nodes, target, deformer)
-    assert nodes.controls(mod) == (cage, None)
+    assert nodes.controls(mod) == (None, None), "enabled everywhere: evaluated without a relation"
     assert mod.node_group.get(nodes.GROUP_MARK) == nodes.GROUP_VERSION == 3
     inputs = control_inputs(mod.node_group)
     managed = ("Cage", "Probes", "Motion X", "Motion Y", "Motion Z", "Motion T")
@@ -670,6 +672,7 @@ def test_cage_disabled_in_viewports_is_evaluated_while_the_deformer_is_on(bl, no
     cage.location.x = 0.4
     assert np.abs(bl.evaluated_positions(target) - rest - (0.4, 0, 0)).max() < 1e-5
     assert deformer.status == ""
+    assert nodes.controls(mod) == (cage, None), "the update that hid it named it"
     set_cage_points(cage, cage_points(cage) * 1.2)  # the hidden cage's shape is evaluated too
     assert np.abs(bl.evaluated_positions(target) - (1.2 * rest + (0.4, 0, 0))).max() < 1e-5
 
@@ -686,6 +689,7 @@ def test_cage_disabled_in_viewports_is_evaluated_while_the_deformer_is_on(bl, no
     cage.hide_set(True)  # the eye icon
     cage.location.x = 0.2
     assert np.abs(bl.evaluated_positions(target) - (1.2 * rest + (0.2, 0, 0))).max() < 1e-5
+    assert nodes.controls(mod) == (None, None), "hidden with the eye icon: still evaluated"
     cage.hide_set(False)
     cages = bpy.data.collections.new("Cages")  # a hidden, then excluded collection holding it
     bpy.context.scene.collection.children.link(cages)
@@ -698,6 +702,72 @@ def test_cage_disabled_in_viewports_is_evaluated_while_the_deformer_is_on(bl, no
     cage.location.x = 0.8
     assert np.abs(bl.evaluated_positions(target) - (1.2 * rest + (0.8, 0, 0))).max() < 1e-5
     assert deformer.status == ""
+    assert nodes.controls(mod) == (cage, None)
+    bpy.context.view_layer.layer_collection.children["Cages"].exclude = False
+    cages.hide_viewport = True  # the collection disabled in viewports (the monitor icon)
+    cage.location.x = 0.5
+    assert np.abs(bl.evaluated_positions(target) - (1.2 * rest + (0.5, 0, 0))).max() < 1e-5
+    cages.hide_viewport = False
+    bl.evaluated_positions(target)
+    assert nodes.controls(mod) == (None, None), "enabled again: the relation is dropped"
+
+
+@pytest.mark.parametrize("kind", ["cage", "probe"])
+def test_a_control_disabled_and_moved_before_a_frame_change_is_read_at_its_new_pose(bl, nodes, kind):
+    """frame_set runs no depsgraph_update_post, so no update saw the visibility change: the handler
+    finds the unnamed control unevaluated, names it and evaluates again."""
+    target = bl.grid_cube(cuts=3)
+    control = box_cage() if kind == "cage" else bl.empty("Probe")
+    deformer = add_cage_deformer(target, control) if kind == "cage" else bl.add_probe_deformer(target, [control])
+    mod = our_modifier(nodes, target, deformer)
+    rest = bl.rest_positions(target).astype(np.float64)
+    assert nodes.controls(mod) == (None, None)
+    control.hide_viewport = True
+    control.location.x = 0.3
+    bpy.context.scene.frame_set(2)
+    assert np.abs(bl.evaluated_positions(target) - rest - (0.3, 0, 0)).max() < 1e-5
+    assert deformer.status == ""
+    named = nodes.controls(mod)
+    assert named[0] == control if kind == "cage" else set(named[1].objects) == {control}
+
+
+@pytest.mark.parametrize("how", ["object", "collection", "keyed", "driven", "second view layer"])
+def test_controls_disabled_in_renders_or_with_animated_visibility_are_named(bl, nodes, how):
+    """The viewport evaluates them, a render would not: the relation must be there before it starts."""
+    target = bl.grid_cube(cuts=3)
+    cage = box_cage()
+    sphere = bl.uv_sphere(segments=8, rings=4, location=(5.0, 0.0, 0.0))
+    probe = bl.empty("Probe", (5.0, 0.0, 0.0))
+    cage_mod = our_modifier(nodes, target, add_cage_deformer(target, cage))
+    probe_mod = our_modifier(nodes, sphere, bl.add_probe_deformer(sphere, [probe]))
+    assert nodes.controls(cage_mod) == (None, None) and nodes.controls(probe_mod) == (None, None)
+    scene = bpy.context.scene
+    if how == "object":
+        cage.hide_render = probe.hide_render = True
+    elif how == "collection":
+        holder = bpy.data.collections.new("Controls")
+        scene.collection.children.link(holder)
+        for obj in (cage, probe):
+            holder.objects.link(obj)
+            scene.collection.objects.unlink(obj)
+        holder.hide_render = True
+    elif how == "keyed":
+        for obj in (cage, probe):
+            obj.keyframe_insert("hide_viewport", frame=1)
+    elif how == "driven":
+        for obj in (cage, probe):
+            obj.driver_add("hide_render").driver.expression = "0"
+    else:
+        layer = scene.view_layers.new("Other")
+        holder = bpy.data.collections.new("Controls")
+        scene.collection.children.link(holder)
+        for obj in (cage, probe):
+            holder.objects.link(obj)
+            scene.collection.objects.unlink(obj)
+        layer.layer_collection.children["Controls"].exclude = True
+    bl.evaluated_positions(target)
+    assert nodes.controls(cage_mod) == (cage, None)
+    assert set(nodes.controls(probe_mod)[1].objects) == {probe}
 
 
 def test_cage_disabled_in_viewports_can_be_bound_at_its_current_pose(bl):
@@ -720,6 +790,7 @@ def test_picking_or_clearing_the_cage_renames_the_modifier_input(bl, nodes):
     first, second = box_cage("First"), box_cage("Second", half=(1.7, 1.7, 1.7))
     deformer = add_cage_deformer(target, first)
     mod = our_modifier(nodes, target, deformer)
+    second.hide_viewport = True
     deformer.cage = second
     assert nodes.controls(mod) == (second, None)
     deformer.cage = None
@@ -733,15 +804,17 @@ def test_probes_disabled_in_viewports_are_evaluated_and_their_collection_follows
     a, b = bl.empty("A"), bl.empty("B", (0.0, 0.0, 1.0))
     deformer = bl.add_probe_deformer(target, [a])  # one probe, weights summing to 1: the mesh follows it
     mod = our_modifier(nodes, target, deformer)
-    cage, probes = nodes.controls(mod)
-    assert cage is None and set(probes.objects) == {a}
-    assert probes.name.startswith(".AffineDeformer Probes") and probes.users == 1
-    assert probes not in set(bpy.context.scene.collection.children_recursive), "linked to no scene"
+    assert nodes.controls(mod) == (None, None), "an enabled probe is evaluated without a relation"
     rest = bl.rest_positions(target).astype(np.float64)
     a.hide_viewport = True
     a.location = (0.2, -0.1, 0.3)
     assert np.abs(bl.evaluated_positions(target) - rest - (0.2, -0.1, 0.3)).max() < 1e-5
+    cage, probes = nodes.controls(mod)
+    assert cage is None and set(probes.objects) == {a}
+    assert probes.name.startswith(".AffineDeformer Probes") and probes.users == 1
+    assert probes not in set(bpy.context.scene.collection.children_recursive), "linked to no scene"
 
+    b.hide_viewport = True
     with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, b]):
         assert bpy.ops.object.affine_deformer_probe_add(index=0) == {"FINISHED"}
     assert set(nodes.controls(mod)[1].objects) == {a, b}
@@ -750,11 +823,12 @@ def test_probes_disabled_in_viewports_are_evaluated_and_their_collection_follows
     assert set(nodes.controls(mod)[1].objects) == {b}
     c = bl.empty("C", (0.5, 0.0, 0.0))
     deformer.probes[0].object = c  # a new pick is bound at its current pose
-    assert set(nodes.controls(mod)[1].objects) == {c}
+    assert nodes.controls(mod)[1] is None
     c.hide_viewport = True
     c.location.x = 0.9
     assert np.abs(bl.evaluated_positions(target) - rest - (0.4, 0.0, 0.0)).max() < 1e-5
     assert deformer.status == ""
+    assert set(nodes.controls(mod)[1].objects) == {c}
 
     name = nodes.controls(mod)[1].name
     assert bl.run_op(bpy.ops.object.affine_deformer_remove, target, index=0) == {"FINISHED"}
@@ -884,7 +958,14 @@ def test_files_with_the_version_1_node_group_are_upgraded_in_place_on_load(bl, n
 
 
 @pytest.mark.parametrize("name", ["cage_deform", "probe_bend"])
-def test_sample_files_open_with_a_current_group_naming_every_control(bl, nodes, name):
+def test_sample_files_open_with_a_current_group_naming_every_hidden_control(bl, nodes, name):
+    relations = importlib.import_module(nodes.__name__.rsplit(".", 1)[0] + ".relations")
+    kinds = importlib.import_module(nodes.__name__.rsplit(".", 1)[0] + ".kinds")
+    evaluated_anyway = relations.evaluated_anyway
+
+    def kind_controls(obj, deformer):
+        return kinds.get(deformer.kind).controls(obj, deformer)
+
     path = os.path.join(os.path.dirname(__file__), "..", "..", "samples", f"{name}.blend")
     if not os.path.exists(path):
         pytest.skip(f"samples/{name}.blend is not built")
@@ -896,10 +977,11 @@ def test_sample_files_open_with_a_current_group_naming_every_control(bl, nodes, 
     for obj in bpy.data.objects:
         for deformer in getattr(obj, "affine_deformers", ()):
             cage, probes = nodes.controls(our_modifier(nodes, obj, deformer))
-            if deformer.kind == "CAGE":
-                assert cage == deformer.cage and probes is None
+            hidden = {c for c in kind_controls(obj, deformer) if not evaluated_anyway(obj, c)}
+            if deformer.kind in ("CAGE", "BONE"):
+                assert {cage} - {None} == hidden and probes is None
             else:
-                assert cage is None and set(probes.objects) == {p.object for p in deformer.probes}
+                assert cage is None and set(probes.objects if probes else ()) == hidden
             assert deformer.status == "", (obj.name, deformer.status)
             count += 1
     assert count > 0

@@ -73,11 +73,13 @@ from .. import nodes, storage
 from .base import Adopted, BindError, Motions, ignored_note, single_selected
 from .transforms import (
     channel_frame,
+    control_evaluated,
     finite_transform,
     local_matrix,
     reference_rotvecs,
     relative_motion,
     rotation_channels,
+    want_resync,
     world_matrix,
 )
 
@@ -167,33 +169,13 @@ def cage_problem(target: bpy.types.Object, cage: bpy.types.Object | None) -> str
     return ""
 
 
-def is_evaluated(cage: bpy.types.Object, evaluated: bpy.types.Object, depsgraph: bpy.types.Depsgraph,
-                 related: bool = False) -> bool:
-    """Whether the depsgraph really evaluates the cage this update.
-
-    `related`: an enabled modifier of ours names the cage on its inputs (nodes.evaluates), so the
-    depsgraph evaluates it with the target. Otherwise a cage disabled in viewports (or renders) is
-    not evaluated, yet `evaluated_get` may still return a stale copy (the deformer's pointer to the
-    cage puts an ID node in the depsgraph). Evaluated objects are then those the depsgraph lists,
-    plus objects hidden only with the eye icon (evaluated but not listed)."""
-    if not evaluated.is_evaluated:
-        return False
-    if related:
-        return True
-    try:
-        if cage.hide_get(view_layer=depsgraph.view_layer):
-            return True
-    except RuntimeError:  # not in the depsgraph's view layer
-        return False
-    listed = depsgraph.objects.get(cage.name)  # by name: a linear search in Python is 4x slower
-    return listed is not None and listed.original == cage
-
-
 def read_cage(cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph, related: bool = False) -> CageState:
     """The evaluated cage (modifiers, shape keys, edit-mode edits and object animation included);
-    `related` as in `is_evaluated`."""
+    `related` as in `transforms.control_evaluated`."""
     evaluated = cage.evaluated_get(depsgraph)
-    if not is_evaluated(cage, evaluated, depsgraph, related):
+    if not control_evaluated(cage, evaluated, depsgraph, related):
+        if not related:
+            want_resync()
         raise CageUnavailableError(
             f"Cage '{cage.name}' is not evaluated (it is disabled in viewports or renders, and the "
             "deformer is off there): enable the deformer, or show the cage")

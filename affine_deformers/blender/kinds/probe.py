@@ -17,7 +17,7 @@ import bpy
 import numpy as np
 
 from ...core import surface, weights
-from .. import nodes
+from .. import nodes, storage
 from .base import Adopted, BindError, ChannelTurns, Motions, draw_weight_options, ignored_note
 from .transforms import (
     MAX_COORDINATE,
@@ -32,6 +32,8 @@ from .transforms import (
     motion_problem,
     relative_motion,
     rotation_channels,
+    unnamed_control_stale,
+    want_resync,
     world_matrix,
 )
 
@@ -177,6 +179,9 @@ class ProbeKind:
         rows: list[_ProbeRow | None] = []
         misses: list[tuple[int, tuple, np.ndarray, tuple, str, tuple]] = []
         problem = ""
+        # Probes the modifier does not name are evaluated because they are enabled (relations.py);
+        # each is checked, so a visibility change not synced yet is an error, not a stale pose.
+        named = nodes.named_controls(obj, storage.offset_name(deformer.uid), depsgraph) if m else set()
         for i, item in enumerate(probes):
             probe = item.object
             if probe is None:
@@ -190,6 +195,11 @@ class ProbeKind:
             if problem:
                 break
             evaluated = probe.evaluated_get(depsgraph)
+            if probe not in named and unnamed_control_stale(probe, evaluated, depsgraph):
+                want_resync()
+                problem = (f"Probe '{probe.name}' is not evaluated (it is disabled in viewports or "
+                           "renders, and the deformer is off there): enable the deformer, or show the probe")
+                break
             world = np.array(evaluated.matrix_world, dtype=np.float64)
             mode = evaluated.rotation_mode
             channels = rotation_channels(evaluated, mode)

@@ -212,6 +212,56 @@ def reference_rotvecs(rest_modes: list[str], rest_rotations, modes: list[str], c
     return np.einsum("mij,mj->mi", frames, w_channels)
 
 
+_resync_wanted = False
+
+
+def want_resync() -> None:
+    """Ask the handlers to re-sync the relations (relations.sync_scene): a control the modifier does
+    not name was found unevaluated (its visibility changed with no depsgraph update seeing it)."""
+    global _resync_wanted
+    _resync_wanted = True
+
+
+def take_resync() -> bool:
+    """Whether a re-sync was asked for since the last call."""
+    global _resync_wanted
+    wanted, _resync_wanted = _resync_wanted, False
+    return wanted
+
+
+def control_evaluated(control: bpy.types.Object, evaluated: bpy.types.Object,
+                      depsgraph: bpy.types.Depsgraph, related: bool = False) -> bool:
+    """Whether the depsgraph really evaluates `control` (its evaluated copy `evaluated`) this update.
+
+    `related`: an enabled modifier of ours names the control on its inputs (nodes.evaluates), so the
+    depsgraph evaluates it with the target. Otherwise a control disabled in viewports (or renders) is
+    not evaluated, yet `evaluated_get` may still return a stale copy (the deformer's pointer to the
+    control puts an ID node in the depsgraph). Evaluated objects are then those the depsgraph lists,
+    plus objects hidden only with the eye icon (evaluated but not listed)."""
+    if not evaluated.is_evaluated:
+        return False
+    if related:
+        return True
+    try:
+        if control.hide_get(view_layer=depsgraph.view_layer):
+            return True
+    except RuntimeError:  # not in the depsgraph's view layer
+        return False
+    listed = depsgraph.objects.get(control.name)  # by name: a linear search in Python is 4x slower
+    return listed is not None and listed.original == control
+
+
+def unnamed_control_stale(control: bpy.types.Object, evaluated: bpy.types.Object,
+                          depsgraph: bpy.types.Depsgraph) -> bool:
+    """Whether `control`, which no modifier of ours names, is not evaluated by `depsgraph`: in a
+    render the full test (`control_evaluated`); in the viewport only its own flag, since
+    relations.sync_scene follows every visibility change a depsgraph update sees, and the full test's
+    lookup in the depsgraph's object list costs O(objects) per control per update."""
+    if depsgraph.mode == "RENDER":
+        return not control_evaluated(control, evaluated, depsgraph)
+    return control.hide_viewport or not evaluated.is_evaluated
+
+
 def in_a_scene(obj: bpy.types.Object) -> bool:
     """`bool(obj.users_scene)` without its cost in the common case: users_scene lists every object of
     every scene (O(objects) per call); a lookup by name finds the object directly, and only a miss
