@@ -718,7 +718,10 @@ def test_a_control_disabled_and_moved_before_a_frame_change_is_read_at_its_new_p
     finds the unnamed control unevaluated, names it and evaluates again."""
     target = bl.grid_cube(cuts=3)
     control = box_cage() if kind == "cage" else bl.empty("Probe")
-    deformer = add_cage_deformer(target, control) if kind == "cage" else bl.add_probe_deformer(target, [control])
+    if kind == "cage":
+        deformer = add_cage_deformer(target, control)
+    else:
+        deformer = bl.add_probe_deformer(target, [control])
     mod = our_modifier(nodes, target, deformer)
     rest = bl.rest_positions(target).astype(np.float64)
     assert nodes.controls(mod) == (None, None)
