@@ -34,6 +34,7 @@ import time
 import warnings
 from collections.abc import Callable, Hashable
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -183,6 +184,25 @@ def _load() -> ModuleType | None:
                     absent = isinstance(exc, ModuleNotFoundError) and exc.name in ("numba", "llvmlite")
                     _fail(f"numba unavailable: {type(exc).__name__}: {exc}", warn=not absent)
     return _state.module
+
+
+_FAILED = object()  # what `_entry_call` returns when the entry could not be compiled
+
+
+def _entry_call(name: str, call: Callable[[], Any]) -> Any:
+    """`call()`, which runs the compiled entry `name`, under the kernel lock. A failure
+    on its first run (compiling or loading it) switches the process to numpy and returns _FAILED, so
+    the caller falls back; once the entry has run, an exception is a real error and propagates."""
+    with _state.lock:
+        try:
+            result = call()
+        except Exception as exc:
+            if name in _state.compiled:
+                raise
+            _fail(f"compiling {name} failed: {type(exc).__name__}: {exc}")
+            return _FAILED
+        _state.compiled.add(name)
+    return result
 
 
 def _fail(reason: str, warn: bool = True) -> None:
@@ -356,19 +376,13 @@ def _run(name: str, n: int, *args: object) -> bool:
 
     entry = getattr(module, name)
     n_chunks = -(-n // module.CHUNK)
-    with _state.lock:
-        try:
-            threads = _threads(numba) if name in _state.compiled else 1
-            spin = _spin(module) if threads > 1 and n_chunks > 1 else None
-            _run_chunks(entry, args, n_chunks, threads, spin)
-        except Exception as exc:
-            if name in _state.compiled:
-                # It ran before with these argument types: not a compile/platform problem.
-                raise
-            _fail(f"compiling {name} failed: {type(exc).__name__}: {exc}")
-            return False
-        _state.compiled.add(name)
-    return True
+
+    def chunks() -> None:
+        threads = _threads(numba) if name in _state.compiled else 1  # the first run compiles on one
+        spin = _spin(module) if threads > 1 and n_chunks > 1 else None
+        _run_chunks(entry, args, n_chunks, threads, spin)
+
+    return _entry_call(name, chunks) is not _FAILED
 
 
 # ----------------------------------------------------------------------------------------------
@@ -598,15 +612,8 @@ def polar_log(M: ArrayLike) -> tuple[FloatArray, FloatArray] | None:
     m = _c(np.asarray(M, dtype=np.float64).reshape(-1, 3, 3), np.float64)
     R = np.empty_like(m)
     Yh = np.empty_like(m)
-    with _state.lock:
-        try:
-            module.polar_log(m, R, Yh)
-        except Exception as exc:
-            if "polar_log" in _state.compiled:
-                raise
-            _fail(f"compiling polar_log failed: {type(exc).__name__}: {exc}")
-            return None
-        _state.compiled.add("polar_log")
+    if _entry_call("polar_log", lambda: module.polar_log(m, R, Yh)) is _FAILED:
+        return None
     return R, Yh
 
 
@@ -624,15 +631,9 @@ def params_from_matrices(A: ArrayLike) -> FloatArray | None:
     rows = np.empty((flat.shape[0], 12))
     rows[:, :9] = flat[:, :3, :3].reshape(-1, 9)
     rows[:, 9:] = flat[:, :3, 3]
-    with _state.lock:
-        try:
-            bad = module.psi_rows(rows)
-        except Exception as exc:
-            if "psi_rows" in _state.compiled:
-                raise
-            _fail(f"compiling psi_rows failed: {type(exc).__name__}: {exc}")
-            return None
-        _state.compiled.add("psi_rows")
+    bad = _entry_call("psi_rows", lambda: module.psi_rows(rows))
+    if bad is _FAILED:
+        return None
     if bad >= 0:  # numpy names the transform in its error (or finds the row finite after all)
         return _aff3.params_from_matrices(checked)
     return rows.reshape(*checked.shape[:-2], 12)
@@ -657,18 +658,15 @@ def node_params(node_points: ArrayLike, node_weights: ArrayLike, face_params: Ar
     B = np.empty((faces.size, 9))
     nodes = np.empty((x.shape[0], 12))
     # One specialisation: every array argument is 2-D C-contiguous float64.
-    with _state.lock:
-        try:
-            module.node_pivot(False, face_rows, _NO_POINTS, B)
-            blend = _harmonic.face_columns(W, faces, valid, np.concatenate([face_rows, B], axis=1))
-            module.node_pivot(True, np.ascontiguousarray(blend), x, nodes)
-        except Exception as exc:
-            if "node_pivot" in _state.compiled:
-                raise
-            _fail(f"compiling node_pivot failed: {type(exc).__name__}: {exc}")
-            return _harmonic.node_params(node_points, node_weights, face_params, faces=faces, valid=valid,
-                                         maps=linear_maps)
-        _state.compiled.add("node_pivot")
+
+    def both_steps() -> None:
+        module.node_pivot(False, face_rows, _NO_POINTS, B)
+        blend = _harmonic.face_columns(W, faces, valid, np.concatenate([face_rows, B], axis=1))
+        module.node_pivot(True, np.ascontiguousarray(blend), x, nodes)
+
+    if _entry_call("node_pivot", both_steps) is _FAILED:
+        return _harmonic.node_params(node_points, node_weights, face_params, faces=faces, valid=valid,
+                                     maps=linear_maps)
     return nodes
 
 
@@ -694,19 +692,13 @@ def cage_faces(rest: ArrayLike, current: ArrayLike, topology: _cage.CageTopology
     corner_params = np.empty((tables.triples.shape[0], 12))
     flags = np.empty(F, dtype=np.int64)
     moved = np.empty(cur.shape[0], dtype=np.bool_)
-    with _state.lock:
-        try:
-            volume = module.cage_faces(
-                cur, tables.rest, tables.triples, tables.first, tables.usable, tables.weight, tables.rest_ok,
-                tables.centres, tables.inverses, tables.stencil_vertices, tables.stencil_gamma,
-                tables.stencil_moments, tables.stencil_spread, tables.stencil_active, tables.fan, moved,
-                params, corner_params, flags)
-        except Exception as exc:
-            if "cage_faces" in _state.compiled:
-                raise
-            _fail(f"compiling cage_faces failed: {type(exc).__name__}: {exc}")
-            return None
-        _state.compiled.add("cage_faces")
+    volume = _entry_call("cage_faces", lambda: module.cage_faces(
+        cur, tables.rest, tables.triples, tables.first, tables.usable, tables.weight, tables.rest_ok,
+        tables.centres, tables.inverses, tables.stencil_vertices, tables.stencil_gamma,
+        tables.stencil_moments, tables.stencil_spread, tables.stencil_active, tables.fan, moved,
+        params, corner_params, flags))
+    if volume is _FAILED:
+        return None
     reached = (flags & module.FACE_REACHED) != 0
     has_corner = (flags & module.FACE_HAS_CORNER) != 0
     valid = has_corner & (((flags & module.FACE_VALID) != 0) | ~reached)
@@ -741,16 +733,10 @@ def cage_nodes(node_points: ArrayLike, node_weights: ArrayLike, face_params: Arr
     blend = np.empty((22, G))
     out = np.empty((G, 12))
     touched = np.empty(G, dtype=np.bool_)
-    with _state.lock:
-        try:
-            module.cage_nodes(_c(W.T, np.float64), reached, faces, _c(P[faces], np.float64),
-                              keep.astype(np.float64), x, terms, blend, out, touched)
-        except Exception as exc:
-            if "cage_nodes" in _state.compiled:
-                raise
-            _fail(f"compiling cage_nodes failed: {type(exc).__name__}: {exc}")
-            return None
-        _state.compiled.add("cage_nodes")
+    Wt, rows, keep64 = _c(W.T, np.float64), _c(P[faces], np.float64), keep.astype(np.float64)
+    if _entry_call("cage_nodes", lambda: module.cage_nodes(Wt, reached, faces, rows, keep64, x, terms, blend,
+                                                            out, touched)) is _FAILED:
+        return None
     return out, touched
 
 

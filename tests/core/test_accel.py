@@ -602,6 +602,45 @@ def test_compile_failure_falls_back(monkeypatch: pytest.MonkeyPatch, fresh_state
     assert accel.backend() == "numpy (compiling deform_points_entry failed: RuntimeError: LLVM is unhappy)"
 
 
+@pytest.mark.parametrize("entry", ["polar_log", "psi_rows", "node_pivot"])
+def test_a_one_thread_entry_failing_to_compile_falls_back(
+    monkeypatch: pytest.MonkeyPatch, fresh_state: accel._State, entry: str
+) -> None:
+    """The per-control entries share the rule of the per-vertex ones: an error on the first call
+    switches the process to numpy and the caller still gets numpy's result; once an entry has run,
+    an error is a bug and propagates."""
+    import types
+
+    from affine_deformers.core import aff3, cage_harmonic
+
+    def broken(*args: object) -> None:
+        raise RuntimeError("LLVM is unhappy")
+
+    monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
+    monkeypatch.setattr(fresh_state, "module", types.SimpleNamespace(**{entry: broken}))
+    rng = np.random.default_rng(115)
+    A = np.tile(np.eye(4), (3, 1, 1))
+    A[:, :3, :3] += 0.1 * rng.normal(size=(3, 3, 3))
+    points, weights, faces = rng.normal(size=(5, 3)), rng.random((5, 3)), 0.01 * rng.normal(size=(3, 12))
+    calls = {
+        "polar_log": lambda: accel.polar_log(A[:, :3, :3]),
+        "psi_rows": lambda: accel.params_from_matrices(A),
+        "node_pivot": lambda: accel.node_params(points, weights, faces),
+    }
+    with pytest.warns(UserWarning, match="LLVM is unhappy"):
+        got = calls[entry]()
+    if entry == "node_pivot":  # numpy's result instead
+        assert np.allclose(got, cage_harmonic.node_params(points, weights, faces, maps=accel.linear_maps))
+    else:  # None: the caller uses numpy
+        assert got is None
+    assert accel.backend() == f"numpy (compiling {entry} failed: RuntimeError: LLVM is unhappy)"
+    assert aff3.params_from_matrices(A).shape == (3, 12)
+    fresh_state.module, fresh_state.failure = types.SimpleNamespace(**{entry: broken}), None
+    fresh_state.compiled.add(entry)
+    with pytest.raises(RuntimeError, match="LLVM is unhappy"):
+        calls[entry]()
+
+
 def test_importing_accel_does_not_import_numba() -> None:
     import subprocess
 
