@@ -122,7 +122,7 @@ def test_rebind_and_reweight_invalidate_the_cached_weights(ns):
 def test_affected_rows_of_few_and_of_many_controls(ns):
     """`BoundData.affected_rows` (the rows an incremental update recomputes): the sorted vertices with
     a non-zero weight on any of the given controls, whether it gathers per-control row lists (few
-    controls) or makes one pass over the weights (many: a cage's grid nodes)."""
+    controls) or tags every row-list entry with its control's flag (many: a cage's faces or nodes)."""
     rng = np.random.default_rng(11)
     n, m, k = 5000, 300, 6
     indices = np.argsort(rng.random((n, m)), axis=1)[:, :k].astype(np.int32)  # distinct per row, as bound
