@@ -712,13 +712,17 @@ def cage_faces(rest: ArrayLike, current: ArrayLike, topology: _cage.CageTopology
 
 
 def cage_nodes(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, reached: ArrayLike,
-               valid: ArrayLike | None = None) -> tuple[FloatArray, NDArray[np.bool_]] | None:
-    """(params (G, 12), touched (G,)): `core.cage_harmonic.node_params(node_points, node_weights,
-    face_params, faces=reached, valid=valid)` for the nodes with weight on a reached face (touched),
-    zeros for the others, in one compiled call (`compiled.cage_nodes`; the same parameters to
-    ~1e-15). node_weights (G, F), best column-major (its transpose is then read without a copy);
-    reached: the indices of the faces that moved; valid (F,) bool or None (all valid). None when the
-    compiled kernel is not active now (the caller then uses `node_params`)."""
+               valid: ArrayLike | None = None, totals: ArrayLike | None = None
+               ) -> tuple[FloatArray, NDArray[np.bool_], FloatArray] | None:
+    """(params (G, 12), touched (G,), totals (G,)): `core.cage_harmonic.node_params(node_points,
+    node_weights, face_params, faces=reached, valid=valid)` for the nodes with weight on a reached
+    face (touched), zeros for the others, in one compiled call (`compiled.cage_nodes`; the same
+    parameters to ~1e-15). node_weights (G, F), best column-major (its transpose is then read
+    without a copy); reached: the indices of the faces that moved; valid (F,) bool or None (all
+    valid). totals: the node sums Σ_f W_cf valid_f that an earlier call with the same node_weights
+    and valid returned (what every update with them needs, so a caller keeps them), or None to
+    compute them; passing them changes no bit of the result. None when the compiled kernel is not
+    active now (the caller then uses `node_params`)."""
     module = _usable()
     if module is None:
         return None
@@ -730,14 +734,18 @@ def cage_nodes(node_points: ArrayLike, node_weights: ArrayLike, face_params: Arr
     keep = np.ones(F, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
     faces = reached[keep[reached]]
     terms = np.empty((faces.size, 21))
-    blend = np.empty((22, G))
+    blend = np.empty((21, G))
     out = np.empty((G, 12))
     touched = np.empty(G, dtype=np.bool_)
+    fill = totals is None
+    sums = np.empty(G) if fill else _c(totals, np.float64)
+    if sums.shape != (G,):
+        raise ValueError(f"totals must have shape ({G},), got {sums.shape}")
     Wt, rows, keep64 = _c(W.T, np.float64), _c(P[faces], np.float64), keep.astype(np.float64)
-    if _entry_call("cage_nodes", lambda: module.cage_nodes(Wt, reached, faces, rows, keep64, x, terms, blend,
-                                                            out, touched)) is _FAILED:
+    if _entry_call("cage_nodes", lambda: module.cage_nodes(
+            Wt, reached, faces, rows, keep64, sums, fill, x, terms, blend, out, touched)) is _FAILED:
         return None
-    return out, touched
+    return out, touched, sums
 
 
 def linear_maps(params: ArrayLike) -> FloatArray:

@@ -1207,7 +1207,8 @@ def cage_faces(
 @_entry
 def cage_nodes(
     Wt: np.ndarray, reached: np.ndarray, faces: np.ndarray, face_params: np.ndarray, keep: np.ndarray,
-    x: np.ndarray, terms: np.ndarray, blend: np.ndarray, out: np.ndarray, touched: np.ndarray,
+    totals: np.ndarray, fill_totals: bool, x: np.ndarray, terms: np.ndarray, blend: np.ndarray,
+    out: np.ndarray, touched: np.ndarray,
 ) -> int:
     """core.cage_harmonic.node_params for the nodes a moved face reaches, in one call; returns how
     many nodes that is.
@@ -1215,8 +1216,10 @@ def cage_nodes(
     Wt (F, G) f64: the node weights transposed (face by face; W_cf = Wt[f, c]); reached (n_r,)
     int64: the faces that moved (valid or not); faces (n,) int64 those of them to blend (valid),
     face_params (n, 12) their parameters (ω, u, Y); keep (F,) f64 1 for a valid face, 0 for one left
-    out (scale_c = 1 / Σ_f W_cf keep_f, 0 for a node without any valid face); x (G, 3) the node
-    points. Scratch: terms (n, 21), blend (22, G) (row 21: the scale).
+    out; totals (G,) f64 the sums T_c = Σ_f W_cf keep_f over every face, computed into it when
+    fill_totals and read from it otherwise (they are the same on every update with the same weights
+    and valid faces: the caller keeps them; scale_c = 1 / T_c, 0 for a node without any valid face);
+    x (G, 3) the node points. Scratch: terms (n, 21), blend (21, G).
 
     touched[c] = W_cf > 0 for some reached face f; out[c] (G, 12) = (ω̄, ū + V(ω̄)⁻¹ (x − M̄ x), Ȳ)
     for those (zeros for the others) with (ω̄, ū, Ȳ, B̄) = scale_c Σ_f W_cf (ω_f, u_f, Y_f, B_f),
@@ -1244,13 +1247,16 @@ def cage_nodes(
         terms[i, 12], terms[i, 13], terms[i, 14] = b00, b01, b02
         terms[i, 15], terms[i, 16], terms[i, 17] = b10, b11, b12
         terms[i, 18], terms[i, 19], terms[i, 20] = b20, b21, b22
-    for k in range(22):
+    if fill_totals:
+        for c in range(G):
+            totals[c] = 0.0
+        for f in range(Wt.shape[0]):
+            kf = keep[f]
+            for c in range(G):
+                totals[c] += Wt[f, c] * kf
+    for k in range(21):
         for c in range(G):
             blend[k, c] = 0.0
-    for f in range(Wt.shape[0]):
-        kf = keep[f]
-        for c in range(G):
-            blend[21, c] += Wt[f, c] * kf
     for i in range(n):
         f = faces[i]
         for k in range(21):
@@ -1265,7 +1271,7 @@ def cage_nodes(
         if not touched[c]:
             continue
         count += 1
-        s = 1.0 / blend[21, c] if blend[21, c] > 0.0 else 0.0
+        s = 1.0 / totals[c] if totals[c] > 0.0 else 0.0
         w0, w1, w2 = blend[0, c] * s, blend[1, c] * s, blend[2, c] * s
         for k in range(6, 12):
             y[k] = blend[k, c] * s

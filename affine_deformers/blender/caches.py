@@ -2,15 +2,16 @@
 
 Every entry is a cache of values recomputable from the .blend (nothing here is bind data): the last
 snapshot signature and error of each deformer (evaluate.py), the bind data and last result
-(bound.py), the modifier found last (outputs.py), the parameter memo (params.py) and the kinds' own
-memos. Undo, redo, file load and unregistering drop them all.
+(bound.py), the modifier found last (outputs.py), the parameter memo (params.py), the node groups'
+input identifiers (nodes.py) and the kinds' own memos. Undo, redo, file load and unregistering drop
+them all.
 """
 
 from __future__ import annotations
 
 import bpy
 
-from . import bound, kinds, outputs, params
+from . import bound, kinds, nodes, outputs, params
 
 #: (object session uid, deformer uid) → signature of the snapshot last written (snapshot.Snapshot).
 signatures: dict[tuple[int, str], tuple] = {}
@@ -27,6 +28,7 @@ def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
         outputs.forget()
         params.forget()
         kinds.forget()
+        nodes.forget()
         return
     key = (obj.session_uid, uid)
     signatures.pop(key, None)

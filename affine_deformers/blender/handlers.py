@@ -12,7 +12,7 @@ import traceback
 import bpy
 from bpy.app.handlers import persistent
 
-from . import caches, evaluate, relations
+from . import caches, evaluate, nodes, relations
 from .kinds import transforms
 
 _syncing = False  # relations.sync_scene is running (its depsgraph.update() calls this handler again)
@@ -31,8 +31,13 @@ def on_depsgraph_update_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgr
     if _syncing:
         return
     try:
-        # Visibility, collection and view layer changes all list the scene; moving a control does not.
-        if depsgraph is not None and any(isinstance(u.id, bpy.types.Scene) for u in depsgraph.updates):
+        scene_changed = False
+        for update in depsgraph.updates if depsgraph is not None else ():
+            # Visibility, collection and view layer changes all list the scene; moving a control does not.
+            scene_changed = scene_changed or isinstance(update.id, bpy.types.Scene)
+            if isinstance(update.id, bpy.types.NodeTree):
+                nodes.forget()  # a group's interface may have changed in a way its item names do not show
+        if scene_changed:
             _sync(scene, depsgraph)
     except Exception:
         traceback.print_exc()

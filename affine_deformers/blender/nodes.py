@@ -54,6 +54,9 @@ _MOTION_INPUTS = tuple(
 #: Inputs added after version 1, in interface order, all managed by the add-on (hidden in the panel).
 _MANAGED_INPUTS = CONTROL_SOCKETS + _MOTION_INPUTS
 _READER_NAME = ".AffineDeformer VertexGroupReader"
+#: (group session uid, names of its interface items in order) → `_input_identifiers` of it.
+_identifier_memo: dict[tuple[int, tuple[str, ...]], dict[tuple[str, str], str]] = {}
+_IDENTIFIERS_KEPT = 16
 _READER_ATTR = "affdef_tmp_vg{}"
 
 
@@ -64,18 +67,48 @@ def _is_our_group(ng: bpy.types.NodeTree | None) -> bool:
 
 def _our_offset_identifier(ng: bpy.types.NodeTree | None) -> str | None:
     """The offset input's identifier when `ng` is our group (`_is_our_group`), else None."""
+    identifiers = _our_identifiers(ng)
+    return None if identifiers is None else identifiers[OFFSET_SOCKET, "NodeSocketString"]
+
+
+def _our_identifiers(ng: bpy.types.NodeTree | None) -> dict[tuple[str, str], str] | None:
+    """`_input_identifiers(ng)` when `ng` is our group (marked, local, with the offset input), else None."""
     if (ng is None or ng.bl_idname != "GeometryNodeTree" or ng.library is not None
             or ng.get(GROUP_MARK) not in KNOWN_VERSIONS):
         return None
-    return offset_socket_identifier(ng)
+    identifiers = _input_identifiers(ng)
+    return identifiers if (OFFSET_SOCKET, "NodeSocketString") in identifiers else None
+
+
+def _input_identifiers(ng: bpy.types.NodeTree) -> dict[tuple[str, str], str]:
+    """{(name, socket type): identifier} of the group's inputs (the first of a name and type).
+
+    Every update asks for several, and reading the interface item by item costs ~20 µs through RNA,
+    so the map is kept per group and the names of its items in order (one call): adding, removing,
+    renaming or reordering items reads it anew. An edit the names do not show (a socket replaced by
+    one of the same name, type and place) is seen after the next depsgraph update, whose handler
+    forgets the map when a node tree changed; so do undo and file load (caches.forget)."""
+    items = ng.interface.items_tree
+    key = (ng.session_uid, tuple(items.keys()))
+    found = _identifier_memo.get(key)
+    if found is None:
+        found = {}
+        for item in items:
+            if getattr(item, "item_type", "") == "SOCKET" and item.in_out == "INPUT":
+                found.setdefault((item.name, item.socket_type), item.identifier)
+        _identifier_memo[key] = found
+        while len(_identifier_memo) > _IDENTIFIERS_KEPT:
+            _identifier_memo.pop(next(iter(_identifier_memo)))
+    return found
+
+
+def forget() -> None:
+    """Drop the interface memo (`_input_identifiers`)."""
+    _identifier_memo.clear()
 
 
 def _input_identifier(ng: bpy.types.NodeTree, name: str, socket_type: str) -> str | None:
-    for item in ng.interface.items_tree:
-        if (getattr(item, "item_type", "") == "SOCKET" and item.in_out == "INPUT"
-                and item.name == name and item.socket_type == socket_type):
-            return item.identifier
-    return None
+    return _input_identifiers(ng).get((name, socket_type))
 
 
 def offset_socket_identifier(ng: bpy.types.NodeTree) -> str | None:
@@ -85,8 +118,13 @@ def offset_socket_identifier(ng: bpy.types.NodeTree) -> str | None:
 
 def is_current(ng: bpy.types.NodeTree | None) -> bool:
     """Our group at GROUP_VERSION, with every managed input."""
-    return (_is_our_group(ng) and ng.get(GROUP_MARK) == GROUP_VERSION
-            and all(_input_identifier(ng, name, kind) is not None for name, kind, _ in _MANAGED_INPUTS))
+    identifiers = _our_identifiers(ng)
+    return identifiers is not None and _has_managed_inputs(ng, identifiers)
+
+
+def _has_managed_inputs(ng: bpy.types.NodeTree, identifiers: dict[tuple[str, str], str]) -> bool:
+    return (ng.get(GROUP_MARK) == GROUP_VERSION
+            and all((name, kind) in identifiers for name, kind, _ in _MANAGED_INPUTS))
 
 
 def upgrade_group(ng: bpy.types.NodeTree) -> bool:
@@ -244,11 +282,13 @@ def set_offset_name(mod: bpy.types.NodesModifier, offset_attr: str) -> None:
 def controls(mod: bpy.types.NodesModifier) -> tuple[bpy.types.Object | None, bpy.types.Collection | None]:
     """(cage, probe collection) named on our modifier's control inputs (None, None before version 2)."""
     ng = mod.node_group
-    if not is_current(ng):
+    identifiers = _our_identifiers(ng)
+    if identifiers is None or not _has_managed_inputs(ng, identifiers):
         return None, None
-    cage = mod.get(_input_identifier(ng, CAGE_SOCKET, "NodeSocketObject"))
-    probes = mod.get(_input_identifier(ng, PROBES_SOCKET, "NodeSocketCollection"))
-    return cage, probes
+    cage = mod.get(identifiers[CAGE_SOCKET, "NodeSocketObject"])
+    probes = mod.get(identifiers[PROBES_SOCKET, "NodeSocketCollection"])
+    return (cage if isinstance(cage, bpy.types.Object) else None,
+            probes if isinstance(probes, bpy.types.Collection) else None)
 
 
 def set_controls(mod: bpy.types.NodesModifier, cage: bpy.types.Object | None,

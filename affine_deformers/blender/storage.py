@@ -75,6 +75,45 @@ def read_positions(mesh: bpy.types.Mesh) -> np.ndarray:
     return co.reshape(-1, 3)
 
 
+def _internal_attribute(mesh: bpy.types.Mesh, name: str, data_type: str, domain: str
+                        ) -> bpy.types.Attribute | None:
+    attr = mesh.attributes.get(name)
+    return attr if attr is not None and attr.data_type == data_type and attr.domain == domain else None
+
+
+def corner_vertices(mesh: bpy.types.Mesh) -> np.ndarray:
+    """Each face corner's vertex index (L,) int32 (MeshLoop.vertex_index)."""
+    out = np.empty(len(mesh.loops), dtype=np.int32)
+    attr = _internal_attribute(mesh, ".corner_vert", "INT", "CORNER")
+    # The attribute is a plain array copy; MeshLoop.vertex_index goes through RNA per item (~50x slower).
+    if attr is not None:
+        attr.data.foreach_get("value", out)
+    else:
+        mesh.loops.foreach_get("vertex_index", out)
+    return out
+
+
+def edge_vertices(mesh: bpy.types.Mesh) -> np.ndarray:
+    """Each edge's two vertex indices, flat (2E,) int32 (MeshEdge.vertices)."""
+    out = np.empty(len(mesh.edges) * 2, dtype=np.int32)
+    attr = _internal_attribute(mesh, ".edge_verts", "INT32_2D", "EDGE")
+    if attr is not None:
+        attr.data.foreach_get("value", out)
+    else:
+        mesh.edges.foreach_get("vertices", out)
+    return out
+
+
+def face_corners(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(loop_start (F,), loop_total (F,)) int32 of the faces. The faces' corners are consecutive
+    (Blender stores one offsets array, start_f = offset_f and total_f = offset_{f+1} − offset_f), so
+    the totals follow from the starts and one RNA read suffices."""
+    start = np.empty(len(mesh.polygons), dtype=np.int32)
+    mesh.polygons.foreach_get("loop_start", start)
+    total = np.diff(start, append=np.int32(len(mesh.loops))).astype(np.int32, copy=False)
+    return start, total
+
+
 def write_positions(mesh: bpy.types.Mesh, positions: np.ndarray) -> None:
     flat = np.ascontiguousarray(positions, dtype=np.float32).ravel()
     attr = _position_attribute(mesh)
@@ -91,10 +130,7 @@ def topology_signature(mesh: bpy.types.Mesh, positions: np.ndarray) -> str:
     deleting one vertex and adding another keeps the vertex count but renumbers the vertices, which
     changes both; an edit of the shape alone, or of the faces alone, changes one (see
     evaluate._check_vertices)."""
-    edges = np.empty(len(mesh.edges) * 2, dtype=np.int32)
-    corners = np.empty(len(mesh.loops), dtype=np.int32)
-    mesh.edges.foreach_get("vertices", edges)
-    mesh.loops.foreach_get("vertex_index", corners)
+    edges, corners = edge_vertices(mesh), corner_vertices(mesh)
     counts = np.array([len(mesh.edges), len(mesh.loops), len(mesh.polygons)], dtype=np.int64)
     connectivity = zlib.crc32(corners.tobytes(), zlib.crc32(edges.tobytes(), zlib.crc32(counts.tobytes())))
     shape = zlib.crc32(np.ascontiguousarray(positions, dtype=np.float32).tobytes())

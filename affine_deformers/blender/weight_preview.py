@@ -139,7 +139,7 @@ def _stored(obj: bpy.types.Object, deformer) -> tuple[np.ndarray, np.ndarray, np
     stored weights; for a 'HARMONIC' cage the indices are grid nodes, each with face weights.
     Raises storage.StorageError / BindError when the bind data is missing or damaged."""
     if deformer.kind == KindId.CAGE and bound_with_nodes(deformer):
-        _points, node_weights = node_data(obj, deformer, _cage_faces(deformer))
+        node_weights = node_data(obj, deformer, _cage_faces(deformer)).weights
         indices, values = storage.read_weights(obj.data, deformer.uid, len(node_weights))
         return indices, values, node_weights
     indices, values = storage.read_weights(obj.data, deformer.uid, control_count(deformer))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 from types import SimpleNamespace
 
+import bmesh
 import bpy
 import numpy as np
 import pytest
@@ -134,3 +135,83 @@ def test_affected_rows_of_few_and_of_many_controls(ns):
         want = np.flatnonzero((np.isin(indices, controls) & (values != 0.0)).any(axis=1))
         got = bound.affected_rows(controls)
         assert np.array_equal(got, want), size
+
+
+def test_mesh_arrays_read_through_attributes_equal_the_rna_reads(ns):
+    """storage.corner_vertices / edge_vertices / face_corners (plain attribute copies, totals from
+    the starts) give exactly what MeshLoop.vertex_index, MeshEdge.vertices and MeshPolygon's
+    loop_start / loop_total give, on triangles, quads and an n-gon, an edited mesh and an empty one."""
+    mesh = bpy.data.meshes.new("mixed")
+    verts = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (2, 0, 0), (3, 1, 0), (2.5, 2, 0), (1.5, 2, 0),
+             (2, 3, 1)]
+    mesh.from_pydata(verts, [(7, 8)], [(0, 1, 2, 3), (1, 4, 2), (4, 5, 6, 7, 2)])
+    empty = bpy.data.meshes.new("nothing")
+    for me in (mesh, empty):
+        for _ in range(2):
+            loops = np.empty(len(me.loops), dtype=np.int32)
+            edges = np.empty(2 * len(me.edges), dtype=np.int32)
+            start = np.empty(len(me.polygons), dtype=np.int32)
+            total = np.empty(len(me.polygons), dtype=np.int32)
+            me.loops.foreach_get("vertex_index", loops)
+            me.edges.foreach_get("vertices", edges)
+            me.polygons.foreach_get("loop_start", start)
+            me.polygons.foreach_get("loop_total", total)
+            got_start, got_total = ns.storage.face_corners(me)
+            assert np.array_equal(ns.storage.corner_vertices(me), loops)
+            assert np.array_equal(ns.storage.edge_vertices(me), edges)
+            assert np.array_equal(got_start, start) and np.array_equal(got_total, total)
+            assert got_start.dtype == got_total.dtype == np.int32
+            if me.polygons:  # a second round on an edited mesh: one face deleted, the offsets shift
+                assert total.tolist() == [4, 3, 5]
+                bm = bmesh.new()
+                bm.from_mesh(me)
+                bm.faces.ensure_lookup_table()
+                bm.verts.ensure_lookup_table()
+                bmesh.ops.delete(bm, geom=[bm.faces[1]], context="FACES_ONLY")
+                bm.faces.new([bm.verts[i] for i in (0, 3, 8)])
+                bm.to_mesh(me)
+                bm.free()
+
+
+def test_group_input_identifiers_follow_edits_of_the_interface(ns):
+    """nodes._input_identifiers keeps its map per group and item names: a socket added, removed,
+    renamed or moved is seen at the next call, and one replaced by a socket of the same name and
+    place after the next depsgraph update."""
+    nodes = importlib.import_module(f"{ns.evaluate.__package__}.nodes")
+    ng = bpy.data.node_groups.new("interface", "GeometryNodeTree")
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    ns.grid_cube(cuts=1).modifiers.new("uses the group", "NODES").node_group = ng  # in the depsgraph
+    # Only identifier strings are kept: an interface item's Python object dangles once it is removed.
+    first = ng.interface.new_socket("A", in_out="INPUT", socket_type="NodeSocketString").identifier
+    assert nodes._input_identifier(ng, "A", "NodeSocketString") == first
+    second = ng.interface.new_socket("B", in_out="INPUT", socket_type="NodeSocketObject")
+    assert nodes._input_identifier(ng, "B", "NodeSocketObject") == second.identifier
+    second.name = "C"
+    assert nodes._input_identifier(ng, "B", "NodeSocketObject") is None
+    assert nodes._input_identifier(ng, "C", "NodeSocketObject") == second.identifier
+    ng.interface.remove(ng.interface.items_tree["A"])
+    again = ng.interface.new_socket("A", in_out="INPUT", socket_type="NodeSocketString").identifier
+    assert again != first
+    assert nodes._input_identifier(ng, "A", "NodeSocketString") == again  # now after C
+    ng.interface.remove(ng.interface.items_tree["A"])
+    replaced = ng.interface.new_socket("A", in_out="INPUT", socket_type="NodeSocketString").identifier
+    assert replaced != again  # the same names in the same order
+    bpy.context.view_layer.update()  # the handler sees the node tree change
+    assert nodes._input_identifier(ng, "A", "NodeSocketString") == replaced
+
+
+def test_modifier_controls_of_the_wrong_type_are_ignored(ns):
+    """nodes.controls gives no collection for an input whose type was changed in place (the
+    identifier map is keyed by item names, which stay the same)."""
+    target = ns.grid_cube(cuts=2)
+    probe = ns.empty("P0", (0.3, 0.0, 0.0))
+    deformer = ns.add_probe_deformer(target, [probe], radius=1.2)
+    probe.hide_viewport = True  # named on the modifier: the depsgraph would not evaluate it otherwise
+    bpy.context.view_layer.update()
+    nodes = importlib.import_module(f"{ns.evaluate.__package__}.nodes")
+    mod = nodes.find_modifier(target, ns.storage.offset_name(deformer.uid))
+    cage, probes = nodes.controls(mod)
+    assert cage is None and probe.name in probes.objects
+    # A script changing a managed input's type in place: the item names stay the same.
+    mod.node_group.interface.items_tree[nodes.PROBES_SOCKET].socket_type = "NodeSocketFloat"
+    assert nodes.controls(mod) == (None, None)

@@ -187,11 +187,32 @@ def test_compiled_nodes_match_numpy(compiled: ModuleType, broken: bool) -> None:
         valid = np.ones(W.shape[1], dtype=bool)
         valid[reached[:4]] = False
         P[reached[:4]] = 0.0
-    params, touched = accel.cage_nodes(x, W, P, reached, valid)
+    params, touched, totals = accel.cage_nodes(x, W, P, reached, valid)
     want = node_params(x, W, P, faces=reached, valid=valid)
     assert np.array_equal(touched, (W[:, reached] > 0.0).any(axis=1)) and not touched[:2].any()
     assert np.array_equal(params[~touched], np.zeros((int((~touched).sum()), 12)))
     assert np.abs(params[touched] - want[touched]).max() <= 1e-14 * max(1.0, np.abs(want).max())
+    keep = np.ones(W.shape[1]) if valid is None else valid.astype(float)
+    np.testing.assert_allclose(totals, W @ keep, rtol=1e-14)
+
+
+def test_compiled_nodes_with_kept_totals_are_bit_identical(compiled: ModuleType) -> None:
+    """The totals one call returns, passed to later calls with the same weights and valid faces
+    (what the cage deformer does on every update), change no bit of any later result; totals of the
+    wrong shape are refused."""
+    rng = np.random.default_rng(173)
+    x, W, P = node_case(rng)
+    valid = np.ones(W.shape[1], dtype=bool)
+    valid[[3, 7]] = False
+    _, _, totals = accel.cage_nodes(x, W, P, np.arange(W.shape[1]), valid)
+    for _ in range(4):
+        reached = np.sort(rng.choice(W.shape[1] - 1, size=int(rng.integers(1, 12)), replace=False))
+        fresh = accel.cage_nodes(x, W, P, reached, valid)
+        kept = accel.cage_nodes(x, W, P, reached, valid, totals=totals)
+        for a, b in zip(fresh, kept, strict=True):
+            assert np.array_equal(a, b)
+    with pytest.raises(ValueError, match="totals"):
+        accel.cage_nodes(x, W, P, np.arange(3), valid, totals=totals[:-1])
 
 
 def test_compiled_nodes_of_a_common_motion_are_exact(compiled: ModuleType) -> None:
@@ -201,7 +222,7 @@ def test_compiled_nodes_of_a_common_motion_are_exact(compiled: ModuleType) -> No
     x, W, _ = node_case(rng)
     G = similarity(0.8, [0.3, -1.0, 0.5], 1.2, [1.0, 2.0, -0.5])
     P = np.broadcast_to(aff3.params_from_matrices(G), (W.shape[1], 12)).copy()
-    params, touched = accel.cage_nodes(x, W, P, np.arange(W.shape[1]))
+    params, touched, _ = accel.cage_nodes(x, W, P, np.arange(W.shape[1]))
     assert touched.all()
     np.testing.assert_allclose(params, np.broadcast_to(P[0], params.shape), atol=1e-12)
 

@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import bpy
 import numpy as np
@@ -97,9 +98,21 @@ _COLLAPSE_NOTE = "their weight goes to the neighbouring faces"
 # (target session_uid, deformer uid) -> (inputs, Motions) of the last evaluation: a cache, not bind data.
 _last_motions: dict[tuple[int, str], tuple[tuple, Motions]] = {}
 
-# (target session_uid, deformer uid) -> (bind generation, node points (G, 3), node weights (G, F)
-# float64 with rows summing to 1): the 'HARMONIC' bind data as the blend uses them.
-_node_data: dict[tuple[int, str], tuple[int, np.ndarray, np.ndarray]] = {}
+
+
+class NodeBind(NamedTuple):
+    """A 'HARMONIC' bind as the blend uses it: node points (G, 3), node weights (G, F) float64 with
+    rows summing to 1, and the node totals Σ_f W_cf valid_f per set of valid faces (None: all), which
+    every update with that set needs (`accel.cage_nodes`); the last two sets are kept."""
+
+    points: np.ndarray
+    weights: np.ndarray
+    totals: dict[bytes | None, np.ndarray]
+
+
+# (target session_uid, deformer uid) -> (bind generation, NodeBind).
+_node_data: dict[tuple[int, str], tuple[int, NodeBind]] = {}
+_TOTALS_KEPT = 2
 # (vertex count, loop arrays' bytes) -> the validated CageTopology (`rest_cage`), oldest first.
 _topologies: dict[tuple, CageTopology] = {}
 _TOPOLOGIES_KEPT = 8
@@ -115,13 +128,13 @@ def bound_with_nodes(deformer) -> bool:
     return all(key in deformer for key in NODE_KEYS)
 
 
-def node_data(obj: bpy.types.Object, deformer, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
-    """(node points (G, 3), node weights (G, F) float64, rows renormalised to 1 in float64) of a
-    'HARMONIC' bind, cached per bind generation; BindError when the stored arrays are damaged."""
+def node_data(obj: bpy.types.Object, deformer, n_faces: int) -> NodeBind:
+    """The NodeBind (node weights' rows renormalised to 1 in float64) of a 'HARMONIC' bind, cached
+    per bind generation; BindError when the stored arrays are damaged."""
     key = (obj.session_uid, deformer.uid)
     cached = _node_data.get(key)
-    if cached is not None and cached[0] == deformer.bind_generation and cached[2].shape[1] == n_faces:
-        return cached[1], cached[2]
+    if cached is not None and cached[0] == deformer.bind_generation and cached[1].weights.shape[1] == n_faces:
+        return cached[1]
     points = np.asarray(deformer[NODE_POINTS], dtype=np.float64)
     weights = np.asarray(deformer[NODE_WEIGHTS], dtype=np.float64)
     if points.ndim != 1 or points.size % 3 or weights.size != (points.size // 3) * n_faces:
@@ -132,8 +145,9 @@ def node_data(obj: bpy.types.Object, deformer, n_faces: int) -> tuple[np.ndarray
     weights = np.where(total > 0.0, weights / np.where(total > 0.0, total, 1.0), 0.0)
     # Column-major: an update gathers the columns of the faces that moved (core.cage_harmonic).
     weights = np.asfortranarray(weights)
-    _node_data[key] = (deformer.bind_generation, points, weights)
-    return points, weights
+    bind = NodeBind(points, weights, {})
+    _node_data[key] = (deformer.bind_generation, bind)
+    return bind
 
 
 class CageUnavailableError(Exception):
@@ -183,12 +197,8 @@ def read_cage(cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph, related: b
     mesh = evaluated.to_mesh()
     try:
         points = storage.read_positions(mesh).copy()
-        loops = np.empty(len(mesh.loops), dtype=np.int32)
-        start = np.empty(len(mesh.polygons), dtype=np.int32)
-        total = np.empty(len(mesh.polygons), dtype=np.int32)
-        mesh.loops.foreach_get("vertex_index", loops)
-        mesh.polygons.foreach_get("loop_start", start)
-        mesh.polygons.foreach_get("loop_total", total)
+        loops = storage.corner_vertices(mesh)
+        start, total = storage.face_corners(mesh)
     finally:
         evaluated.to_mesh_clear()
     return CageState(points, loops, start, total, np.array(evaluated.matrix_world, dtype=np.float64))
@@ -436,7 +446,7 @@ class CageKind:
             else:
                 controls = _face_motions(rest, current, topology, linear, compiled)
                 if nodes is not None:
-                    controls = _node_motions(controls, *nodes, linear=linear)
+                    controls = _node_motions(controls, nodes, linear=linear)
             _last_motions[(obj.session_uid, deformer.uid)] = (key, controls)
         return dataclasses.replace(controls, outer=outer, outer_reference=reference, outer_pivot=pivot)
 
@@ -505,20 +515,28 @@ def _identities(n: int) -> np.ndarray:
     return np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
 
 
-def _node_motions(faces: Motions, node_points: np.ndarray, node_weights: np.ndarray, *,
-                  linear: bool = False) -> Motions:
+def _node_motions(faces: Motions, bind: NodeBind, *, linear: bool = False) -> Motions:
     """The faces' motions as the grid nodes' ('HARMONIC' weights): node c's parameters are the
     pivoted blend of its faces' (core.cage_harmonic.node_params), computed for the nodes with weight
     on a face that moved; the others are exactly at rest (parameters 0). Collapsed faces are left
     out of each node's blend (their weight goes to the node's other faces), so every node is valid.
     matrices: with `linear` the nodes' linear blend of the face matrices (what the 'LINEAR' blend
     uses); otherwise the identity (the affine blend reads the parameters only)."""
+    node_points, node_weights = bind.points, bind.weights
     G = len(node_points)
     moved = np.flatnonzero(~faces.at_rest)
     valid = None if faces.valid is None or np.all(faces.valid) else faces.valid
-    compiled = None if linear else accel.cage_nodes(node_points, node_weights, faces.params, moved, valid)
+    compiled = None
+    if not linear:
+        which = None if valid is None else np.packbits(valid).tobytes()
+        compiled = accel.cage_nodes(node_points, node_weights, faces.params, moved, valid,
+                                    totals=bind.totals.get(which))
+        if compiled is not None and which not in bind.totals:
+            bind.totals[which] = compiled[2]
+            while len(bind.totals) > _TOTALS_KEPT:
+                bind.totals.pop(next(iter(bind.totals)))
     if compiled is not None:  # the compiled kernel: every touched node in one call
-        params, touched = compiled
+        params, touched, _ = compiled
         return Motions(_identities(G), ~touched, "", params=params, warning=faces.warning)
     touched = np.zeros(node_weights.shape[1])
     touched[moved] = 1.0
