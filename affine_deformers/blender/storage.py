@@ -81,27 +81,28 @@ def _internal_attribute(mesh: bpy.types.Mesh, name: str, data_type: str, domain:
     return attr if attr is not None and attr.data_type == data_type and attr.domain == domain else None
 
 
-def corner_vertices(mesh: bpy.types.Mesh) -> np.ndarray:
-    """Each face corner's vertex index (L,) int32 (MeshLoop.vertex_index)."""
-    out = np.empty(len(mesh.loops), dtype=np.int32)
-    attr = _internal_attribute(mesh, ".corner_vert", "INT", "CORNER")
-    # The attribute is a plain array copy; MeshLoop.vertex_index goes through RNA per item (~50x slower).
+def _ints(mesh: bpy.types.Mesh, attribute: tuple[str, str, str], items: bpy.types.bpy_prop_collection,
+          prop: str, size: int) -> np.ndarray:
+    """(size,) int32 from the generic attribute (name, data type, domain) when the mesh has it, a
+    plain array copy, else from the RNA property `prop` of `items`, which goes item by item (~50×
+    slower)."""
+    out = np.empty(size, dtype=np.int32)
+    attr = _internal_attribute(mesh, *attribute)
     if attr is not None:
         attr.data.foreach_get("value", out)
     else:
-        mesh.loops.foreach_get("vertex_index", out)
+        items.foreach_get(prop, out)
     return out
+
+
+def corner_vertices(mesh: bpy.types.Mesh) -> np.ndarray:
+    """Each face corner's vertex index (L,) int32 (MeshLoop.vertex_index)."""
+    return _ints(mesh, (".corner_vert", "INT", "CORNER"), mesh.loops, "vertex_index", len(mesh.loops))
 
 
 def edge_vertices(mesh: bpy.types.Mesh) -> np.ndarray:
     """Each edge's two vertex indices, flat (2E,) int32 (MeshEdge.vertices)."""
-    out = np.empty(len(mesh.edges) * 2, dtype=np.int32)
-    attr = _internal_attribute(mesh, ".edge_verts", "INT32_2D", "EDGE")
-    if attr is not None:
-        attr.data.foreach_get("value", out)
-    else:
-        mesh.edges.foreach_get("vertices", out)
-    return out
+    return _ints(mesh, (".edge_verts", "INT32_2D", "EDGE"), mesh.edges, "vertices", 2 * len(mesh.edges))
 
 
 def face_corners(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
