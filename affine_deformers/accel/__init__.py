@@ -73,6 +73,7 @@ __all__ = [
     "node_params",
     "params_from_matrices",
     "polar_log",
+    "rows_reading",
     "set_enabled",
     "vertex_motions",
     "warm_up",
@@ -154,6 +155,7 @@ def warm_up() -> str:
         moved[3, 0] = 0.1
         cage_faces(corners, moved, tetra)  # cage_faces
         cage_nodes(np.zeros((1, 3)), np.ones((1, 4)), params.repeat(4, axis=0), np.arange(4))  # cage_nodes
+        rows_reading(np.ones(1, dtype=bool), idx, val)  # rows_reading
         prefixes = np.zeros((1, 12))
         prefixes[0, [0, 4, 8]] = 1.0
         chain_points(pts, params, idx[None], val[None], idx[:, 0], prefixes)  # chain_points_entry
@@ -746,6 +748,26 @@ def cage_nodes(node_points: ArrayLike, node_weights: ArrayLike, face_params: Arr
             Wt, reached, faces, rows, keep64, sums, fill, x, terms, blend, out, touched)) is _FAILED:
         return None
     return out, touched, sums
+
+
+def rows_reading(hit: ArrayLike, indices: ArrayLike, values: ArrayLike) -> NDArray[np.intp] | None:
+    """The sorted vertices with a non-zero weight on a control flagged in `hit` (m,) bool: rows v
+    with values[v, k] != 0 and hit[indices[v, k]] for some k (indices (N, K), an index outside [0, m)
+    flags nothing; values (N, K)), in one compiled pass (`compiled.rows_reading`). None when the
+    compiled kernel is not active now (the caller then uses numpy)."""
+    module = _usable()
+    if module is None:
+        return None
+    flags = _c(hit, np.bool_)
+    idx = _c(indices, np.int32)
+    val = _c(values, np.float64)
+    if idx.shape != val.shape or idx.ndim != 2:
+        raise ValueError(f"indices and values must have the same (N, K) shape, got {idx.shape}, {val.shape}")
+    out = np.empty(idx.shape[0], dtype=np.intp)
+    count = _entry_call("rows_reading", lambda: module.rows_reading(flags, idx, val, out))
+    if count is _FAILED:
+        return None
+    return out[:count]
 
 
 def linear_maps(params: ArrayLike) -> FloatArray:

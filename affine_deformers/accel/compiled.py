@@ -102,7 +102,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 __all__ = ["CHUNK", "ENTRIES", "cage_faces", "cage_nodes", "chain_motion_entry", "chain_points_entry",
-           "deform_points_entry", "motion_params", "node_pivot", "polar_log", "psi_rows", "spin_wait"]
+           "deform_points_entry", "motion_params", "node_pivot", "polar_log", "psi_rows", "rows_reading",
+           "spin_wait"]
 
 #: The only fastmath flag: FMA contraction. It must be the same on every function (see module doc).
 FASTMATH = {"contract"}
@@ -117,7 +118,7 @@ _N_CHAIN_SCRATCH = 21  # as _N_SCRATCH, plus the original point (offsets)
 _N_CHAIN_MOTION_SCRATCH = 36  # as _N_MOTION_SCRATCH, plus the product so far
 #: The compiled kernel entries, one specialisation each (`warm_up` runs exactly these and `spin_wait`).
 ENTRIES = ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
-           "chain_motion_entry", "cage_faces", "cage_nodes", "psi_rows")
+           "chain_motion_entry", "cage_faces", "cage_nodes", "psi_rows", "rows_reading")
 
 # ---------------------------------------------------------------------------------------------
 # constants
@@ -1516,6 +1517,23 @@ def chain_motion_entry(
         _chain_motion_chunk(W, Q, table, idx, val, prefix, mats, rows, a, min(CHUNK, n - a), use_rows, out,
                             out32, use32)
     return done
+
+
+@_entry
+def rows_reading(hit: np.ndarray, idx: np.ndarray, val: np.ndarray, out: np.ndarray) -> int:
+    """The vertices v with val[v, k] != 0 and hit[idx[v, k]] for some k, in increasing order, into
+    out[:count]; returns count. hit (m,) bool, idx (N, K) int32 (an index outside [0, m) flags
+    nothing), val (N, K) f64, out (N,) intp. One pass over the weights, no numerics."""
+    m = hit.shape[0]
+    count = 0
+    for v in range(idx.shape[0]):
+        for k in range(idx.shape[1]):
+            j = idx[v, k]
+            if val[v, k] != 0.0 and 0 <= j < m and hit[j]:
+                out[count] = v
+                count += 1
+                break
+    return count
 
 
 @_entry

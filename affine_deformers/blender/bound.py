@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
+from .. import accel
 from ..core import hierarchy
 from . import storage
 
@@ -106,6 +107,9 @@ class BoundData:
         if len(controls) > 32:  # many controls (cage faces or nodes): no loop over them
             hit = np.zeros(len(ptr) - 1, dtype=bool)
             hit[controls] = True
+            compiled = accel.rows_reading(hit, self.indices, self.values)  # one pass, ~6x cheaper
+            if compiled is not None:
+                return compiled
             # Each row-list entry tagged with its control's flag: one pass over the non-zero weights'
             # entries, 3–7× cheaper than gathering the flags through the (N, K) indices.
             mask = np.zeros(len(self.points), dtype=bool)

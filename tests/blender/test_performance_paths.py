@@ -130,11 +130,17 @@ def test_affected_rows_of_few_and_of_many_controls(ns):
     values = np.where(rng.random((n, k)) < 0.3, 0.0, rng.random((n, k)))
     points = rng.normal(size=(n, 3))
     bound = ns.bound.BoundData(("test",), 1, points.astype(np.float32), points, indices, values)
-    for size in (1, 2, 5, 32, 33, 80, 299, 300):
-        controls = np.sort(rng.choice(m, size=size, replace=False))
-        want = np.flatnonzero((np.isin(indices, controls) & (values != 0.0)).any(axis=1))
-        got = bound.affected_rows(controls)
-        assert np.array_equal(got, want), size
+    accel = importlib.import_module(f"{ns.evaluate.__package__.rsplit('.', 1)[0]}.accel")
+    try:
+        for compiled in (True, False):  # many controls: the compiled pass, or numpy's
+            accel.set_enabled(compiled)
+            for size in (1, 2, 5, 32, 33, 80, 299, 300):
+                controls = np.sort(rng.choice(m, size=size, replace=False))
+                want = np.flatnonzero((np.isin(indices, controls) & (values != 0.0)).any(axis=1))
+                got = bound.affected_rows(controls)
+                assert np.array_equal(got, want), (compiled, size)
+    finally:
+        accel.set_enabled(True)
 
 
 def test_mesh_arrays_read_through_attributes_equal_the_rna_reads(ns):

@@ -675,7 +675,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache"] * 9  # one per entry
+    assert res.stdout.split() == ["NullCache"] * 10  # one per entry
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
@@ -989,7 +989,7 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params",
                                                            "polar_log", "node_pivot", "chain_points_entry",
                                                            "chain_motion_entry", "cage_faces", "cage_nodes",
-                                                           "psi_rows"}
+                                                           "psi_rows", "rows_reading"}
     assert fresh_state.spin and fresh_state.spin[0] is kernel.spin_wait  # the helpers' busy-wait
     jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
     for name, f in jitted.items():
@@ -1194,11 +1194,12 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1], "polar_log": [0, 1],
                        "node_pivot": [0, 1], "chain_points_entry": [0, 1],
                        "chain_motion_entry": [0, 1], "cage_faces": [0, 1],
-                       "cage_nodes": [0, 1], "psi_rows": [0, 1]}, stats_a  # compiled there
+                       "cage_nodes": [0, 1], "psi_rows": [0, 1],
+                       "rows_reading": [0, 0]}, stats_a  # compiled there (all but the last)
     assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0], "polar_log": [0, 0],
                        "node_pivot": [0, 0], "chain_points_entry": [0, 1],
                        "chain_motion_entry": [0, 0], "cage_faces": [0, 0], "cage_nodes": [0, 0],
-                       "psi_rows": [0, 0]}, stats_b
+                       "psi_rows": [0, 0], "rows_reading": [0, 0]}, stats_b
     for name in ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
                  "chain_motion_entry", "cage_faces", "cage_nodes", "psi_rows"):
         assert stats_c[name][0] >= 1 and stats_c[name][1] == 0, (name, stats_c)  # loaded from A's cache
@@ -1360,5 +1361,32 @@ def test_compiled_node_params_match_the_numpy_blend(compiled: ModuleType) -> Non
     try:
         got = accel.node_params(x, W, P, faces=faces)
         assert np.array_equal(got, cage_harmonic.node_params(x, W, P, faces=faces, maps=accel.linear_maps))
+    finally:
+        accel.set_enabled(True)
+
+
+def test_rows_reading_matches_numpy(compiled: ModuleType) -> None:
+    """The compiled pass gives exactly the sorted vertices with a non-zero weight on a flagged control
+    (zero weights on flagged controls, indices outside the flags and NaN weights included); it is None
+    with the kernel off."""
+    rng = np.random.default_rng(211)
+    n, m, k = 3000, 120, 5
+    idx = rng.integers(0, m, size=(n, k)).astype(np.int32)
+    val = np.where(rng.random((n, k)) < 0.4, 0.0, rng.random((n, k)))
+    val[7, 2] = np.nan
+    idx[11, 0], val[11, 0] = m + 3, 1.0  # outside the flags: reads nothing
+    idx[12, :], val[12, :] = -1, 1.0
+    for share in (0.0, 0.05, 0.5, 1.0):
+        hit = rng.random(m) < share
+        inside = (idx >= 0) & (idx < m)
+        want = np.flatnonzero((inside & hit[np.clip(idx, 0, m - 1)] & (val != 0.0)).any(axis=1))
+        got = accel.rows_reading(hit, idx, val)
+        assert got.dtype == np.intp and np.array_equal(got, want), share
+    assert accel.rows_reading(np.ones(m, bool), idx[:0], val[:0]).size == 0
+    with pytest.raises(ValueError, match="shape"):
+        accel.rows_reading(np.ones(m, bool), idx, val[:, :2])
+    accel.set_enabled(False)
+    try:
+        assert accel.rows_reading(np.ones(m, bool), idx, val) is None
     finally:
         accel.set_enabled(True)
