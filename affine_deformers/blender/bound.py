@@ -97,8 +97,9 @@ class BoundData:
         return self._rows_by_control()[2]
 
     def affected_rows(self, controls: np.ndarray) -> np.ndarray:
-        """Sorted vertices with a non-zero weight on any of `controls`; O(affected) to gather (plus
-        one boolean pass over the vertices), from per-control row lists built once per generation."""
+        """Sorted vertices with a non-zero weight on any of `controls`: for a few, gathered from
+        per-control row lists built once per generation (O(affected) plus one boolean pass over the
+        vertices); for many, one compiled pass over the weights, or numpy's tagging of the row lists."""
         ptr, rows, weighted = self._rows_by_control()
         if len(controls) == len(ptr) - 1:  # every control (a cage's nodes after any edit): all weighted rows
             return weighted
