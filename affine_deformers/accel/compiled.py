@@ -36,6 +36,10 @@ LLVM vectorises it across vertices. libm is not vectorisable, so the transcenden
   that is no longer accurate: the map counts those vertices and a scalar pass redoes them with libm
   sin/cos (`_fixup`).
 * C = (1 − A)/(θ² + 1e-14): moves C (ω·u) ω by ≤ 1e-14 |u|/6 and makes θ = 0 safe without a branch.
+* exp(Y) of a small Y (every |Y_ij| ≤ SMALL_Y = 4e-5: rigid controls, whose Y is float32 rounding
+  noise): the cubic Taylor polynomial in Horner form (`_stretch_small`, `_exp_sym_matrix_small`);
+  the first term left out is < 1e-17 relative. Such columns skip the spectrum; `_map` runs each form
+  in a loop of its own (see there for why).
 
 Accuracy: ≤ 3e-15 relative to ‖M‖‖v‖ + ‖t‖ against aff3 on the adversarial set of the core tests.
 
@@ -140,6 +144,9 @@ _EXP_MAX = 709.0
 _SQRT3 = math.sqrt(3.0)
 _TINY = float(np.finfo(np.float64).tiny)
 POLY_MAX_S = (1.8 * math.pi) ** 2  # θ² beyond which the libm fix-up takes over
+#: Largest |entry| of a blended Y whose exp(Y) comes from the cubic Taylor polynomial (see `_map`);
+#: the same value as `core.deform.SMALL_Y`.
+SMALL_Y = 4e-5
 _C_CLAMP_S = 1e-14
 
 _SINC = [(-1.0) ** k / math.factorial(2 * k + 1) for k in range(10)]
@@ -374,6 +381,59 @@ def _exp_sym_matrix(
 
 
 @_inline
+def _sym_apply(
+    yxx: float, yyy: float, yzz: float, yxy: float, yxz: float, yyz: float, v0: float, v1: float, v2: float
+) -> tuple[float, float, float]:
+    """Y v for Y = [[yxx, yxy, yxz], [yxy, yyy, yyz], [yxz, yyz, yzz]]."""
+    return (yxx * v0 + yxy * v1 + yxz * v2, yxy * v0 + yyy * v1 + yyz * v2, yxz * v0 + yyz * v1 + yzz * v2)
+
+
+@_inline
+def _stretch_small(
+    yxx: float, yyy: float, yzz: float, yxy: float, yxz: float, yyz: float, v0: float, v1: float, v2: float
+) -> tuple[float, float, float]:
+    """exp(Y) v ≈ v + Y(v + Y(½v + Y(v/6))), the cubic Taylor polynomial in Horner form, for
+    |Y_ij| ≤ SMALL_Y: the first term left out, Y⁴v/24, is ≤ (3 SMALL_Y)⁴/24 < 1e-17 relative to v.
+    The innermost product is Y(v/6), not (Y v)/6: no product here has both operands of one in
+    `_stretch` (a scalar fix-up loop holds both forms)."""
+    k = 1.0 / 6.0
+    s0, s1, s2 = _sym_apply(yxx, yyy, yzz, yxy, yxz, yyz, k * v0, k * v1, k * v2)
+    b0, b1, b2 = _sym_apply(yxx, yyy, yzz, yxy, yxz, yyz, 0.5 * v0 + s0, 0.5 * v1 + s1, 0.5 * v2 + s2)
+    c0, c1, c2 = _sym_apply(yxx, yyy, yzz, yxy, yxz, yyz, v0 + b0, v1 + b1, v2 + b2)
+    return v0 + c0, v1 + c1, v2 + c2
+
+
+@_inline
+def _sym_times(
+    yxx: float, yyy: float, yzz: float, yxy: float, yxz: float, yyz: float,
+    sxx: float, syy: float, szz: float, sxy: float, sxz: float, syz: float,
+) -> tuple[float, float, float, float, float, float]:
+    """Y S as (xx, yy, zz, xy, xz, yz) for symmetric Y, S that commute (S a polynomial in Y), so
+    that Y S is symmetric and its upper triangle is all of it."""
+    return (
+        yxx * sxx + yxy * sxy + yxz * sxz,
+        yxy * sxy + yyy * syy + yyz * syz,
+        yxz * sxz + yyz * syz + yzz * szz,
+        yxx * sxy + yxy * syy + yxz * syz,
+        yxx * sxz + yxy * syz + yxz * szz,
+        yxy * sxz + yyy * syz + yyz * szz,
+    )
+
+
+@_inline
+def _exp_sym_matrix_small(
+    yxx: float, yyy: float, yzz: float, yxy: float, yxz: float, yyz: float
+) -> tuple[float, float, float, float, float, float]:
+    """exp(Y) ≈ I + Y(I + Y(½I + Y/6)) as (xx, yy, zz, xy, xz, yz), for |Y_ij| ≤ SMALL_Y (the
+    truncation of `_stretch_small`)."""
+    k = 1.0 / 6.0
+    a = _sym_times(yxx, yyy, yzz, yxy, yxz, yyz, 0.5 + k * yxx, 0.5 + k * yyy, 0.5 + k * yzz,
+                   k * yxy, k * yxz, k * yyz)
+    b = _sym_times(yxx, yyy, yzz, yxy, yxz, yyz, 1.0 + a[0], 1.0 + a[1], 1.0 + a[2], a[3], a[4], a[5])
+    return 1.0 + b[0], 1.0 + b[1], 1.0 + b[2], b[3], b[4], b[5]
+
+
+@_inline
 def _rotation_coeffs_poly(s: float) -> tuple[float, float, float, float]:
     """(A, B, C, cos θ) from s = θ² by the quarter-angle polynomial; accurate for θ ≤ 1.8π."""
     zq = s * (1.0 / 16.0)
@@ -499,16 +559,43 @@ def _stretch_at(W: np.ndarray, j: int) -> tuple[float, float, float]:
 
 
 @_inline
+def _stretch_small_at(W: np.ndarray, j: int) -> tuple[float, float, float]:
+    """exp(Y) v for scratch column j by the Taylor form (`_stretch_small`)."""
+    S = _STRIDE
+    return _stretch_small(
+        W[6 * S + j], W[7 * S + j], W[8 * S + j], W[9 * S + j], W[10 * S + j], W[11 * S + j],
+        W[12 * S + j], W[13 * S + j], W[14 * S + j],
+    )
+
+
+@_inline
+def _y_small(W: np.ndarray, j: int) -> bool:
+    """Every entry of column j's Y (scratch rows 6–11) is at most SMALL_Y in magnitude (NaN: not
+    small). One comparison per entry, no rounding: every loop decides a row alike."""
+    S = _STRIDE
+    return ((abs(W[6 * S + j]) <= SMALL_Y) & (abs(W[7 * S + j]) <= SMALL_Y) & (abs(W[8 * S + j]) <= SMALL_Y)
+            & (abs(W[9 * S + j]) <= SMALL_Y) & (abs(W[10 * S + j]) <= SMALL_Y)
+            & (abs(W[11 * S + j]) <= SMALL_Y))
+
+
+@_inline
+def _put(W: np.ndarray, i: int, value: float, keep: bool) -> None:
+    """W[i] = value unless keep (a select, not a branch: the loop stays vectorised)."""
+    W[i] = W[i] if keep else value
+
+
+@_inline
 def _rigid_store(
-    W: np.ndarray, j: int, e0: float, e1: float, e2: float, A: float, B: float, C: float, cth: float
+    W: np.ndarray, j: int, e0: float, e1: float, e2: float, A: float, B: float, C: float, cth: float,
+    keep: bool,
 ) -> None:
-    """Scratch rows 15–17 of column j = R(ω) e + V(ω) u."""
+    """Scratch rows 15–17 of column j = R(ω) e + V(ω) u, unless keep (then left as they are)."""
     S = _STRIDE
     o0, o1, o2 = _rigid(W[j], W[S + j], W[2 * S + j], W[3 * S + j], W[4 * S + j], W[5 * S + j],
                         e0, e1, e2, A, B, C, cth)
-    W[15 * S + j] = o0
-    W[16 * S + j] = o1
-    W[17 * S + j] = o2
+    _put(W, 15 * S + j, o0, keep)
+    _put(W, 16 * S + j, o1, keep)
+    _put(W, 17 * S + j, o2, keep)
 
 
 @_inline
@@ -518,22 +605,46 @@ def _theta_sq(W: np.ndarray, j: int) -> float:
 
 
 @_inline
+def _small_columns(W: np.ndarray) -> tuple[int, int]:
+    """(how many columns have a small Y (`_y_small`), how many have θ > 1.8π), over all CHUNK."""
+    n_small = 0
+    n_big = 0
+    for j in range(CHUNK):
+        n_small += 1 if _y_small(W, j) else 0
+        n_big += 1 if _theta_sq(W, j) > POLY_MAX_S else 0
+    return n_small, n_big
+
+
+@_inline
 def _map(W: np.ndarray) -> int:
     """Result rows 15–17 = φ(rows 0–11) · rows 12–14 for every column of the flat scratch (row
     stride _STRIDE), θ-coefficients by polynomial; returns how many columns have θ > 1.8π (to be
     redone by `_fixup`).
 
+    exp(Y) v takes one of two forms, chosen per column by `_y_small`: the Taylor form
+    (`_stretch_small`; rigid controls, whose Y is float32 noise) or the closed form (`_stretch`).
+    Each form has its own loop over all columns: the Taylor loop (when any column is small) stores
+    every column, then the closed-form loop (when any is not small) stores the others. A column's
+    bits therefore come from the same loop code whatever the rest of its chunk holds. One loop
+    computing both forms and selecting does not give that: LLVM shares the products the two have in
+    common there, a product used twice is not fused into an FMA, and a small row then had other
+    bits in a mixed chunk than in an all-small one (measured).
+
     Always all CHUNK columns (unused ones zeroed by the caller): with this constant trip count, a
     multiple of any vector width × unroll, LLVM emits no scalar remainder loop, so every column goes
     through the same vector code. A remainder would compute some rows with scalar code, where FMA
     contraction and SLP operand order may differ from the vector body in the last bit."""
-    n_big = 0
-    for j in range(CHUNK):
-        e0, e1, e2 = _stretch_at(W, j)
-        s = _theta_sq(W, j)
-        A, B, C, cth = _rotation_coeffs_poly(s)
-        _rigid_store(W, j, e0, e1, e2, A, B, C, cth)
-        n_big += 1 if s > POLY_MAX_S else 0
+    n_small, n_big = _small_columns(W)
+    if n_small > 0:
+        for j in range(CHUNK):
+            e0, e1, e2 = _stretch_small_at(W, j)
+            A, B, C, cth = _rotation_coeffs_poly(_theta_sq(W, j))
+            _rigid_store(W, j, e0, e1, e2, A, B, C, cth, False)
+    if n_small < CHUNK:
+        for j in range(CHUNK):
+            e0, e1, e2 = _stretch_at(W, j)
+            A, B, C, cth = _rotation_coeffs_poly(_theta_sq(W, j))
+            _rigid_store(W, j, e0, e1, e2, A, B, C, cth, _y_small(W, j))
     return n_big
 
 
@@ -546,50 +657,59 @@ def _fixup(W: np.ndarray, n: int) -> None:
         _scalar_barrier()
         s = _theta_sq(W, j)
         if s > POLY_MAX_S:
-            e0, e1, e2 = _stretch_at(W, j)
+            e0, e1, e2 = _stretch_small_at(W, j) if _y_small(W, j) else _stretch_at(W, j)
             A, B, C, cth = _rotation_coeffs_libm(s)
-            _rigid_store(W, j, e0, e1, e2, A, B, C, cth)
+            _rigid_store(W, j, e0, e1, e2, A, B, C, cth, False)
 
 
 @_inline
-def _motion_store_at(W: np.ndarray, j: int, A: float, B: float, C: float, cth: float) -> None:
+def _motion_store_at(
+    W: np.ndarray, j: int, A: float, B: float, C: float, cth: float, small_form: bool, keep: bool
+) -> None:
     """Scratch rows 12–23 of column j = φ(rows 0–11) as the columns of M = R(ω) exp(Y) (rows 12–14,
     15–17, 18–20) and t = V(ω) u (rows 21–23): `_rigid` with u = 0 on the columns of exp(Y), and with
-    the point 0."""
+    the point 0. exp(Y) by the Taylor form when small_form (`_exp_sym_matrix_small`), else the closed
+    form; nothing stored when keep."""
     S = _STRIDE
     w0, w1, w2 = W[j], W[S + j], W[2 * S + j]
-    xx, yy, zz, xy, xz, yz = _exp_sym_matrix(
-        W[6 * S + j], W[7 * S + j], W[8 * S + j], W[9 * S + j], W[10 * S + j], W[11 * S + j]
-    )
+    y = (W[6 * S + j], W[7 * S + j], W[8 * S + j], W[9 * S + j], W[10 * S + j], W[11 * S + j])
+    if small_form:
+        xx, yy, zz, xy, xz, yz = _exp_sym_matrix_small(y[0], y[1], y[2], y[3], y[4], y[5])
+    else:
+        xx, yy, zz, xy, xz, yz = _exp_sym_matrix(y[0], y[1], y[2], y[3], y[4], y[5])
     o0, o1, o2 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xx, xy, xz, A, B, C, cth)
-    W[12 * S + j] = o0
-    W[13 * S + j] = o1
-    W[14 * S + j] = o2
+    _put(W, 12 * S + j, o0, keep)
+    _put(W, 13 * S + j, o1, keep)
+    _put(W, 14 * S + j, o2, keep)
     o0, o1, o2 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xy, yy, yz, A, B, C, cth)
-    W[15 * S + j] = o0
-    W[16 * S + j] = o1
-    W[17 * S + j] = o2
+    _put(W, 15 * S + j, o0, keep)
+    _put(W, 16 * S + j, o1, keep)
+    _put(W, 17 * S + j, o2, keep)
     o0, o1, o2 = _rigid(w0, w1, w2, 0.0, 0.0, 0.0, xz, yz, zz, A, B, C, cth)
-    W[18 * S + j] = o0
-    W[19 * S + j] = o1
-    W[20 * S + j] = o2
+    _put(W, 18 * S + j, o0, keep)
+    _put(W, 19 * S + j, o1, keep)
+    _put(W, 20 * S + j, o2, keep)
     o0, o1, o2 = _rigid(w0, w1, w2, W[3 * S + j], W[4 * S + j], W[5 * S + j], 0.0, 0.0, 0.0, A, B, C, cth)
-    W[21 * S + j] = o0
-    W[22 * S + j] = o1
-    W[23 * S + j] = o2
+    _put(W, 21 * S + j, o0, keep)
+    _put(W, 22 * S + j, o1, keep)
+    _put(W, 23 * S + j, o2, keep)
 
 
 @_inline
 def _map_motion(W: np.ndarray) -> int:
     """Rows 12–23 = φ(rows 0–11) as (M e_x, M e_y, M e_z, t) for every column of the flat motion
     scratch (row stride _STRIDE), θ-coefficients by polynomial; returns how many columns have
-    θ > 1.8π (to be redone by `_fixup_motion`). Always all CHUNK columns, as `_map`."""
-    n_big = 0
-    for j in range(CHUNK):
-        s = _theta_sq(W, j)
-        A, B, C, cth = _rotation_coeffs_poly(s)
-        _motion_store_at(W, j, A, B, C, cth)
-        n_big += 1 if s > POLY_MAX_S else 0
+    θ > 1.8π (to be redone by `_fixup_motion`). Always all CHUNK columns, and one loop per form of
+    exp(Y), as `_map`."""
+    n_small, n_big = _small_columns(W)
+    if n_small > 0:
+        for j in range(CHUNK):
+            A, B, C, cth = _rotation_coeffs_poly(_theta_sq(W, j))
+            _motion_store_at(W, j, A, B, C, cth, True, False)
+    if n_small < CHUNK:
+        for j in range(CHUNK):
+            A, B, C, cth = _rotation_coeffs_poly(_theta_sq(W, j))
+            _motion_store_at(W, j, A, B, C, cth, False, _y_small(W, j))
     return n_big
 
 
@@ -603,7 +723,7 @@ def _fixup_motion(W: np.ndarray, n: int) -> None:
         s = _theta_sq(W, j)
         if s > POLY_MAX_S:
             A, B, C, cth = _rotation_coeffs_libm(s)
-            _motion_store_at(W, j, A, B, C, cth)
+            _motion_store_at(W, j, A, B, C, cth, _y_small(W, j), False)
 
 
 @_inline

@@ -93,6 +93,10 @@ ROW_SET_MAX_ENTRIES = 1 << 21
 # The quarter-angle polynomials are used for θ ≤ 1.8π, where cos(θ/4) = √(1 − sin²(θ/4)) ≥ 0.15 is
 # well conditioned; larger θ (lifted rotations past ±324°) take the np.sin/np.cos fallback.
 _POLY_MAX_S = (1.8 * math.pi) ** 2
+#: Rows whose blended Y has every |entry| ≤ SMALL_Y (rigid controls: Y is float32 rounding noise,
+#: ~1e-8) take exp(Y) from its cubic Taylor polynomial, whose truncation Y⁴/24 is ≤ (3 SMALL_Y)⁴/24
+#: < 1e-17 relative: as accurate as the closed form, without the spectrum (`_small_y`).
+SMALL_Y = 4e-5
 _TINY = np.finfo(np.float64).tiny
 _SQRT3 = math.sqrt(3.0)
 
@@ -122,7 +126,10 @@ class _Rows:
 
     The row stride is the chunk length plus one cache line: with power-of-two chunks, rows 64 KiB
     apart alias in the L1 cache (same address bits below 4 KiB), and a ufunc reading one row while
-    writing another then runs up to 4× slower.
+    writing another then runs up to 4× slower. The pad also keeps rows from touching, which the
+    bits depend on: numpy runs arccos, exp and expm1 through SIMD loops, but falls back to scalar
+    code (which rounds some values differently) when an input row and the output row are adjacent
+    in memory (see `_by_form`).
     """
 
     PAD = 8
@@ -588,9 +595,7 @@ class DeformKernel:
         O must not overlap V or P; V may be any (3, n) rows (the kernel's point rows or cached ones).
         """
         free = self._free_rows(18, P.shape[1])
-        coeffs = _exp_sym_coeffs(P[6:12], free)
-        ew = _exp_sym_apply(P[9:12], coeffs, V, free)
-        free.give(*coeffs)
+        ew = _by_form(P[6:12], (V,), free, _exp_sym_small_apply, _exp_sym_closed_apply)
         theta = _rotation_coeffs(P[0:3], free)
         _rigid(P[0:3], P[3:6], ew, theta, O, free)
 
@@ -611,9 +616,7 @@ class DeformKernel:
         """O (12, n) = the map φ(P) for blended parameters P (12, n): rows 3c … 3c+2 hold M e_c
         (c = 0, 1, 2), rows 9 … 11 hold t, M = R(ω) exp(Y), t = V(ω) u. O must not overlap P."""
         free = self._free_rows(24, P.shape[1])
-        coeffs = _exp_sym_coeffs(P[6:12], free)
-        xx, yy, zz, xy, xz, yz = _exp_sym_matrix(P[9:12], coeffs, free)
-        free.give(*coeffs)
+        xx, yy, zz, xy, xz, yz = _by_form(P[6:12], (), free, _exp_sym_small_matrix, _exp_sym_closed_matrix)
         theta = _rotation_coeffs(P[0:3], free)
         w = P[0:3]
         for c, column in enumerate(((xx, xy, xz), (xy, yy, yz), (xz, yz, zz))):  # exp(Y) is symmetric
@@ -663,6 +666,118 @@ def _eigen_gaps(ang: FloatArray, p: FloatArray, x: FloatArray, y: FloatArray, t1
     x *= p
     np.negative(p, out=p)
     y *= p
+
+
+_TAYLOR_SCRATCH = 13  # rows the larger Taylor form needs (`_exp_sym_small_matrix`)
+
+
+def _by_form(
+    Y: FloatArray,
+    extra: tuple[FloatArray, ...],
+    free: _FreeRows,
+    small_form: Callable[..., tuple[FloatArray, ...]],
+    closed_form: Callable[..., tuple[FloatArray, ...]],
+) -> tuple[FloatArray, ...]:
+    """form(Y, *extra, free) per row: `small_form` (Taylor) where `_small_y`, `closed_form` elsewhere.
+
+    A chunk of one kind runs one form. A mixed chunk runs the closed form on all its rows, in place,
+    and the Taylor form on its small rows, gathered. Each row's value then comes from its own form
+    and does not depend on its neighbours: the Taylor form is products and sums only, exact in any
+    layout, while the closed form is always computed in the kernel's own padded rows. numpy's
+    arccos, exp and expm1 have SIMD loops (AVX-512) that round differently from the scalar code it
+    falls back to when an input row and the output row touch in memory, as adjacent rows of an
+    unpadded buffer do: there ~25 % of the values differed in the last bit (measured), so a closed
+    form on gathered rows would give rows other bits than in place."""
+    small = _small_y(Y, free)
+    count = int(np.count_nonzero(small))
+    if count == small.size:
+        return small_form(Y, *extra, free)
+    out = closed_form(Y, *extra, free)
+    if count:
+        sel = np.flatnonzero(small)
+        # take() gathers ~3× faster than fancy indexing
+        gathered = (a.take(sel, axis=1) for a in (Y, *extra))
+        part = small_form(*gathered, _FreeRows(np.empty((_TAYLOR_SCRATCH, sel.size))))
+        for row, row_part in zip(out, part, strict=True):
+            row[sel] = row_part
+    return out
+
+
+def _exp_sym_closed_apply(Y: FloatArray, V: FloatArray, free: _FreeRows) -> tuple[FloatArray, ...]:
+    """exp(Y) v by the spectrum (`_exp_sym_coeffs`, `_exp_sym_apply`). Returns three rows of `free`."""
+    coeffs = _exp_sym_coeffs(Y, free)
+    ew = _exp_sym_apply(Y[3:6], coeffs, V, free)
+    free.give(*coeffs)
+    return ew
+
+
+def _exp_sym_closed_matrix(Y: FloatArray, free: _FreeRows) -> tuple[FloatArray, ...]:
+    """exp(Y) by the spectrum (`_exp_sym_coeffs`, `_exp_sym_matrix`). Returns six rows of `free`."""
+    coeffs = _exp_sym_coeffs(Y, free)
+    e = _exp_sym_matrix(Y[3:6], coeffs, free)
+    free.give(*coeffs)
+    return e
+
+
+def _small_y(Y: FloatArray, free: _FreeRows) -> NDArray[np.bool_]:
+    """Rows whose Y (6, n) has every |entry| ≤ SMALL_Y (NaN: not small): a plain comparison, nothing
+    rounded, so any chunking decides a row alike."""
+    m, t = free.take(2)
+    np.abs(Y[0], out=m)
+    for y in Y[1:]:
+        np.abs(y, out=t)
+        np.maximum(m, t, out=m)  # propagates NaN
+    small = m <= SMALL_Y
+    free.give(m, t)
+    return small
+
+
+def _exp_sym_small_apply(Y: FloatArray, V: FloatArray, free: _FreeRows) -> tuple[FloatArray, ...]:
+    """exp(Y) v ≈ v + Y(v + Y(½v + Y(v/6))) for points V (3, n) and small Y (6, n) (SMALL_Y: the
+    first term left out is < 1e-17 relative). Returns three rows taken from `free`."""
+    a = free.take(3)
+    b = free.take(3)
+    (t,) = free.take(1)
+    for ai, vi in zip(a, V, strict=True):
+        np.multiply(vi, 1.0 / 6.0, out=ai)
+    for step in (0.5, 1.0, 1.0):  # a ← step v + Y a
+        _sym_matvec(*Y, *a, *b, t)
+        for ai, bi, vi in zip(a, b, V, strict=True):
+            np.multiply(vi, step, out=ai)
+            ai += bi
+    free.give(*b, t)
+    return a[0], a[1], a[2]
+
+
+def _exp_sym_small_matrix(Y: FloatArray, free: _FreeRows) -> tuple[FloatArray, ...]:
+    """exp(Y) ≈ I + Y(I + Y(½I + Y/6)) as six rows (xx, yy, zz, xy, xz, yz), for small Y (6, n)
+    (the truncation of `_exp_sym_small_apply`). Returns six rows taken from `free`."""
+    S = free.take(6)
+    T = free.take(6)
+    (t,) = free.take(1)
+    for si, yi in zip(S, Y, strict=True):
+        np.multiply(yi, 1.0 / 6.0, out=si)
+    for d in S[:3]:
+        d += 0.5
+    for _ in range(2):  # S ← I + Y S
+        _sym_product(Y, S, T, t)
+        S, T = T, S
+        for d in S[:3]:
+            d += 1.0
+    free.give(*T, t)
+    return tuple(S)
+
+
+def _sym_product(Y: FloatArray, S: list[FloatArray], out: list[FloatArray], tmp: FloatArray) -> None:
+    """out = Y S as six rows (xx, yy, zz, xy, xz, yz) for symmetric Y, S (6, n) that commute (S a
+    polynomial in Y): Y S is then symmetric, and its upper triangle is all of it."""
+    # (i, j) of Y S = Σ_k Y_ik S_kj, with the six-row slot of each symmetric entry:
+    slot = ((0, 3, 4), (3, 1, 5), (4, 5, 2))
+    for o, (i, j) in zip(out, ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)), strict=True):
+        np.multiply(Y[slot[i][0]], S[slot[0][j]], out=o)
+        for k in (1, 2):
+            np.multiply(Y[slot[i][k]], S[slot[k][j]], out=tmp)
+            o += tmp
 
 
 def _exp_sym_coeffs(Y: FloatArray, free: _FreeRows) -> tuple[FloatArray, ...]:

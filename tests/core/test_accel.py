@@ -21,6 +21,7 @@ from tests.core.test_deform import (
     MOTION_BAD_ARGUMENTS,
     adversarial_params,
     apply_motions,
+    assert_matches_reference,
     assert_motions_match_reference,
     identity_motions,
     lifted_sweep,
@@ -1077,6 +1078,51 @@ def test_every_lifted_row_alone_equals_its_row_in_a_full_chunk(compiled: ModuleT
     assert np.array_equal(mot[:, lifted], motions[:, lifted])
 
 
+def test_rigid_blends_take_the_small_form_with_the_same_bits_in_any_chunk(compiled: ModuleType) -> None:
+    """Rows whose blended Y is small (rigid controls) take the Taylor form of exp(Y) in a loop of
+    their own: as accurate as the closed form, and a row has the same bits in a chunk of small rows
+    only, in a mixed one and alone (points: plain, offsets, float32 copy; motions), θ > 1.8π rows
+    through the fix-up included; both kernels draw the line at the same SMALL_Y."""
+    from affine_deformers.accel import compiled as kernel  # needs numba
+
+    assert kernel.SMALL_Y == deform.SMALL_Y
+    rng = np.random.default_rng(132)
+    n = 3 * kernel.CHUNK + 17
+    pts, table, idx, val = test_deform.rigid_case(rng, n)
+    P = deform.blend_params(table, idx, val)
+    is_small = np.all(np.abs(P[:, 6:]) <= kernel.SMALL_Y, axis=1)
+    small, other = np.flatnonzero(is_small), np.flatnonzero(~is_small)
+    lifted = np.einsum("ij,ij->i", P[:, :3], P[:, :3]) > kernel.POLY_MAX_S
+    assert 500 < len(small) < n - 500 and lifted[small].sum() >= 100
+    full = accel.deform_points_params(pts, table, idx, val)
+    motions = accel.vertex_motions(table, idx, val)
+    assert_matches_reference(pts, P, full, tol=5e-15)  # θ up to 1.9π (see the numpy twin)
+    assert_motions_match_reference(P, motions, 5e-15)
+    err = np.linalg.norm(full - reference(pts, P), axis=1) / vertex_scale(pts, P)
+    assert err[-4:-2].max() <= 1e-15  # at |Y_ij| = SMALL_Y: the cubic term is ~1e-13 there
+    assert max(e.max() for e in test_deform.motion_errors(P[-4:-2], motions[:, -4:-2])) <= 1e-15
+    for rows in (small, other, np.arange(n - 4, n), small[lifted[small]]):
+        out = np.full((n, 3), 7.0)
+        off = np.full((n, 3), 7.0)
+        out32 = np.zeros((n, 3), np.float32)
+        mot = np.full((4, n, 3), 7.0)
+        accel.deform_points_params_rows(pts, table, idx, val, rows, out)
+        accel.deform_points_params_rows(pts, table, idx, val, rows, off, offsets=True, out32=out32)
+        accel.vertex_motions(table, idx, val, mot, rows=rows)
+        assert np.array_equal(out[rows], full[rows]), len(rows)
+        assert np.array_equal(off[rows], full[rows] - pts[rows]), len(rows)
+        assert np.array_equal(_bits(out32[rows]), _bits((full[rows] - pts[rows]).astype(np.float32)))
+        assert np.array_equal(mot[:, rows], motions[:, rows]), len(rows)
+    out = np.zeros((n, 3))
+    mot = np.zeros((4, n, 3))
+    alone = np.r_[rng.choice(small, 40, replace=False), small[lifted[small]][:20], n - 4, n - 3, n - 2]
+    for r in alone:  # column 0 of a chunk whose other columns are zero (small)
+        accel.deform_points_params_rows(pts, table, idx, val, [r], out, key="rigid")
+        accel.vertex_motions(table, idx, val, mot, rows=[r], key="rigid")
+    assert np.array_equal(out[alone], full[alone])
+    assert np.array_equal(mot[:, alone], motions[:, alone])
+
+
 _CACHE_CHILD = """
 import json, sys
 import numpy as np
@@ -1110,6 +1156,17 @@ for step in sys.argv[3].split(","):
         res[step] = accel.chain_motions(params, *chain)
     elif step == "chain-motions-rows":
         res[step] = accel.chain_motions(params, *chain, rows=rows)[:, rows]
+    elif step in ("rigid-full", "rigid-rows"):  # rigid controls: the Taylor form of exp(Y)
+        r_pts, r_table, r_idx, r_val, r_rows = (case[f"rigid_{k}"] for k in ("pts", "table", "idx", "val",
+                                                                            "rows"))
+        if step == "rigid-full":
+            res["rigid-points"] = accel.deform_points_params(r_pts, r_table, r_idx, r_val)
+            res["rigid-motions"] = accel.vertex_motions(r_table, r_idx, r_val)
+        else:
+            out = np.zeros_like(r_pts)
+            accel.deform_points_params_rows(r_pts, r_table, r_idx, r_val, r_rows, out)
+            res["rigid-points-rows"] = out[r_rows]
+            res["rigid-motions-rows"] = accel.vertex_motions(r_table, r_idx, r_val, rows=r_rows)[:, r_rows]
     elif step == "lifted-alone":  # every θ > 1.8π row alone
         out = np.zeros_like(pts)
         mot = np.zeros((4,) + pts.shape)
@@ -1166,7 +1223,10 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     case = tmp_path / "case.npz"
     polar = rng.normal(size=(500, 3, 3))
     polar[np.linalg.det(polar) < 0.0] *= -1.0
-    np.savez(case, pts=pts, params=params, idx=idx, val=val, rows=rows, lifted=lifted, polar=polar)
+    r_pts, r_table, r_idx, r_val = test_deform.rigid_case(rng, n)
+    r_rows = rng.permutation(np.flatnonzero(rng.random(n) < 0.4))
+    np.savez(case, pts=pts, params=params, idx=idx, val=val, rows=rows, lifted=lifted, polar=polar,
+             rigid_pts=r_pts, rigid_table=r_table, rigid_idx=r_idx, rigid_val=r_val, rigid_rows=r_rows)
     child = tmp_path / "child.py"
     child.write_text(_CACHE_CHILD)
     root = Path(__file__).resolve().parents[2]
@@ -1184,12 +1244,12 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
         return json.loads(stdout.strip().splitlines()[-1])
 
     a = start("cache-a", "a.npz",
-              "points-full,motions-rows,polar,nodes,cage,chain-points-full,chain-motions-rows")
+              "points-full,motions-rows,polar,nodes,cage,chain-points-full,chain-motions-rows,rigid-full")
     b = start("cache-b", "b.npz", "points-rows,chain-points-rows")
     stats_a, stats_b = finish(a), finish(b)
     c = start("cache-a", "c.npz",
               "points-rows,points-full,motions-full,motions-rows,lifted-alone,polar,nodes,cage,"
-              "chain-points-rows,chain-points-full,chain-motions-full,chain-motions-rows")
+              "chain-points-rows,chain-points-full,chain-motions-full,chain-motions-rows,rigid-rows,rigid-full")
     stats_c = finish(c)
     assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1], "polar_log": [0, 1],
                        "node_pivot": [0, 1], "chain_points_entry": [0, 1],
@@ -1224,6 +1284,10 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert np.array_equal(rc["chain-points-rows"], chain_full[rows])
     assert np.array_equal(ra["chain-motions-rows"], chain_motions[:, rows])
     assert np.array_equal(rc["chain-motions-rows"], chain_motions[:, rows])
+    assert np.array_equal(rc["rigid-points"], ra["rigid-points"])  # the Taylor form, loaded = compiled
+    assert np.array_equal(rc["rigid-points-rows"], ra["rigid-points"][r_rows])
+    assert np.array_equal(rc["rigid-motions"], ra["rigid-motions"])
+    assert np.array_equal(rc["rigid-motions-rows"], ra["rigid-motions"][:, r_rows])
     # and this process (its entries compiled or loaded, whichever happened here)
     assert np.array_equal(accel.deform_points_params(pts, params, idx, val), full)
     assert np.array_equal(accel.vertex_motions(params, idx, val), motions)

@@ -447,6 +447,75 @@ def test_keyed_calls_reuse_gathered_rows_and_stay_bit_identical(m: int) -> None:
     assert np.array_equal(out[rows], expected[rows])
 
 
+def rigid_case(rng: np.random.Generator, n: int, m: int = 8, k: int = 4) -> tuple[np.ndarray, ...]:
+    """(points, table, idx, val) as a rig of rigid controls gives them: rotations and translations
+    stored in float32 (as Blender hands matrices over), so ψ's stretch Y is rounding noise (~1e-8)
+    and blends of them take the Taylor form of exp(Y). Control 0 is stretched (rows that reach it
+    take the closed form, so chunks are mixed) and control 1 is lifted to θ = 1.9π (the fix-up).
+    Every 50th row (from row 3) has control 1 alone (Taylor form and fix-up). The last 4 rows have
+    one table row each, with weight 1: Y entries exactly at ±SMALL_Y (Taylor form, where its
+    truncation is largest), and one entry one ulp beyond (closed form)."""
+    A = np.broadcast_to(np.eye(4), (m, 4, 4)).copy()
+    A[:, :3, :3] = aff3.so3_exp(rng.normal(size=(m, 3)))
+    A[:, :3, 3] = rng.normal(scale=3.0, size=(m, 3))
+    table = aff3.params_from_matrices(A.astype(np.float32).astype(np.float64))
+    assert np.abs(table[:, 6:]).max() < 1e-6
+    table[0, 6:] = sym6((-0.4, 0.1, 0.6), aff3.so3_exp(rng.normal(size=3)))
+    table[1, :3] *= 1.9 * np.pi / np.linalg.norm(table[1, :3])
+    edge, beyond = deform.SMALL_Y, np.nextafter(deform.SMALL_Y, 1.0)
+    extra = np.tile(table[2], (4, 1))
+    extra[0, 6:] = edge * np.array([1, -1, 1, 1, -1, 1])
+    extra[1, 6:] = edge * np.array([-1, -1, -1, 1, 1, 1])
+    extra[2, 6:] = edge
+    extra[2, 9] = beyond
+    extra[3, 6:] = -edge
+    extra[3, 6] = -beyond
+    table = np.vstack([table, extra])
+    pts = rng.normal(scale=3.0, size=(n, 3))
+    idx, val = top_k_dense(rng.random((n, m)) ** 3, k)
+    alone = np.r_[np.arange(3, n - 4, 50), n - 4 + np.arange(4)]
+    idx[alone] = 0
+    idx[alone, 0] = 1  # control 1 alone: θ = 1.9π, small Y
+    idx[-4:, 0] = np.arange(m, m + 4)
+    val[alone] = 0.0
+    val[alone, 0] = 1.0
+    return pts, table, idx, val
+
+
+def test_rigid_blends_match_the_reference_and_small_rows_keep_their_bits() -> None:
+    """Rows whose blended Y is small take exp(Y) from its Taylor polynomial: as accurate as the
+    closed form (up to |Y_ij| = SMALL_Y), and a row's bits do not depend on the form its chunk
+    neighbours need (rows calls recompute a subset, whose chunks hold other neighbours)."""
+    rng = np.random.default_rng(47)
+    n = deform.DEFAULT_CHUNK + 77
+    pts, table, idx, val = rigid_case(rng, n)
+    P = deform.blend_params(table, idx, val)
+    small = np.all(np.abs(P[:, 6:]) <= deform.SMALL_Y, axis=1)
+    assert 1000 < small.sum() < n - 1000
+    assert small[-4:].tolist() == [True, True, False, False]
+    kernel = deform.DeformKernel(threads=1)
+    full = kernel.deform(pts, table, idx, val).copy()
+    motions = kernel.motions(table, idx, val).copy()
+    # θ reaches 1.9π here (the lifted control), where R(ω) is only defined to ~ε θ (`lifted_sweep`)
+    assert_matches_reference(pts, P, full, tol=5e-15)
+    assert_motions_match_reference(P, motions, 5e-15)
+    calm = np.einsum("ij,ij->i", P[:, :3], P[:, :3]) < 1.0
+    err = np.linalg.norm(full - reference(pts, P), axis=1) / vertex_scale(pts, P)
+    assert err[calm].max() <= 2e-15
+    # at |Y_ij| = SMALL_Y the cubic term is ~1e-13 of the result: a Taylor coefficient 4 % off or
+    # the term left out shows here (the rows are at ~1e-16)
+    assert err[-4:-2].max() <= 1e-15
+    assert max(e.max() for e in motion_errors(P[-4:-2], motions[:, -4:-2])) <= 1e-15
+    for rows in (np.flatnonzero(small), np.flatnonzero(~small), np.arange(n - 4, n)):
+        for chunk in (deform.DEFAULT_CHUNK, 333):
+            one = deform.DeformKernel(chunk_size=chunk, threads=2)
+            got = one.deform(pts[rows], table, idx[rows], val[rows], cache_weights=False)
+            assert np.array_equal(got, full[rows]), (rows.size, chunk)
+            out = np.zeros((4, n, 3))
+            one.motions(table, idx, val, out, rows=rows)
+            assert np.array_equal(out[:, rows], motions[:, rows]), (rows.size, chunk)
+
+
 def test_lifted_rotations_raise_no_numpy_warnings() -> None:
     """Rows past θ = 1.8π take the exact fallback; the polynomial path must not leave NaN warnings on the
     way (they print in the user's console at every update)."""
