@@ -549,23 +549,16 @@ def _blend_params(T: np.ndarray, I: np.ndarray, V: np.ndarray, K: int, last: np.
 
 
 @_inline
-def _stretch_at(W: np.ndarray, j: int) -> tuple[float, float, float]:
-    """exp(Y) v for scratch column j."""
+def _stretch_at(W: np.ndarray, j: int, small_form: bool) -> tuple[float, float, float]:
+    """exp(Y) v for scratch column j: by the Taylor form when small_form (`_stretch_small`), else by
+    the closed form (`_stretch`). The vector loops pass a constant, so each holds one form only."""
     S = _STRIDE
-    return _stretch(
-        W[6 * S + j], W[7 * S + j], W[8 * S + j], W[9 * S + j], W[10 * S + j], W[11 * S + j],
-        W[12 * S + j], W[13 * S + j], W[14 * S + j],
-    )
-
-
-@_inline
-def _stretch_small_at(W: np.ndarray, j: int) -> tuple[float, float, float]:
-    """exp(Y) v for scratch column j by the Taylor form (`_stretch_small`)."""
-    S = _STRIDE
-    return _stretch_small(
-        W[6 * S + j], W[7 * S + j], W[8 * S + j], W[9 * S + j], W[10 * S + j], W[11 * S + j],
-        W[12 * S + j], W[13 * S + j], W[14 * S + j],
-    )
+    y0, y1, y2, y3, y4, y5 = (W[6 * S + j], W[7 * S + j], W[8 * S + j], W[9 * S + j], W[10 * S + j],
+                              W[11 * S + j])
+    v0, v1, v2 = W[12 * S + j], W[13 * S + j], W[14 * S + j]
+    if small_form:
+        return _stretch_small(y0, y1, y2, y3, y4, y5, v0, v1, v2)
+    return _stretch(y0, y1, y2, y3, y4, y5, v0, v1, v2)
 
 
 @_inline
@@ -637,12 +630,12 @@ def _map(W: np.ndarray) -> int:
     n_small, n_big = _small_columns(W)
     if n_small > 0:
         for j in range(CHUNK):
-            e0, e1, e2 = _stretch_small_at(W, j)
+            e0, e1, e2 = _stretch_at(W, j, True)
             A, B, C, cth = _rotation_coeffs_poly(_theta_sq(W, j))
             _rigid_store(W, j, e0, e1, e2, A, B, C, cth, False)
     if n_small < CHUNK:
         for j in range(CHUNK):
-            e0, e1, e2 = _stretch_at(W, j)
+            e0, e1, e2 = _stretch_at(W, j, False)
             A, B, C, cth = _rotation_coeffs_poly(_theta_sq(W, j))
             _rigid_store(W, j, e0, e1, e2, A, B, C, cth, _y_small(W, j))
     return n_big
@@ -657,7 +650,7 @@ def _fixup(W: np.ndarray, n: int) -> None:
         _scalar_barrier()
         s = _theta_sq(W, j)
         if s > POLY_MAX_S:
-            e0, e1, e2 = _stretch_small_at(W, j) if _y_small(W, j) else _stretch_at(W, j)
+            e0, e1, e2 = _stretch_at(W, j, _y_small(W, j))
             A, B, C, cth = _rotation_coeffs_libm(s)
             _rigid_store(W, j, e0, e1, e2, A, B, C, cth, False)
 
