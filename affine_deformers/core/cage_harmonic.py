@@ -278,8 +278,16 @@ def _level(grid: CageGrid, cage: np.ndarray, topology: CageTopology) -> _Level:
             cuts.append((c.node[part], c.across[part]))
     node = np.concatenate([c.node for c in crossings])
     theta = np.concatenate([c.theta for c in crossings])
-    point = np.concatenate([c.point for c in crossings])
-    pair, face, g = boundary_data(point, cage, topology, grid.spacing)
+    # Each cut is listed from both of its ends at the same point (`_Crossings`): its boundary data is
+    # taken once and given to both rows, in row order (the right-hand side sums in that order).
+    half = np.array([c.node.size // 2 for c in crossings])
+    lower = np.arange(half.sum()) + np.repeat(np.cumsum(half) - half, half)  # rows from the lower end
+    upper = lower + np.repeat(half, half)  # the same cuts from the upper end
+    cuts_at = np.concatenate([c.point[: c.node.size // 2] for c in crossings])
+    cut, face, g = boundary_data(cuts_at, cage, topology, grid.spacing)
+    rows = np.concatenate([lower[cut], upper[cut]])
+    order = np.argsort(rows, kind="stable")
+    pair, face, g = rows[order], np.concatenate([face, face])[order], np.concatenate([g, g])[order]
     return _Level(grid.shape, diagonal[..., None].astype(np.float32), tuple(cuts), node[pair], face,
                   g / theta[pair])
 

@@ -160,6 +160,26 @@ def test_one_hot_face_weights_converge_to_the_harmonic_measure_of_a_cube_face(
     assert errors[1] < 0.006 and errors[1] < 0.6 * errors[0], errors
 
 
+def test_every_cut_gets_the_boundary_data_of_its_point_from_both_ends() -> None:
+    """A level's right-hand side entries are, row by row of the cut edges (each listed from both
+    ends), the soft nearest-face data of the cut's point over θ: the same as taking `boundary_data`
+    at every row's point, bit for bit and in the same order (the level takes it once per cut)."""
+    for cage, topo in (plus_cage(), box_cage((3, 2, 4), np.zeros(3), np.array([1.0, 0.7, 1.3]))):
+        grid = ch.cage_grid(cage, nodes=2000)
+        level = ch._level(grid, cage, topo)
+        fan, fan_face = topo.fan_triangles()
+        hits = [ch.axis_hits(grid, cage, fan, fan_face, axis)[0] for axis in range(3)]
+        inside = ch.inside_nodes(grid, hits[2])
+        crossings = [ch._crossings(grid, inside, hits[axis], axis) for axis in range(3)]
+        node = np.concatenate([c.node for c in crossings])
+        theta = np.concatenate([c.theta for c in crossings])
+        row, face, g = ch.boundary_data(np.concatenate([c.point for c in crossings]), cage, topo, grid.spacing)
+        assert row.size > 100 and np.unique(face).size > 10
+        np.testing.assert_array_equal(level.rhs_node, node[row])
+        np.testing.assert_array_equal(level.rhs_face, face)
+        np.testing.assert_array_equal(level.rhs_value, g / theta[row])
+
+
 def test_cascade_converges_to_the_direct_solution_of_its_system(monkeypatch: pytest.MonkeyPatch) -> None:
     """The cascadic CG on a level equals scipy's sparse direct solve of the same equations, assembled
     here from their definition: deg_i w_i − Σ_uncut w_j = Σ_cut g/θ (deg counts cut edges as 1/θ)."""
