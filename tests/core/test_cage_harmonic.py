@@ -173,7 +173,8 @@ def test_every_cut_gets_the_boundary_data_of_its_point_from_both_ends() -> None:
         crossings = [ch._crossings(grid, inside, hits[axis], axis) for axis in range(3)]
         node = np.concatenate([c.node for c in crossings])
         theta = np.concatenate([c.theta for c in crossings])
-        row, face, g = ch.boundary_data(np.concatenate([c.point for c in crossings]), cage, topo, grid.spacing)
+        points = np.concatenate([c.point for c in crossings])
+        row, face, g = ch.boundary_data(points, cage, topo, grid.spacing)
         assert row.size > 100 and np.unique(face).size > 10
         np.testing.assert_array_equal(level.rhs_node, node[row])
         np.testing.assert_array_equal(level.rhs_face, face)
