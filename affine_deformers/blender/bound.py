@@ -27,14 +27,14 @@ class BoundData:
     holds the truth, and every value here is recomputed from it when the key no longer matches).
 
     key = (mesh session uid, bind generation, vertex count, control count); `rest32` is checked against
-    the mesh on every evaluation (a cheap array compare), so edits of the rest shape (Edit Mode, Sculpt
-    Mode, scripts) are seen without rebinding. `serial` changes whenever the entry is rebuilt.
-    `written` is what this process last wrote to the offset attribute, so an update writes it
-    without reading the attribute back (a write by anyone else to that attribute is not supported;
-    undo and file load drop the cache). The last result (`state`, `params`, `offsets`) lets an
-    update recompute only the vertices with a non-zero weight on a control whose blend parameters
-    changed: every vertex's result depends only on its own rest position, weights and the parameters
-    of its controls, so this is bit-identical to a full recompute.
+    the mesh on every evaluation (bit for bit, in one compiled pass: accel.same_bits), so edits of the
+    rest shape (Edit Mode, Sculpt Mode, scripts) are seen without rebinding. `serial` changes whenever
+    the entry is rebuilt. `written` is what this process last wrote to the offset attribute, so an
+    update writes it without reading the attribute back (a write by anyone else to that attribute is not
+    supported; undo and file load drop the cache). The last result (`state`, `params`, `offsets`) lets
+    an update recompute only the vertices with a non-zero weight on a control whose blend parameters
+    changed: every vertex's result depends only on its own rest position, weights and the parameters of
+    its controls, so this is bit-identical to a full recompute.
     """
 
     key: tuple
@@ -155,7 +155,7 @@ def bind_data(obj: bpy.types.Object, deformer, n_controls: int) -> BoundData:
     key = (mesh.session_uid, deformer.bind_generation, len(rest), n_controls)
     cache_key = (obj.session_uid, deformer.uid)
     bound = _bound.get(cache_key)
-    if bound is not None and bound.key == key and np.array_equal(bound.rest32, rest):
+    if bound is not None and bound.key == key and accel.same_bits(bound.rest32, rest):
         return bound
     _bound.pop(cache_key, None)
     _check_vertices(mesh, deformer, rest)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from .. import accel
 from . import nodes, storage
 from .bound import BoundData
 
@@ -84,7 +85,7 @@ def output_path(obj: bpy.types.Object, deformer, rest32: np.ndarray,
 
 def keys_keep_rest(mesh: bpy.types.Mesh, rest32: np.ndarray) -> bool:
     """Whether the shape keys (if any) leave the mesh's stored positions as they are: none, or only the
-    reference key, holding exactly `rest32`."""
+    reference key, holding exactly `rest32` (bit for bit)."""
     key = mesh.shape_keys
     if key is None:
         return True
@@ -92,7 +93,7 @@ def keys_keep_rest(mesh: bpy.types.Mesh, rest32: np.ndarray) -> bool:
         return False
     basis = np.empty(rest32.size, dtype=np.float32)
     key.key_blocks[0].data.foreach_get("co", basis)
-    return np.array_equal(basis.reshape(rest32.shape), rest32)
+    return accel.same_bits(basis.reshape(rest32.shape), rest32)
 
 
 def write_motions(mesh: bpy.types.Mesh, uid: str, result: np.ndarray, rows: np.ndarray | None,

@@ -310,11 +310,16 @@ def test_two_scenes_at_different_frames_do_not_fight_over_the_mesh(bl, installed
     assert len(writes) >= 1
 
 
-def test_probe_rows_in_a_batch_equal_each_alone_bit_for_bit(installed):
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
+def test_probe_rows_in_a_batch_equal_each_alone_bit_for_bit(installed, monkeypatch, compiled):
     """kinds.probe._probe_rows computes the probes that moved in one batch: every row must get the bits
-    it gets alone (the memo stores rows whatever batch made them), the at-rest test must see the bits
-    local_matrix gives (those of the stored rest matrices), and a probe with a problem gets its message."""
+    it gets alone (the memo stores rows whatever batch made them), on either backend of the frames'
+    polar split, the at-rest test must see the bits local_matrix gives (those of the stored rest
+    matrices), and a probe with a problem gets its message."""
     kinds = importlib.import_module(f"{installed.package}.blender.kinds.probe")
+    monkeypatch.setattr(kinds.accel._state, "enabled", compiled)
+    if kinds.accel.active() != compiled:
+        pytest.skip(f"backend: {kinds.accel.backend()}")
     transforms = importlib.import_module(f"{installed.package}.blender.kinds.transforms")
     rng = np.random.default_rng(21)
 
@@ -362,3 +367,59 @@ def test_probe_rows_in_a_batch_equal_each_alone_bit_for_bit(installed):
     current, _ = transforms.local_solves(target, worlds[[0, 2, 3]])
     for j, i in enumerate((0, 2, 3)):
         assert current[j].tobytes() == transforms.local_matrix(target, worlds[i]).tobytes()
+
+
+def test_viewport_updates_list_the_named_controls_only_for_a_disabled_probe(bl, installed, monkeypatch):
+    """The viewport's per-probe test is one flag: while every probe passes it, an update does not list
+    the controls the modifier names (nodes.named_controls); a probe disabled in viewports is checked
+    against that list, and is fine when the modifier names it."""
+    nodes = importlib.import_module(f"{installed.package}.blender.nodes")
+    target, probes, deformer = _rig(bl, n_probes=3)
+    calls = []
+    real = nodes.named_controls
+    monkeypatch.setattr(nodes, "named_controls", lambda *a: calls.append(a[0].name) or real(*a))
+    for step in range(3):
+        probes[step].location.z += 0.2
+        bpy.context.view_layer.update()
+    assert calls == [] and deformer.status == ""
+    probes[1].hide_viewport = True
+    probes[0].location.z += 0.2
+    bpy.context.view_layer.update()
+    assert calls and set(calls) == {target.name}
+    assert deformer.status == ""
+    assert np.array_equal(bl.stored_offsets(target, deformer), bl.recomputed_offsets(target, deformer))
+
+
+def test_probe_rows_are_memoised_per_backend(bl, installed, monkeypatch):
+    """The frames' polar split runs in the compiled kernel when it is active, in numpy's SVD otherwise
+    (~1e-15 apart): a row memoised under one backend is not served under the other, so after a switch
+    the motions have the bits a fresh evaluation on the new backend gives."""
+    kinds = importlib.import_module(f"{installed.package}.blender.kinds.probe")
+    kind = importlib.import_module(f"{installed.package}.blender.kinds").KINDS["PROBE"]
+    accel = kinds.accel
+    if not accel.active():
+        pytest.skip(f"backend: {accel.backend()}")
+    target, probes, deformer = _rig(bl, n_probes=4)
+    target.rotation_euler = (0.3, -0.2, 0.9)
+    target.scale = (1.2, 0.9, 1.1)
+    rng = np.random.default_rng(41)
+    for probe in probes:
+        probe.rotation_euler = tuple(rng.uniform(-3.0, 3.0, 3))
+        probe.scale = tuple(rng.uniform(0.6, 1.5, 3))
+    bpy.context.view_layer.update()
+
+    def frames() -> bytes:
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        motions = kind.current_motions(target, deformer, depsgraph)
+        assert motions.error == ""
+        return motions.turns.frames.tobytes()
+
+    compiled = frames()  # the memo now holds rows made with the compiled split
+    monkeypatch.setattr(accel._state, "enabled", False)
+    switched = frames()
+    kinds._rows.clear()
+    assert switched == frames()  # what numpy gives from nothing
+    assert switched != compiled  # the backends differ in the last bits here (else this test is void)
+    monkeypatch.setattr(accel._state, "enabled", True)
+    kinds._rows.clear()
+    assert frames() == compiled

@@ -676,7 +676,7 @@ def test_no_cache_locator_decorates_without_cache() -> None:
         check=False,
     )
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == ["NullCache"] * 10  # one per entry
+    assert res.stdout.split() == ["NullCache"] * 11  # one per entry
 
 
 def test_calls_from_other_threads_use_numpy_while_the_kernel_compiles(monkeypatch):
@@ -990,7 +990,7 @@ def test_warm_up_compiles_exactly_the_entries_one_specialisation_each(
     assert fresh_state.compiled == set(kernel.ENTRIES) == {"deform_points_entry", "motion_params",
                                                            "polar_log", "node_pivot", "chain_points_entry",
                                                            "chain_motion_entry", "cage_faces", "cage_nodes",
-                                                           "psi_rows", "rows_reading"}
+                                                           "psi_rows", "rows_reading", "same_words"}
     assert fresh_state.spin and fresh_state.spin[0] is kernel.spin_wait  # the helpers' busy-wait
     jitted = {name: f for name, f in vars(kernel).items() if isinstance(f, CPUDispatcher)}
     for name, f in jitted.items():
@@ -1254,12 +1254,12 @@ def test_cache_loaded_and_session_compiled_entries_agree_bitwise(
     assert stats_a == {"deform_points_entry": [0, 1], "motion_params": [0, 1], "polar_log": [0, 1],
                        "node_pivot": [0, 1], "chain_points_entry": [0, 1],
                        "chain_motion_entry": [0, 1], "cage_faces": [0, 1],
-                       "cage_nodes": [0, 1], "psi_rows": [0, 1],
-                       "rows_reading": [0, 0]}, stats_a  # compiled there (all but the last)
+                       "cage_nodes": [0, 1], "psi_rows": [0, 1], "rows_reading": [0, 0],
+                       "same_words": [0, 0]}, stats_a  # compiled there (all but the last two)
     assert stats_b == {"deform_points_entry": [0, 1], "motion_params": [0, 0], "polar_log": [0, 0],
                        "node_pivot": [0, 0], "chain_points_entry": [0, 1],
                        "chain_motion_entry": [0, 0], "cage_faces": [0, 0], "cage_nodes": [0, 0],
-                       "psi_rows": [0, 0], "rows_reading": [0, 0]}, stats_b
+                       "psi_rows": [0, 0], "rows_reading": [0, 0], "same_words": [0, 0]}, stats_b
     for name in ("deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
                  "chain_motion_entry", "cage_faces", "cage_nodes", "psi_rows"):
         assert stats_c[name][0] >= 1 and stats_c[name][1] == 0, (name, stats_c)  # loaded from A's cache
@@ -1427,6 +1427,36 @@ def test_compiled_node_params_match_the_numpy_blend(compiled: ModuleType) -> Non
         assert np.array_equal(got, cage_harmonic.node_params(x, W, P, faces=faces, maps=accel.linear_maps))
     finally:
         accel.set_enabled(True)
+
+
+def test_same_bits_is_a_bitwise_compare(compiled: ModuleType) -> None:
+    """same_bits is True exactly for equal dtype, shape and bytes: one flipped bit anywhere (in a full
+    block or the tail, first or last word) is found, −0.0 differs from 0.0 and a NaN equals itself;
+    the numpy fallback and odd layouts give the same answers."""
+    rng = np.random.default_rng(307)
+    for n in (0, 1, 4095, 4096, 4097, 3 * 130_001):
+        a = rng.standard_normal(n).astype(np.float32)
+        b = a.copy()
+        for enabled in (True, False):
+            accel.set_enabled(enabled)
+            try:
+                assert accel.same_bits(a, b), (n, enabled)
+                for i in {0, n // 2, n - 1} if n else ():
+                    c = b.copy()
+                    c.view(np.uint32)[i] ^= np.uint32(1 << int(rng.integers(0, 32)))
+                    assert not accel.same_bits(a, c), (n, i, enabled)
+            finally:
+                accel.set_enabled(True)
+    zero = np.zeros((5, 3), np.float32)
+    assert not accel.same_bits(zero, -zero)
+    nan = np.full((5, 3), np.nan, np.float32)
+    assert accel.same_bits(nan, nan.copy())
+    assert not accel.same_bits(zero, zero.reshape(3, 5))  # same bytes, another shape
+    assert not accel.same_bits(zero, zero.astype(np.float64))
+    odd = np.zeros(7, np.uint8)
+    assert accel.same_bits(odd, odd.copy()) and not accel.same_bits(odd, odd + 1)
+    strided = np.zeros((6, 3), np.float32)[::2]
+    assert accel.same_bits(strided, strided.copy())
 
 
 def test_rows_reading_matches_numpy(compiled: ModuleType) -> None:

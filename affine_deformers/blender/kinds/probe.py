@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
+from ... import accel
 from ...core import surface, weights
 from .. import nodes, storage
 from .base import Adopted, BindError, ChannelTurns, Motions, draw_weight_options, ignored_note
@@ -176,12 +177,16 @@ class ProbeKind:
         # holds it plus its index, instead of hashing its own copies of the rest data per update.
         shared = b"".join((target_world.tobytes(), rests.tobytes(), flat.tobytes(),
                            "\0".join(rest_modes).encode()))
+        backend = accel.active()  # the compiled and numpy polar splits of the frames differ by ~1e-15
         rows: list[_ProbeRow | None] = []
         misses: list[tuple[int, tuple, np.ndarray, tuple, str, tuple]] = []
         problem = ""
         # Probes the modifier does not name are evaluated because they are enabled (relations.py);
-        # each is checked, so a visibility change not synced yet is an error, not a stale pose.
-        named = nodes.named_controls(obj, storage.offset_name(deformer.uid), depsgraph) if m else set()
+        # each is checked, so a visibility change not synced yet is an error, not a stale pose. The
+        # viewport's test is one flag, cheaper than listing the modifier's controls, so there the
+        # list is made only for a probe that fails it; a render's test is not, so it comes second.
+        attr = storage.offset_name(deformer.uid)
+        named = nodes.named_controls(obj, attr, depsgraph) if m and depsgraph.mode == "RENDER" else None
         for i, item in enumerate(probes):
             probe = item.object
             if probe is None:
@@ -195,16 +200,20 @@ class ProbeKind:
             if problem:
                 break
             evaluated = probe.evaluated_get(depsgraph)
-            if probe not in named and unnamed_control_stale(probe, evaluated, depsgraph):
-                want_resync()
-                problem = (f"Probe '{probe.name}' is not evaluated (it is disabled in viewports or "
-                           "renders, and the deformer is off there): enable the deformer, or show the probe")
-                break
+            if (named is None or probe not in named) and unnamed_control_stale(probe, evaluated, depsgraph):
+                if named is None:
+                    named = nodes.named_controls(obj, attr, depsgraph)
+                if probe not in named:
+                    want_resync()
+                    problem = (f"Probe '{probe.name}' is not evaluated (it is disabled in viewports or "
+                               "renders, and the deformer is off there): enable the deformer, or show the "
+                               "probe")
+                    break
             world = np.array(evaluated.matrix_world, dtype=np.float64)
             mode = evaluated.rotation_mode
             channels = rotation_channels(evaluated, mode)
             scale = (*evaluated.scale, *evaluated.delta_scale)
-            key = (shared, i, world.tobytes(), mode, _bits(channels + scale))
+            key = (shared, i, world.tobytes(), mode, _bits(channels + scale), backend)
             row = _rows.get(key)
             if row is None:
                 misses.append((i, key, world, channels, mode, scale))
@@ -349,8 +358,9 @@ class _ProbeRow:
 
 
 #: Per-probe memo: a probe whose inputs (its and the target's world matrix, its channels and scales,
-#: its rest data) are bitwise unchanged gets its previous `_ProbeRow` back instead of redoing the
-#: solves and polar splits. Keys hold every input, so the result never depends on update history.
+#: its rest data, the kernel backend of the frames' polar split) are bitwise unchanged gets its
+#: previous `_ProbeRow` back instead of redoing the solves and polar splits. Keys hold every input, so
+#: the result never depends on update history.
 #: Bounded: cleared when full (a rig with more probes than this just recomputes).
 ROW_MEMO_SIZE = 4096
 _rows: dict[tuple, _ProbeRow] = {}
