@@ -87,15 +87,15 @@ def install(zip_path: Path) -> str | None:
         return None
     accel = sys.modules.get(f"{PKG}.{EXT_ID}.accel")
     if accel is not None and hasattr(accel, "warm_up"):
-        # What an interactive session does in a helper thread at start-up: compile the kernel (or load
-        # it from numba's cache) before the first update, so no timed update pays for it.
+        # What registration does: load the kernel and run each entry once, so no timed update pays
+        # for loading it.
         t0 = time.perf_counter()
         print(f"[ours] kernel warm-up: {accel.warm_up()}, {time.perf_counter() - t0:.1f} s")
     return PKG
 
 
 def kernel_backend() -> str:
-    """Which per-vertex kernel our installed package uses ('numba …, N threads' or 'numpy (…)')."""
+    """Which per-vertex kernel our installed package uses ('C kernel (…), N threads' or 'numpy (…)')."""
     accel = sys.modules.get(f"{PKG}.{EXT_ID}.accel")
     return accel.backend() if accel is not None else "n/a"
 
