@@ -11,7 +11,7 @@ pip accept, contents, RECORD hashes, the same bytes when built again.
 The session builds all four platforms once, into a temporary directory (the sources as they are now,
 never a stale build/). With zig's cache (build/zig-cache) that takes under a second when the sources
 have been built before and ~12 s on 2 cores when they changed; the very first build also builds each
-target's C library (~2.5 min, mostly the two Windows ones).
+target's C library (2.5-4.5 min on 2 cores, mostly the two Windows ones).
 """
 
 from __future__ import annotations
