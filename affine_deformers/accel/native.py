@@ -231,7 +231,7 @@ class Kernel:
             _ptr(points, _F64, "points"), n_points, _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"),
             _ptr(val, _F64, "val"), K, _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), bool(offsets),
             _ptr(out, _F64, "out", True), _ptr(out32, _F32, "out32", True), bool(use32),
-            _ptr(counter, _I64, "counter", True))
+            _counter(counter))
         return _done(done)
 
     def motion_params(self, table: Arr, idx: Arr, val: Arr, rows: Arr, use_rows: bool,
@@ -244,7 +244,7 @@ class Kernel:
         done = self._fns["ak_motion_params"](
             _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"), _ptr(val, _F64, "val"), N, K,
             _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), _ptr(out, _F64, "out", True),
-            _ptr(out32, _F32, "out32", True), bool(use32), _ptr(counter, _I64, "counter", True))
+            _ptr(out32, _F32, "out32", True), bool(use32), _counter(counter))
         return _done(done)
 
     def _chain_shapes(self, table: Arr, idx: Arr, val: Arr, prefix: Arr,
@@ -273,7 +273,7 @@ class Kernel:
             _ptr(points, _F64, "points"), N, _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"),
             _ptr(val, _F64, "val"), n_pass, K, _ptr(prefix, _I32, "prefix"), _ptr(mats, _F64, "mats"), n_mats,
             _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), bool(offsets), _ptr(out, _F64, "out", True),
-            _ptr(out32, _F32, "out32", True), bool(use32), _ptr(counter, _I64, "counter", True))
+            _ptr(out32, _F32, "out32", True), bool(use32), _counter(counter))
         return _done(done)
 
     def chain_motion_entry(self, table: Arr, idx: Arr, val: Arr, prefix: Arr,
@@ -288,7 +288,7 @@ class Kernel:
             _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"), _ptr(val, _F64, "val"), n_pass, N, K,
             _ptr(prefix, _I32, "prefix"), _ptr(mats, _F64, "mats"), n_mats, _ptr(rows, _I64, "rows"), n_rows,
             bool(use_rows), _ptr(out, _F64, "out", True), _ptr(out32, _F32, "out32", True), bool(use32),
-            _ptr(counter, _I64, "counter", True))
+            _counter(counter))
         return _done(done)
 
     def polar_log(self, M: Arr, R: Arr, Yh: Arr) -> int:
@@ -395,6 +395,12 @@ class Kernel:
         """Busy-wait (GIL released) until flag[0] != seen (True) or for n iterations (False)."""
         _shape(flag, (1,), "flag")
         return bool(self._fns["ak_spin_wait"](_ptr(flag, _I64, "flag"), int(seen), int(n)))
+
+
+def _counter(counter: Arr) -> int:
+    """The chunk counter's address: one int64 the C code increments atomically."""
+    _shape(counter, (1,), "counter")
+    return _counter(counter)
 
 
 def _done(count: int) -> int:
