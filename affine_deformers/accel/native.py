@@ -400,7 +400,7 @@ class Kernel:
 def _counter(counter: Arr) -> int:
     """The chunk counter's address: one int64 the C code increments atomically."""
     _shape(counter, (1,), "counter")
-    return _counter(counter)
+    return _ptr(counter, _I64, "counter", True)
 
 
 def _done(count: int) -> int:
