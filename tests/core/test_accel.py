@@ -612,7 +612,8 @@ def test_a_one_thread_entry_failing_to_compile_falls_back(
     an error is a bug and propagates."""
     import types
 
-    from affine_deformers.core import aff3, cage_harmonic
+    from affine_deformers.core import aff3
+    from affine_deformers.core.cage import harmonic
 
     def broken(*args: object) -> None:
         raise RuntimeError("LLVM is unhappy")
@@ -631,7 +632,7 @@ def test_a_one_thread_entry_failing_to_compile_falls_back(
     with pytest.warns(UserWarning, match="LLVM is unhappy"):
         got = calls[entry]()
     if entry == "node_pivot":  # numpy's result instead
-        assert np.allclose(got, cage_harmonic.node_params(points, weights, faces, maps=accel.linear_maps))
+        assert np.allclose(got, harmonic.node_params(points, weights, faces, maps=accel.linear_maps))
     else:  # None: the caller uses numpy
         assert got is None
     assert accel.backend() == f"numpy (compiling {entry} failed: RuntimeError: LLVM is unhappy)"
@@ -1400,11 +1401,11 @@ def test_compiled_psi_matches_numpy_and_scipy(compiled: ModuleType) -> None:
 
 def test_compiled_node_params_match_the_numpy_blend(compiled: ModuleType) -> None:
     """`accel.node_params` (the per-face and per-node steps of the harmonic cage's pivoted node blend
-    in the compiled kernel) agrees with `core.cage_harmonic.node_params` to ~1e-15 relative: small
+    in the compiled kernel) agrees with `core.cage.harmonic.node_params` to ~1e-15 relative: small
     (θ < 0.2, the series of V⁻¹), ordinary and large rotations (θ up to 1.9π, the libm
     θ-coefficients), with subsets of faces and invalid faces; the numpy version when the kernel is
     off."""
-    from affine_deformers.core import cage_harmonic
+    from affine_deformers.core.cage import harmonic
 
     rng = np.random.default_rng(151)
     F, G = 60, 200
@@ -1418,13 +1419,13 @@ def test_compiled_node_params_match_the_numpy_blend(compiled: ModuleType) -> Non
     faces = np.flatnonzero(rng.random(F) < 0.7)
     valid = rng.random(F) < 0.9
     for kwargs in ({}, {"faces": faces}, {"faces": faces, "valid": valid}):
-        want = cage_harmonic.node_params(x, W, P, maps=accel.linear_maps, **kwargs)
+        want = harmonic.node_params(x, W, P, maps=accel.linear_maps, **kwargs)
         got = accel.node_params(x, np.asfortranarray(W), P, **kwargs)
         assert np.abs(got - want).max() < 1e-13 * max(1.0, np.abs(want).max()), kwargs
     accel.set_enabled(False)
     try:
         got = accel.node_params(x, W, P, faces=faces)
-        assert np.array_equal(got, cage_harmonic.node_params(x, W, P, faces=faces, maps=accel.linear_maps))
+        assert np.array_equal(got, harmonic.node_params(x, W, P, faces=faces, maps=accel.linear_maps))
     finally:
         accel.set_enabled(True)
 
