@@ -50,8 +50,8 @@ STAGE_POINTS = (
     ("core.aff3", "matrices_from_params", "psi"),
     ("core.cage", "affected_faces", "psi"),  # cage: which faces moved, then their tetrahedra → params
     ("core.cage", "face_motions", "psi"),
-    ("core.cage_harmonic", "node_params", "psi"),  # harmonic cage weights: the nodes' blended faces
-    ("core.cage_harmonic", "node_matrices_linear", "psi"),
+    ("core.cage.harmonic", "node_params", "psi"),  # harmonic cage weights: the nodes' blended faces
+    ("core.cage.harmonic", "node_matrices_linear", "psi"),
     ("accel", "cage_faces", "psi"),  # the same two steps in the compiled kernel
     ("accel", "cage_nodes", "psi"),
     ("core.deform", "deform_points_params", "kernel"),

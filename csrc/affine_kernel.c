@@ -1109,7 +1109,7 @@ double ak_cage_faces(const double *cur, const double *rest, int64_t n_vertices, 
     return fan_volume(cur, n_vertices, fan, n_fan);
 }
 
-/* core.cage_harmonic.node_params for the nodes a moved face reaches; returns how many nodes. The sums
+/* core.cage.harmonic.node_params for the nodes a moved face reaches; returns how many nodes. The sums
  * run over `faces` in the given order (four at a time, then one at a time), so a node's result depends
  * on its own weights and those faces only. */
 int64_t ak_cage_nodes(const double *Wt, int64_t F, int64_t G, const int64_t *reached, int64_t n_reached,

@@ -37,10 +37,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..core import aff3 as _aff3
 from ..core import cage as _cage
-from ..core import cage_harmonic as _harmonic
 from ..core import deform as _np_kernel
 from ..core import hierarchy as _np_hierarchy
 from ..core import unwrap as _unwrap
+from ..core.cage import harmonic as _harmonic
 from ..core.checks import (
     check_given_out,
     check_indices,
@@ -630,7 +630,7 @@ def params_from_matrices(A: ArrayLike) -> FloatArray | None:
 
 def node_params(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, *,
                 faces: ArrayLike | None = None, valid: ArrayLike | None = None) -> FloatArray:
-    """`core.cage_harmonic.node_params` (same arguments and result, to ~1e-15) with its per-face
+    """`core.cage.harmonic.node_params` (same arguments and result, to ~1e-15) with its per-face
     and per-node steps in the compiled kernel (`Kernel.node_pivot`): B_f = V(ω_f)⁻¹ (M_f − I) for
     the faces, the blend over the node's faces (`face_columns`, numpy), then u′ = u + B x +
     V(ω)⁻¹ (x − M x) for the nodes. The numpy version (with `linear_maps`) when the compiled kernel
@@ -702,7 +702,7 @@ def cage_faces(rest: ArrayLike, current: ArrayLike, topology: _cage.CageTopology
 def cage_nodes(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, reached: ArrayLike,
                valid: ArrayLike | None = None, totals: ArrayLike | None = None
                ) -> tuple[FloatArray, NDArray[np.bool_], FloatArray] | None:
-    """(params (G, 12), touched (G,), totals (G,)): `core.cage_harmonic.node_params(node_points,
+    """(params (G, 12), touched (G,), totals (G,)): `core.cage.harmonic.node_params(node_points,
     node_weights, face_params, faces=reached, valid=valid)` for the nodes with weight on a reached
     face (touched), zeros for the others, in one compiled call (`Kernel.cage_nodes`; the same
     parameters to ~1e-15). node_weights (G, F), best column-major (its transpose is then read

@@ -356,7 +356,7 @@ class Kernel:
     def cage_nodes(self, Wt: Arr, reached: Arr, faces: Arr, face_params: Arr,
                    keep: Arr, totals: Arr, fill_totals: bool, x: Arr, terms: Arr,
                    blend: Arr, out: Arr, touched: Arr) -> int:
-        """core.cage_harmonic.node_params for the nodes a moved face reaches (the layout of
+        """core.cage.harmonic.node_params for the nodes a moved face reaches (the layout of
         `affine_deformers.accel.cage_nodes`); returns how many nodes that is."""
         if Wt.ndim != 2:
             raise ValueError(f"Wt must be 2-D, got {Wt.shape}")

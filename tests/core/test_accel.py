@@ -19,7 +19,7 @@ import pytest
 
 from affine_deformers import accel
 from affine_deformers.accel import native
-from affine_deformers.core import aff3, deform
+from affine_deformers.core import aff3, deform, kernel_stages
 from affine_deformers.core.weights import top_k_dense
 from tests.core import test_deform
 from tests.core.conftest import random_affine
@@ -178,8 +178,8 @@ def test_the_c_constants_are_the_python_ones() -> None:
     c = _c_defines(source)
     assert c["CHUNK"] == CHUNK
     assert c["SMALL_Y"] == deform.SMALL_Y
-    assert c["POLY_MAX_S"] == POLY_MAX_S == deform._POLY_MAX_S
-    assert c["C_CLAMP_S"] == deform._C_CLAMP_S
+    assert c["POLY_MAX_S"] == POLY_MAX_S == kernel_stages._POLY_MAX_S
+    assert c["C_CLAMP_S"] == kernel_stages._C_CLAMP_S
     h = _c_defines(header)
     assert h["AK_ABI_VERSION"] == native.ABI_VERSION
     declared = set(re.findall(r"AK_EXPORT\s+\w+\s+(ak_\w+)\s*\(", header.read_text()))
@@ -946,7 +946,7 @@ def test_a_one_thread_entry_failing_on_its_first_call_falls_back(
     """The per-control entries share the rule of the per-vertex ones: an error on the first call
     switches the process to numpy and the caller still gets numpy's result (or None: the caller
     then uses numpy); once an entry has run, an error is a bug and propagates."""
-    from affine_deformers.core import cage_harmonic
+    from affine_deformers.core.cage import harmonic
     from tests.core.test_cage import box_cage
 
     monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
@@ -970,7 +970,7 @@ def test_a_one_thread_entry_failing_on_its_first_call_falls_back(
     with pytest.warns(UserWarning, match="the kernel is unhappy"):
         got = calls[entry]()
     if entry == "node_pivot":  # numpy's result instead
-        assert np.allclose(got, cage_harmonic.node_params(points, weights, faces, maps=accel.linear_maps))
+        assert np.allclose(got, harmonic.node_params(points, weights, faces, maps=accel.linear_maps))
     elif entry == "same_words":  # numpy's compare instead
         assert got is True
     else:  # None: the caller uses numpy
@@ -1688,11 +1688,11 @@ def test_compiled_psi_matches_numpy_and_scipy(kernel: native.Kernel) -> None:
 
 def test_compiled_node_params_match_the_numpy_blend(kernel: native.Kernel) -> None:
     """`accel.node_params` (the per-face and per-node steps of the harmonic cage's pivoted node blend
-    in the compiled kernel) agrees with `core.cage_harmonic.node_params` to ~1e-15 relative: small
+    in the compiled kernel) agrees with `core.harmonic.node_params` to ~1e-15 relative: small
     (θ < 0.2, the series of V⁻¹), ordinary and large rotations (θ up to 1.9π, the libm
     θ-coefficients), with subsets of faces and invalid faces; the numpy version when the kernel is
     off."""
-    from affine_deformers.core import cage_harmonic
+    from affine_deformers.core.cage import harmonic
 
     rng = np.random.default_rng(151)
     F, G = 60, 200
@@ -1706,13 +1706,13 @@ def test_compiled_node_params_match_the_numpy_blend(kernel: native.Kernel) -> No
     faces = np.flatnonzero(rng.random(F) < 0.7)
     valid = rng.random(F) < 0.9
     for kwargs in ({}, {"faces": faces}, {"faces": faces, "valid": valid}):
-        want = cage_harmonic.node_params(x, W, P, maps=accel.linear_maps, **kwargs)
+        want = harmonic.node_params(x, W, P, maps=accel.linear_maps, **kwargs)
         got = accel.node_params(x, np.asfortranarray(W), P, **kwargs)
         assert np.abs(got - want).max() < 1e-13 * max(1.0, np.abs(want).max()), kwargs
     accel.set_enabled(False)
     try:
         got = accel.node_params(x, W, P, faces=faces)
-        assert np.array_equal(got, cage_harmonic.node_params(x, W, P, faces=faces, maps=accel.linear_maps))
+        assert np.array_equal(got, harmonic.node_params(x, W, P, faces=faces, maps=accel.linear_maps))
     finally:
         accel.set_enabled(True)
 

@@ -216,7 +216,7 @@ def node_case(rng: np.random.Generator, G: int = 60, F: int = 40) -> tuple[np.nd
 
 @pytest.mark.parametrize("broken", [False, True])
 def test_compiled_nodes_match_numpy(kernel: native.Kernel, broken: bool) -> None:
-    from affine_deformers.core.cage_harmonic import node_params
+    from affine_deformers.core.cage.harmonic import node_params
 
     rng = np.random.default_rng(157)
     x, W, P = node_case(rng)
