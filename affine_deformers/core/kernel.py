@@ -301,7 +301,7 @@ class DeformKernel:
         """P (12, b − a) = the blended parameters of the row set's entries a:b."""
         if rs.weights is not None:
             # The same product as the full call's, on gathered columns: same values per row.
-            np.matmul(table_t, rs.weights[:, a:b], out=P)
+            blend_product(table_t, rs.weights[:, a:b], P)
         else:
             self._blend_sparse(table_t, rs.idx[a:b], rs.val[a:b], P)
 
@@ -370,7 +370,7 @@ class DeformKernel:
 
         def work(kernel: DeformKernel, a: int, b: int) -> None:
             P = kernel._param_rows(b - a)
-            np.matmul(table_t, W[a:b].T, out=P)
+            blend_product(table_t, W[a:b].T, P)
             kernel._apply_chunk(pts[a:b], P, out[a:b])
 
         self._run(pts.shape[0], work)
@@ -493,7 +493,7 @@ class DeformKernel:
     ) -> None:
         """P (c, b − a) = blended table columns for vertices a:b."""
         if dense is not None:
-            np.matmul(table_t, dense[:, a:b], out=P)
+            blend_product(table_t, dense[:, a:b], P)
         else:
             self._blend_sparse(table_t, idx[a:b], val[a:b], P)
 
@@ -505,7 +505,7 @@ class DeformKernel:
             dense = self._dense_block(m, n)
             dense.fill(0.0)
             _scatter_weights(self._dense, self._rows.stride, self._arange[:n], idx, val)
-            np.matmul(table_t, dense, out=P)
+            blend_product(table_t, dense, P)
         else:
             gathered = np.empty_like(P)
             np.take(table_t, idx[:, 0], axis=1, out=P)
@@ -565,6 +565,27 @@ class DeformKernel:
         for c, column in enumerate(((xx, xy, xz), (xy, yy, yz), (xz, yz, zz))):  # exp(Y) is symmetric
             _rigid(w, None, column, theta, O[3 * c : 3 * c + 3], free)  # R(ω) exp(Y) e_c
         _rigid(w, P[3:6], None, theta, O[9:12], free)  # V(ω) u
+
+
+#: Multiply-adds per BLAS call of the blend, at most: OpenBLAS runs a product of up to 65536 × 4
+#: (its default GEMM_MULTITHREAD_THRESHOLD) multiply-adds on the calling thread alone.
+BLAS_SINGLE_THREAD_MNK = 65536 * 4
+
+
+def blend_product(table_t: FloatArray, weights: FloatArray, out: FloatArray) -> None:
+    """out (c, n) = table_t (c, m) · weights (m, n) in column blocks small enough for one BLAS thread.
+
+    A row's bits must not depend on the call (the Blender layer recomputes only the rows a moved
+    control influences). A multi-threaded BLAS product splits the columns among its threads, and
+    with AVX-512 kernels (OpenBLAS SkylakeX) a column then gets other bits near a split than in a
+    product of another width (measured: ~1 % of rows differed between a full call and a subset).
+    On one thread each column is accumulated alike wherever it sits."""
+    c, m = table_t.shape
+    block = max(8, BLAS_SINGLE_THREAD_MNK // max(1, c * m) // 8 * 8)
+    n = weights.shape[1]
+    for a in range(0, n, block):
+        b = min(a + block, n)
+        np.matmul(table_t, weights[:, a:b], out=out[:, a:b])
 
 
 def _dense_weights(idx: IntArray, val: FloatArray, m: int) -> FloatArray:
