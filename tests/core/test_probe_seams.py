@@ -1,5 +1,5 @@
 """No seams where probes swap ranks (issue 12): 8 probes, inverse distance, exponent 2, 'SUM', fewer
-influences than probes (6; the add operator now sets 16, which keeps all 8: see
+influences than probes (6; the add operator now sets 8, which keeps all 8: see
 tests/core/test_field_ties.py for the defaults and for layouts whose probes tie).
 
 The deformation field d(x) = φ(Σ_k w_k(x) ψ(A_k)) x − x of 8 probes with different rotations and
