@@ -7,8 +7,13 @@ PY := $(VENV)/bin/python
 PY_LTS := $(VENV_LTS)/bin/python
 PY_LTS45 := $(VENV_LTS45)/bin/python
 DIST := dist
+# The compiled kernel: C sources and everything its build reads (tools/build_native.py).
+NATIVE := build/native
+NATIVE_INPUTS := csrc/affine_kernel.c csrc/affine_kernel.h tools/build_native.py \
+	affine_deformers/accel/native.py blender_manifest.toml
 
-.PHONY: all demo test test-core test-blender bench build release lint venv venv-lts samples clean
+.PHONY: all demo test test-core test-blender bench build release lint venv venv-lts native native-all \
+	samples clean
 
 all: test
 
@@ -31,13 +36,27 @@ venv: $(VENV)/.installed
 
 venv-lts: $(VENV_LTS)/.installed $(VENV_LTS45)/.installed
 
+# The C kernel for this machine (build/native/<platform>/ and its wheel in build/native/wheels/), with
+# zig's clang from the venv; rebuilt when its inputs or the venv change. native-all: all four platforms.
+$(NATIVE)/.host-built: $(NATIVE_INPUTS) $(VENV)/.installed
+	$(PY) tools/build_native.py --platform host --output $(NATIVE)
+	touch $@
+
+$(NATIVE)/.all-built: $(NATIVE_INPUTS) $(VENV)/.installed
+	$(PY) tools/build_native.py --platform all --output $(NATIVE)
+	touch $@ $(NATIVE)/.host-built
+
+native: venv $(NATIVE)/.host-built
+
+native-all: venv $(NATIVE)/.all-built
+
 # Validate the manifest and build the extension .zip with the CLI that ships inside the bpy wheel:
-# this machine's platform, with its compiled-kernel wheels (downloaded once into wheels/).
-build: venv
+# this machine's platform, with its compiled-kernel wheel.
+build: native
 	$(PY) tools/build_extension.py --output-dir $(DIST)
 
 # One package per platform in the manifest (Linux, Windows, macOS arm64/x64), for a release.
-release: venv
+release: native-all
 	$(PY) tools/build_extension.py --output-dir $(DIST) --platform all
 
 # The main job: render every sample scene at a few frames into out/ (PNG + one contact sheet each).
@@ -56,7 +75,7 @@ test: build venv-lts
 	@echo "--- the Blender suite again on Blender 4.2 LTS ---"
 	$(PY_LTS) -m pytest tests/blender -q -p no:cacheprovider
 
-test-core: venv
+test-core: native
 	$(PY) -m pytest tests/core
 
 test-blender: build
@@ -69,4 +88,4 @@ lint: venv
 	$(PY) -m ruff check .
 
 clean:
-	rm -rf $(DIST) out .pytest_cache .ruff_cache
+	rm -rf $(DIST) out $(NATIVE) .pytest_cache .ruff_cache

@@ -235,7 +235,7 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
             if s is not None:
                 report.split_rows.append((f"(a) {m} probes{name}, motion path, {n:,} verts", s))
     mine_np = None
-    if have_ours and ours.operator_exists(ours.PROBE_OP) and ours.kernel_backend().startswith("numba"):
+    if have_ours and ours.operator_exists(ours.PROBE_OP) and ours.kernel_backend().startswith("C kernel"):
         ours.use_compiled_kernel(False)
         try:
             mine_np, _, _ = run_ours_probes(plan, plan.a_verts, m, f"ours: {m} probes, numpy kernel", report)
@@ -293,7 +293,7 @@ def part_a(plan: Plan, have_ours: bool, report: Report) -> None:
     if mine_np is not None:
         t.notes.append(
             "ours, numpy kernel: the same rig with the compiled kernel turned off (the add-on preference), "
-            "as on a platform without the bundled wheels (ratio column: ÷ ours with the compiled kernel)"
+            "as on a platform without the bundled library (ratio column: ÷ ours with the compiled kernel)"
         )
     if rig is not None:
         settings = ", ".join(f"{k} {v}" for k, v in rig.settings.items())
@@ -655,7 +655,7 @@ def write_markdown(
         "are faster.",
         "",
         "Keep in mind: Blender's modifiers are compiled C++ (Armature and Mesh Deform multi-threaded);",
-        "ours is a Python handler whose per-vertex map runs in the compiled kernel (numba, bundled with",
+        "ours is a Python handler whose per-vertex map runs in the compiled kernel (C, bundled with",
         "the extension; multi-threaded) or, without it, in numpy. On a 2-core machine shared with other",
         "work both sides are sensitive to load, so compare numbers from the same run only (the run keeps",
         "about one core busy, which shows in the load average afterwards). Mesh Deform's bind is a",

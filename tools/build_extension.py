@@ -4,14 +4,15 @@ The bpy wheel carries Blender's own `blender_ext.py` and the list of valid exten
 (`_bpy_internal/extensions/tags.py`); using both means the .zip is exactly what Blender's
 "Install from Disk" and the extensions platform accept.
 
-The compiled kernel (affine_deformers/accel, numba) is bundled as wheels, which are platform and Python
-specific: `blender_manifest.toml` lists every platform's wheels for every Python Blender uses (3.11:
-Blender 4.2–5.0, 3.13: 5.1+), and each package holds one platform's, for both Pythons
+The compiled kernel (csrc/affine_kernel.c, loaded by affine_deformers/accel/native.py) is bundled as
+a wheel of our own per platform, `affine_deformers_kernel-<version>-py3-none-<platform tag>.whl`, built
+by tools/build_native.py into build/native/wheels/ (this script runs it for the platforms it packages:
+a second when nothing changed). One library serves every Python, so every Blender from 4.2 on.
+`blender_manifest.toml` lists the four platforms' wheels of the current version (checked here against
+what was built), and each package holds its own platform's only
 (`dist/affine_deformers-<version>-<platform>.zip`, see README "Blender versions" for the sizes); Blender
-installs the ones matching the running Python. Missing wheels are downloaded from PyPI into `wheels/`
-(not in git) once, by exactly the file names the manifest lists (their tags tell pip the Python and
-platform); later builds work offline. `--platform none` builds the small all-platform package without
-wheels (the numpy kernel only).
+installs it by its platform tag. `--platform none` builds the small all-platform package without the
+kernel (the numpy kernel only).
 
     python tools/build_extension.py                      # this machine's platform (make build)
     python tools/build_extension.py --platform all       # every platform in the manifest (a release)
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import os
 import platform
 import re
 import shutil
@@ -30,16 +32,15 @@ import sys
 import tempfile
 import tomllib
 from pathlib import Path
+from types import ModuleType
 
 ROOT = Path(__file__).resolve().parent.parent
 MANIFEST = ROOT / "blender_manifest.toml"
 #: What goes into a package (the manifest's exclude patterns keep everything else out of it too).
 PACKAGE_FILES = ("__init__.py", "blender_manifest.toml", "README.md")
 PACKAGE_DIRS = ("affine_deformers",)
-#: `{name}-{version}-cp{py}-{abi}-{platform tags}.whl` (no build tag: the manifest names release wheels).
-_WHEEL_NAME = re.compile(
-    r"^(?P<name>[A-Za-z0-9_]+)-(?P<version>[^-]+)-cp(?P<py>\d+)-(?P<abi>[^-]+)-(?P<platform>[^-]+)\.whl$"
-)
+#: Where tools/build_native.py writes the libraries and wheels (make native / make release).
+NATIVE_OUT = ROOT / "build" / "native"
 
 
 def bpy_scripts_dir() -> Path:
@@ -82,33 +83,61 @@ def wheel_platform(path: str) -> str:
     raise SystemExit(f"cannot tell the platform of wheel {name}")
 
 
-def fetch_wheels(paths: list[str]) -> None:
-    """Download the manifest's wheels that are not in wheels/ yet (exact file names, no dependencies)."""
-    for rel in paths:
-        target = ROOT / rel
-        if target.exists():
-            continue
-        match = _WHEEL_NAME.match(target.name)
-        if match is None:
-            raise SystemExit(f"not a CPython wheel name: {target.name}")
-        spec = f"{match['name']}=={match['version']}"
-        py = match["py"]
-        # The file's own tags: pip then picks exactly that file (a compressed platform tag such as
-        # `manylinux2014_x86_64.manylinux_2_17_x86_64` is one --platform per part).
-        platforms = [arg for tag in match["platform"].split(".") for arg in ("--platform", tag)]
-        with tempfile.TemporaryDirectory() as tmp:
-            subprocess.run(
-                [sys.executable, "-m", "pip", "download", "--disable-pip-version-check", "-q", "--no-deps",
-                 "--only-binary=:all:", *platforms, "--implementation", "cp", "--abi", match["abi"],
-                 "--python-version", f"{py[0]}.{py[1:]}", "-d", tmp, spec],
-                check=True,
-            )
-            got = Path(tmp) / target.name
-            if not got.exists():
-                found = ", ".join(p.name for p in Path(tmp).iterdir())
-                raise SystemExit(f"PyPI gave {found} for {spec}, the manifest expects {target.name}")
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.move(str(got), target)
+def build_native() -> ModuleType:
+    """tools/build_native.py as a module."""
+    spec = importlib.util.spec_from_file_location("affdef_build_native", ROOT / "tools" / "build_native.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def expected_wheels(manifest: dict) -> list[str]:
+    """The manifest paths of the kernel wheels tools/build_native.py makes for the manifest's platforms
+    and version."""
+    native = build_native()
+    return [f"./wheels/{native.wheel_filename(p.replace('-', '_'), manifest['version'])}"
+            for p in manifest.get("platforms", [])]
+
+
+def kernel_wheels(manifest: dict, targets: list[str | None]) -> dict[str, Path]:
+    """Build the kernel of the packaged platforms into build/native (from zig's cache in about a
+    second when nothing changed) and check the manifest lists exactly the wheels built for its
+    platforms and version: Blender platform -> the built wheel."""
+    listed, expected = manifest.get("wheels", []), expected_wheels(manifest)
+    if sorted(listed) != sorted(expected):
+        raise SystemExit("blender_manifest.toml `wheels` must list the kernel wheels tools/build_native.py "
+                         "builds for its platforms and version:\n  " + "\n  ".join(expected)
+                         + "\nit lists:\n  " + "\n  ".join(listed))
+    platforms = [t for t in targets if t is not None]
+    if not platforms:
+        return {}
+    if importlib.util.find_spec("ziglang") is None:
+        return built_kernel_wheels(manifest, platforms)
+    built = build_native().build([t.replace("-", "_") for t in platforms], NATIVE_OUT, os.cpu_count() or 1)
+    wheels = {}
+    for target in platforms:
+        wheel = built[target.replace("-", "_")]
+        if [Path(w).name for w in package_wheels(manifest, target)] != [wheel.name]:
+            raise SystemExit(f"built {wheel.name}; the manifest lists {package_wheels(manifest, target)}")
+        wheels[target] = wheel
+    return wheels
+
+
+def built_kernel_wheels(manifest: dict, platforms: list[str]) -> dict[str, Path]:
+    """Without zig in this interpreter (e.g. the Blender 4.2 venv running its suite): the wheels
+    `make native` / `make release` built, which must be there and not older than the C sources."""
+    native = build_native()
+    newest = max((ROOT / p).stat().st_mtime for p in (native.SOURCE, native.HEADER))
+    wheels = {}
+    for target in platforms:
+        (rel,) = package_wheels(manifest, target)
+        wheel = NATIVE_OUT / "wheels" / Path(rel).name
+        if not wheel.exists() or wheel.stat().st_mtime < newest:
+            raise SystemExit(f"{wheel} is {'stale' if wheel.exists() else 'missing'} and this Python has no "
+                             f"ziglang to build it: run `make native` (or `make release`) first")
+        wheels[target] = wheel
+    return wheels
 
 
 def manifest_for(text: str, target: str | None, wheels: list[str]) -> str:
@@ -125,12 +154,12 @@ def manifest_for(text: str, target: str | None, wheels: list[str]) -> str:
 
 
 def package_wheels(manifest: dict, target: str | None) -> list[str]:
-    """The manifest wheels that go into `target`'s package (all its Python versions; None: none)."""
+    """The manifest wheels that go into `target`'s package (its kernel wheel; None: none)."""
     return [w for w in manifest.get("wheels", []) if target is not None and wheel_platform(w) == target]
 
 
-def build_one(manifest: dict, text: str, target: str | None, out: Path) -> Path:
-    """Stage the package files (and `target`'s wheels) and build one .zip from them."""
+def build_one(manifest: dict, text: str, target: str | None, out: Path, built: dict[str, Path]) -> Path:
+    """Stage the package files (and `target`'s kernel wheel, from `built`) and build one .zip from them."""
     wheels = package_wheels(manifest, target)
     suffix = "" if target is None else "-" + target.replace("-", "_")
     zip_path = out / f"{manifest['id']}-{manifest['version']}{suffix}.zip"
@@ -143,7 +172,7 @@ def build_one(manifest: dict, text: str, target: str | None, out: Path) -> Path:
         (stage / "blender_manifest.toml").write_text(manifest_for(text, target, wheels), encoding="utf-8")
         for rel in wheels:
             (stage / rel).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(ROOT / rel, stage / rel)
+            shutil.copy2(built[target], stage / rel)
         run_cli("validate", str(stage))
         run_cli("build", "--source-dir", str(stage), "--output-filepath", str(zip_path))
     return zip_path
@@ -167,16 +196,16 @@ def main() -> None:
     else:
         wanted = host_platform() if ns.platform == "host" else ns.platform
         if wanted not in declared:
-            print(f"no bundled wheels for {wanted}: building the package without the compiled kernel")
+            print(f"no kernel build for {wanted}: building the package without the compiled kernel")
             wanted = None
         targets = [wanted]
     out = (ROOT / ns.output_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     for old in out.glob(f"{manifest['id']}-*.zip"):
         old.unlink()  # one build's packages only: tests and tools pick "the" package in dist/
-    fetch_wheels([w for w in manifest.get("wheels", []) if wheel_platform(w) in targets])
+    built = kernel_wheels(manifest, targets)
     for target in targets:
-        print(f"extension package: {build_one(manifest, text, target, out)}")
+        print(f"extension package: {build_one(manifest, text, target, out, built)}")
 
 
 if __name__ == "__main__":

@@ -1,27 +1,24 @@
 """Optional compiled backend of the per-vertex kernel, with the numpy kernel as the fallback.
 
 `deform_points_params`, `deform_points_params_rows` and `vertex_motions` have the signatures and the
-argument checks (same messages) of `affine_deformers.core.deform`; they run the numba kernel of
-`compiled.py` when it is available and the numpy kernel otherwise. The results agree to ~1e-15
-relative (the compiled kernel uses polynomial transcendentals, see compiled.py), and within one
-backend every row is bit-identical whichever call, thread count or row subset computes it, and for
-the compiled one whether its entry was compiled in this session or loaded from numba's cache
-(compiled.py's "Bit-identity": one compiled entry for points, one for motions).
+argument checks (same messages) of `affine_deformers.core.deform`; they run the C kernel
+(csrc/affine_kernel.c, loaded by `native.py`) when it is available and the numpy kernel otherwise.
+The results agree to ~1e-15 relative (the C kernel uses polynomial transcendentals, see
+affine_kernel.c), and within one backend every row is bit-identical whichever call, thread count or
+row subset computes it.
 
 The compiled path is skipped when
 
 * the environment variable AFFINE_DEFORMERS_ACCEL is "0" (checked on every call), or the add-on
   preference turned it off (`set_enabled(False)`), or
-* importing numba or compiling the kernel failed once (ImportError, RuntimeError, numba's errors, …):
-  the process then stays on numpy and `backend()` says why. Such a failure never reaches the caller, or
-* another thread is compiling it right now (`warm_up`): callers get numpy instead of waiting.
+* the library is missing or failed to load (`native.KernelUnavailableError`: no build for this platform,
+  a damaged or foreign file, another ABI version), or an entry failed on its first call: the process
+  then stays on numpy and `backend()` says why. Such a failure never reaches the caller.
 
-numba is imported on first use, not when this package is imported (it takes ~0.1–0.5 s and the first
-call compiles the kernel, ~5–8 s, or loads it from numba's cache next to compiled.py in well under 1 s;
-`warm_up` does that ahead of the first update).
-Threads: the compiled entries release the GIL; `_run` runs one on the calling thread and on helper
-threads of this module, which claim chunks from a shared counter (numba's own threading layer is not
-used: a prange entry would make cached and session-compiled code differ, see compiled.py).
+Loading the library takes milliseconds and compiles nothing; `warm_up` runs every entry once on a
+tiny input (and so checks them) ahead of the first update.
+Threads: a ctypes call releases the GIL; `_run` runs an entry on the calling thread and on helper
+threads of this module, which claim chunks from a shared counter.
 Calls into the compiled kernel are serialised by a lock (Blender may evaluate from more than one
 thread; a call already uses every thread it is given).
 """
@@ -33,7 +30,6 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Hashable
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -41,10 +37,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..core import aff3 as _aff3
 from ..core import cage as _cage
-from ..core import cage_harmonic as _harmonic
 from ..core import deform as _np_kernel
 from ..core import hierarchy as _np_hierarchy
 from ..core import unwrap as _unwrap
+from ..core.cage import harmonic as _harmonic
 from ..core.checks import (
     check_given_out,
     check_indices,
@@ -58,6 +54,8 @@ from ..core.checks import (
     unchanged,
 )
 from ..core.deform import default_threads
+from . import native
+from .native import Kernel, KernelUnavailableError
 
 __all__ = [
     "ACCEL_ENV",
@@ -87,18 +85,18 @@ ACCEL_ENV = "AFFINE_DEFORMERS_ACCEL"
 
 
 class _State:
-    """The compiled module once loaded, or why the process stays on numpy."""
+    """The compiled kernel once loaded, or why the process stays on numpy."""
 
     def __init__(self) -> None:
-        self.module: ModuleType | None = None
+        self.module: Kernel | None = None
         self.failure: str | None = None
-        self.compiled: set[str] = set()  # compiled entries that have run once (compiled or cache-loaded)
+        self.compiled: set[str] = set()  # entries that have run once
         self.lock = threading.RLock()
         self.checked_key: Hashable | None = None  # names checked points, indices and values
         self.checked_weights_key: Hashable | None = None  # names checked indices and values only
         self.checked_chain_key: Hashable | None = None  # names checked pass indices and values
         self.enabled = True
-        self.warming: threading.Thread | None = None  # the thread compiling in `warm_up`
+        self.warming: threading.Thread | None = None  # the thread running `warm_up`
         self.spin: tuple | bool | None = None  # `_spin`'s measurement (False: unavailable)
 
 
@@ -116,15 +114,14 @@ def set_enabled(enabled: bool) -> None:
 
 
 def active() -> bool:
-    """True when calls from this thread go to the compiled kernel now (imports numba on first use;
-    compiles nothing)."""
+    """True when calls from this thread go to the compiled kernel now (loads the library on first use)."""
     return _usable() is not None
 
 
-def _usable() -> ModuleType | None:
-    """The compiled module if this thread may call it now. While another thread compiles it
-    (`warm_up`), None: an interactive update then runs on numpy instead of waiting seconds for the
-    compiler (the two kernels agree to ~1e-15; callers that cache results key them on `active()`)."""
+def _usable() -> Kernel | None:
+    """The compiled kernel if this thread may call it now. While another thread runs `warm_up`,
+    None: an update then runs on numpy instead of waiting for it (the two kernels agree to ~1e-15;
+    callers that cache results key them on `active()`)."""
     warming = _state.warming
     if warming is not None and warming is not threading.current_thread():
         return None
@@ -132,12 +129,10 @@ def _usable() -> ModuleType | None:
 
 
 def warm_up() -> str:
-    """Compile (or load from numba's cache) the compiled entries (compiled.ENTRIES) on a tiny input,
-    and the helper threads' `spin_wait`, so the first real update does not pay for it; returns
-    `backend()`. Each has one specialisation
-    for all its calls (full or rows, float32 copy or not), so one call apiece is all it takes. Safe
-    to call from a helper thread: calls into the compiled module are serialised by a lock, and a
-    failure only switches the process to numpy."""
+    """Load the library and run every entry once on a tiny input (and the helper threads'
+    `spin_wait`), so that an entry that fails does so here, not in the first real update; returns
+    `backend()`. Safe to call from a helper thread: calls into the compiled kernel are serialised by
+    a lock, and a failure only switches the process to numpy."""
     pts = np.zeros((2, 3))
     params = np.zeros((1, 12))
     params[0, 6] = 1e-3  # not all zero: the all-at-rest shortcut would skip the kernel
@@ -165,28 +160,27 @@ def warm_up() -> str:
         module = _load()
         if module is not None:
             with _state.lock:
-                _spin(module)  # compiled.spin_wait, for the helper threads
+                _spin(module)  # Kernel.spin_wait, for the helper threads
     finally:
         _state.warming = None
     return backend()
 
 
-def _load() -> ModuleType | None:
-    """The compiled module, importing numba on first use; None when unavailable (reason recorded)."""
+def _load() -> Kernel | None:
+    """The compiled kernel, loading the library on first use; None when unavailable (reason recorded)."""
     if _disabled_by_env() or _state.failure is not None:
         return None
     if _state.module is None:
         with _state.lock:
             if _state.module is None and _state.failure is None:
                 try:
-                    from . import compiled  # lazy: numba is optional and slow to import
-
-                    _state.module = compiled
-                except Exception as exc:  # ImportError, numba's RuntimeError/OSError on odd platforms …
-                    # A package built without the wheels has no numba by design: say so in backend()
-                    # (the preferences show it), without a warning at every start.
-                    absent = isinstance(exc, ModuleNotFoundError) and exc.name in ("numba", "llvmlite")
-                    _fail(f"numba unavailable: {type(exc).__name__}: {exc}", warn=not absent)
+                    _state.module = native.load()
+                except KernelUnavailableError as exc:
+                    # A package built without the library (--platform none) has none by design: say so
+                    # in backend() (the preferences show it), without a warning at every start.
+                    _fail(str(exc), warn=False)
+                except Exception as exc:
+                    _fail(f"loading the compiled kernel failed: {type(exc).__name__}: {exc}")
     return _state.module
 
 
@@ -194,16 +188,16 @@ _FAILED = object()  # what `_entry_call` returns when the entry could not be com
 
 
 def _entry_call(name: str, call: Callable[[], Any]) -> Any:
-    """`call()`, which runs the compiled entry `name`, under the kernel lock. A failure
-    on its first run (compiling or loading it) switches the process to numpy and returns _FAILED, so
-    the caller falls back; once the entry has run, an exception is a real error and propagates."""
+    """`call()`, which runs the compiled entry `name`, under the kernel lock. A failure on its first
+    run switches the process to numpy and returns _FAILED, so the caller falls back; once the entry
+    has run, an exception is a real error and propagates."""
     with _state.lock:
         try:
             result = call()
         except Exception as exc:
             if name in _state.compiled:
                 raise
-            _fail(f"compiling {name} failed: {type(exc).__name__}: {exc}")
+            _fail(f"the compiled {name} failed: {type(exc).__name__}: {exc}")
             return _FAILED
         _state.compiled.add(name)
     return result
@@ -231,7 +225,7 @@ class _Helper:
     """A thread that runs one job at a time for `_run_chunks`: `start` hands it over, `join` waits
     for it and re-raises its exception. Two locks used as binary semaphores, so the hand-over is one
     lock release each way (a thread pool's futures cost ~0.1 ms more per call here); after a job it
-    spins for up to SPIN_MS on a job counter (`compiled.spin_wait`, GIL released) before it blocks.
+    spins for up to SPIN_MS on a job counter (`Kernel.spin_wait`, GIL released) before it blocks.
     Daemon: it only ever waits for a job or runs one the caller waits for.
 
     `defer` instead of `join`: for a job that provably has nothing left to do (every chunk of its
@@ -291,14 +285,14 @@ class _Helper:
 _helpers: list[_Helper] = []  # grown on demand; used under _state.lock only
 
 
-def _spin(module: ModuleType) -> tuple[Callable[[np.ndarray, int, int], bool], int] | None:
-    """(compiled.spin_wait, iterations for SPIN_MS), measured once; None when SPIN_MS is 0 or it
-    does not compile (the helpers then just sleep between calls)."""
+def _spin(module: Kernel) -> tuple[Callable[[np.ndarray, int, int], bool], int] | None:
+    """(Kernel.spin_wait, iterations for SPIN_MS), measured once; None when SPIN_MS is 0 or it
+    fails (the helpers then just sleep between calls)."""
     if _state.spin is None:
         try:
             fn = module.spin_wait
             flag = np.zeros(1, dtype=np.int64)
-            fn(flag, 0, 1)  # compiles or loads it
+            fn(flag, 0, 1)
             n = 20_000
             t0 = time.perf_counter()
             fn(flag, 0, n)
@@ -348,41 +342,36 @@ def _run_chunks(
         raise errors[0]
 
 
-def _threads(numba: ModuleType) -> int:
-    """default_threads(), bounded by numba's NUMBA_NUM_THREADS (which thus still caps the kernel)."""
-    return max(1, min(default_threads(), int(numba.config.NUMBA_NUM_THREADS)))
+def _threads() -> int:
+    """Threads a compiled call may use: default_threads() ($AFFINE_DEFORMERS_THREADS or the cores)."""
+    return default_threads()
 
 
 def backend() -> str:
-    """'numba <version>, <n> threads' or 'numpy (<reason>)'. Imports numba if not done yet (but does
-    not compile anything)."""
+    """'C kernel (<library file>), <n> threads' or 'numpy (<reason>)'. Loads the library if not done yet."""
     if not _state.enabled:
         return "numpy (compiled kernel turned off in the preferences)"
     if _disabled_by_env():
         return f"numpy ({ACCEL_ENV}=0)"
-    if _load() is None:
+    module = _load()
+    if module is None:
         return f"numpy ({_state.failure})"
-    import numba  # already in sys.modules (_load)
-
-    n = _threads(numba)
-    return f"numba {numba.__version__}, {n} thread{'s' if n != 1 else ''}"
+    n = _threads()
+    return f"{module.describe()}, {n} thread{'s' if n != 1 else ''}"
 
 
 def _run(name: str, n: int, *args: object) -> bool:
-    """compiled.<name>(*args, counter) for an n-row work list (⌈n/CHUNK⌉ chunks) on `_threads`
-    threads (`_run_chunks`; the first call, which compiles or loads the entry, on this thread
-    alone); False if the backend is (or just became) unavailable, in which case the caller
-    recomputes with numpy."""
+    """Kernel.<name>(*args, counter) for an n-row work list (⌈n/CHUNK⌉ chunks) on `_threads`
+    threads (`_run_chunks`; an entry's first call, which checks it, on this thread alone); False if
+    the backend is (or just became) unavailable, in which case the caller recomputes with numpy."""
     module = _load()
     if module is None:
         return False
-    import numba  # already in sys.modules (_load)
-
     entry = getattr(module, name)
     n_chunks = -(-n // module.CHUNK)
 
     def chunks() -> None:
-        threads = _threads(numba) if name in _state.compiled else 1  # the first run compiles on one
+        threads = _threads() if name in _state.compiled else 1  # an entry's first run on one thread
         spin = _spin(module) if threads > 1 and n_chunks > 1 else None
         _run_chunks(entry, args, n_chunks, threads, spin)
 
@@ -394,10 +383,8 @@ def _run(name: str, n: int, *args: object) -> bool:
 
 
 def _c(a: np.ndarray, dtype: type) -> np.ndarray:
-    """`a` as a C-contiguous array of `dtype`, copied if read-only: numba compiles read-only arrays as
-    a separate specialisation (seconds of compiling in the middle of an interactive session)."""
-    arr = np.ascontiguousarray(a, dtype=dtype)
-    return arr if arr.flags.writeable else arr.copy()
+    """`a` as a C-contiguous array of `dtype`."""
+    return np.ascontiguousarray(a, dtype=dtype)
 
 
 def _inputs(
@@ -528,8 +515,6 @@ def deform_points_params_rows(
     # Repeated rows in different chunks would read written results.
     if np.may_share_memory(dst, p) or (out32 is not None and np.may_share_memory(out32, p)):
         p = p.copy()
-    # Without out32 an empty float32 array still goes in: the one compiled specialisation of the full
-    # call serves every rows call too.
     dst32 = _NO_OUT32 if out32 is None else out32
     args = (p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), sel, True, bool(offsets), dst,
             dst32, out32 is not None)
@@ -607,7 +592,7 @@ def vertex_motions(
 def polar_log(M: ArrayLike) -> tuple[FloatArray, FloatArray] | None:
     """(R, Ŷ) (n, 3, 3) each with M = R exp(Ŷ), R = U Vᵀ, Ŷ = V diag(log σ) Vᵀ for the SVD
     M = U diag(σ) Vᵀ of each of the (n, 3, 3) matrices M (det > 0, checked by the caller), computed
-    by the compiled kernel (`compiled.polar_log`, agreeing with numpy's SVD to ~1e-15); None when the
+    by the compiled kernel (`Kernel.polar_log`, agreeing with numpy's SVD to ~1e-15); None when the
     compiled kernel is not active now (the caller then uses numpy): the `polar` argument of
     `core.aff3.params_from_matrices`."""
     module = _usable()
@@ -623,7 +608,7 @@ def polar_log(M: ArrayLike) -> tuple[FloatArray, FloatArray] | None:
 
 def params_from_matrices(A: ArrayLike) -> FloatArray | None:
     """`core.aff3.params_from_matrices(A)`: ψ in the 12-number layout, A (..., 4, 4) ↦ (..., 12),
-    with the same ValueError for a motion outside Aff+(3), in one compiled call (`compiled.psi_rows`;
+    with the same ValueError for a motion outside Aff+(3), in one compiled call (`Kernel.psi_rows`;
     the same parameters to ~1e-15). The few controls that moved in an update cost microseconds
     instead of numpy's per-call overhead on a handful of 3×3 matrices. None when the compiled kernel
     is not active now (the caller then uses the numpy function)."""
@@ -645,8 +630,8 @@ def params_from_matrices(A: ArrayLike) -> FloatArray | None:
 
 def node_params(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, *,
                 faces: ArrayLike | None = None, valid: ArrayLike | None = None) -> FloatArray:
-    """`core.cage_harmonic.node_params` (same arguments and result, to ~1e-15) with its per-face
-    and per-node steps in the compiled kernel (`compiled.node_pivot`): B_f = V(ω_f)⁻¹ (M_f − I) for
+    """`core.cage.harmonic.node_params` (same arguments and result, to ~1e-15) with its per-face
+    and per-node steps in the compiled kernel (`Kernel.node_pivot`): B_f = V(ω_f)⁻¹ (M_f − I) for
     the faces, the blend over the node's faces (`face_columns`, numpy), then u′ = u + B x +
     V(ω)⁻¹ (x − M x) for the nodes. The numpy version (with `linear_maps`) when the compiled kernel
     is not active now."""
@@ -661,7 +646,6 @@ def node_params(node_points: ArrayLike, node_weights: ArrayLike, face_params: Ar
     face_rows = _c(P[faces], np.float64)
     B = np.empty((faces.size, 9))
     nodes = np.empty((x.shape[0], 12))
-    # One specialisation: every array argument is 2-D C-contiguous float64.
 
     def both_steps() -> None:
         module.node_pivot(False, face_rows, _NO_POINTS, B)
@@ -678,7 +662,7 @@ def cage_faces(rest: ArrayLike, current: ArrayLike, topology: _cage.CageTopology
                ) -> tuple[_cage.FaceMotions, NDArray[np.bool_], float] | None:
     """(`core.cage.face_motions(rest, current, topology, faces=reached)`, reached (F,) bool =
     `core.cage.affected_faces(rest, current, topology)`, `core.cage.signed_volume(current, topology)`)
-    with the 'NEIGHBOURS' apex, in one compiled call (`compiled.cage_faces`: corner frames, stencil
+    with the 'NEIGHBOURS' apex, in one compiled call (`Kernel.cage_faces`: corner frames, stencil
     apex, fold guard, ψ with the polar split of `polar_log`, the mean over each face's corners, for
     the faces reached only; agreeing with the numpy functions to ~1e-15). Faces whose corners need a
     lift onto the first corner's rotation branch (past a half turn from it) are lifted and averaged
@@ -718,9 +702,9 @@ def cage_faces(rest: ArrayLike, current: ArrayLike, topology: _cage.CageTopology
 def cage_nodes(node_points: ArrayLike, node_weights: ArrayLike, face_params: ArrayLike, reached: ArrayLike,
                valid: ArrayLike | None = None, totals: ArrayLike | None = None
                ) -> tuple[FloatArray, NDArray[np.bool_], FloatArray] | None:
-    """(params (G, 12), touched (G,), totals (G,)): `core.cage_harmonic.node_params(node_points,
+    """(params (G, 12), touched (G,), totals (G,)): `core.cage.harmonic.node_params(node_points,
     node_weights, face_params, faces=reached, valid=valid)` for the nodes with weight on a reached
-    face (touched), zeros for the others, in one compiled call (`compiled.cage_nodes`; the same
+    face (touched), zeros for the others, in one compiled call (`Kernel.cage_nodes`; the same
     parameters to ~1e-15). node_weights (G, F), best column-major (its transpose is then read
     without a copy); reached: the indices of the faces that moved; valid (F,) bool or None (all
     valid). totals: the node sums Σ_f W_cf valid_f that an earlier call with the same node_weights
@@ -755,7 +739,7 @@ def cage_nodes(node_points: ArrayLike, node_weights: ArrayLike, face_params: Arr
 def rows_reading(hit: ArrayLike, indices: ArrayLike, values: ArrayLike) -> NDArray[np.intp] | None:
     """The sorted vertices with a non-zero weight on a control flagged in `hit` (m,) bool: rows v
     with values[v, k] != 0 and hit[indices[v, k]] for some k (indices (N, K), an index outside [0, m)
-    flags nothing; values (N, K)), in one compiled pass (`compiled.rows_reading`). None when the
+    flags nothing; values (N, K)), in one compiled pass (`Kernel.rows_reading`). None when the
     compiled kernel is not active now (the caller then uses numpy)."""
     module = _usable()
     if module is None:
@@ -774,7 +758,7 @@ def rows_reading(hit: ArrayLike, indices: ArrayLike, values: ArrayLike) -> NDArr
 
 def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether the arrays a and b have the same dtype, shape and bytes (bit for bit: −0.0 ≠ 0.0 and a
-    NaN equals its own bits), in one compiled pass with early exit (`compiled.same_words`: 91 µs for
+    NaN equals its own bits), in one compiled pass with early exit (`Kernel.same_words`: 91 µs for
     130k positions where numpy's elementwise compare, which also writes a bool array, takes 120 µs)
     when the kernel is active and both are C-contiguous with a size a multiple of 4 bytes; numpy's
     compare of the words otherwise."""

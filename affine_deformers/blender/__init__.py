@@ -22,7 +22,7 @@ def register() -> None:
     bpy.types.VIEW3D_MT_object.append(panels.draw_object_menu)
     handlers.register_handlers()
     prefs.apply(prefs.preferences())
-    prefs.start_warm_up()
+    prefs.check_kernel()
     _upgrade_open_file()
 
 

@@ -1,14 +1,14 @@
 """Add-on preferences: which per-vertex kernel evaluates the deformers.
 
-The compiled kernel (affine_deformers.accel, numba bundled as wheels) is 2–5× faster per core than the
-numpy kernel and uses every core; both give the same results to ~1e-15. Its first use compiles it
-(several seconds, once: numba caches the machine code next to the add-on), so a session with the
-interface starts that in a helper thread at registration instead of in the first update.
+The compiled kernel (affine_deformers.accel: a C library bundled per platform) is 2–5× faster per
+core than the numpy kernel and uses every core; both give the same results to ~1e-15. It loads in
+milliseconds; registration runs each of its entries once (`check_kernel`), so a library that does not
+work on this machine switches to numpy there, with the reason in the preferences, not in the middle
+of the first update.
 """
 
 from __future__ import annotations
 
-import threading
 import traceback
 
 import bpy
@@ -46,9 +46,8 @@ class AFFINE_AddonPreferences(bpy.types.AddonPreferences):
     use_compiled_kernel: BoolProperty(
         name="Compiled Kernel",
         description=(
-            "Evaluate the deformers with the bundled compiled kernel (numba): several times faster and "
-            "multi-threaded. Off: the numpy kernel (same results to 1e-15, slower). The first use on a "
-            "machine compiles the kernel once, which takes a few seconds"
+            "Evaluate the deformers with the bundled compiled kernel (C): several times faster and "
+            "multi-threaded. Off: the numpy kernel (same results to 1e-15, slower)"
         ),
         default=True,
         update=_use_compiled_changed,
@@ -62,20 +61,13 @@ class AFFINE_AddonPreferences(bpy.types.AddonPreferences):
         row.label(text=f"Kernel in use: {accel.backend()}")
 
 
-def start_warm_up() -> None:
-    """Import numba and compile the kernel in a helper thread (interactive sessions only: a background
-    job compiles on its first update anyway, and must not race its own exit). Updates meanwhile run
-    on the numpy kernel (accel._usable), so the interface never waits for the compiler."""
-    if bpy.app.background:
-        return
-
-    def work() -> None:
-        try:
-            accel.warm_up()
-        except Exception:  # the dispatch falls back to numpy by itself; just leave a trace
-            traceback.print_exc()
-
-    threading.Thread(target=work, name="affine_deformers_warm_up", daemon=True).start()
+def check_kernel() -> None:
+    """Load the compiled kernel and run each entry once on a tiny input (milliseconds): a library that
+    fails here switches the process to numpy (the preferences say why) before the first update."""
+    try:
+        accel.warm_up()
+    except Exception:  # the dispatch falls back to numpy by itself; just leave a trace
+        traceback.print_exc()
 
 
 CLASSES = (AFFINE_AddonPreferences,)

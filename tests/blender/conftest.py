@@ -31,8 +31,9 @@ SUBPROCESS_TIMEOUT = 300
 
 
 def _package_sources() -> list[Path]:
-    files = [ROOT / "__init__.py", ROOT / "blender_manifest.toml"]
-    return files + sorted((ROOT / "affine_deformers").rglob("*.py"))
+    files = [ROOT / "__init__.py", ROOT / "blender_manifest.toml", ROOT / "tools" / "build_native.py"]
+    # the compiled kernel's C sources go into the package as its wheel's libraries
+    return files + sorted((ROOT / "affine_deformers").rglob("*.py")) + sorted((ROOT / "csrc").glob("*.[ch]"))
 
 
 def _fresh_zip() -> Path:

@@ -25,7 +25,7 @@ def core_cage(installed):
 
 @pytest.fixture
 def core_harmonic(installed):
-    return importlib.import_module(f"{installed.package}.core.cage_harmonic")
+    return importlib.import_module(f"{installed.package}.core.cage.harmonic")
 
 
 # ---------------------------------------------------------------------------------------------- helpers

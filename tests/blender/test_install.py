@@ -90,15 +90,18 @@ assert np.abs(half - rest - 0.5 * np.array([0.25, -0.5, 1.0], np.float32)).max()
 probe.hide_viewport = True
 probe.location = (0.5, 0.0, 0.0)
 assert np.abs(positions() - rest - np.array([0.25, 0.0, 0.0], np.float32)).max() < 1e-5
-# the compiled kernel runs from the wheels bundled in the package (this venv has no numba of its own)
+# the compiled kernel runs from the wheel bundled in the package, which Blender installed into the
+# extensions' site-packages
 import importlib, zipfile
 accel = importlib.import_module("bl_ext.user_default.affine_deformers.affine_deformers.accel")
-bundled = any(n.startswith("wheels/numba-") for n in zipfile.ZipFile(sys.argv[1]).namelist())
+names = zipfile.ZipFile(sys.argv[1]).namelist()
+bundled = any(n.startswith("wheels/affine_deformers_kernel-") for n in names)
 if bundled:
     assert accel.active(), accel.backend()
-    assert accel.backend().startswith("numba "), accel.backend()
-    import numba
-    assert "extensions" in numba.__file__, numba.__file__
+    assert accel.backend().startswith("C kernel (affine_kernel"), accel.backend()
+    import affine_deformers_kernel
+    assert "extensions" in affine_deformers_kernel.__file__, affine_deformers_kernel.__file__
+    assert str(accel._load().path).startswith(affine_deformers_kernel.LIBRARY_DIR), accel._load().path
 print("LTS OK", bpy.app.version_string, "kernel:", accel.backend())
 """
 

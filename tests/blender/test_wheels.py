@@ -1,15 +1,19 @@
-"""The packages carry a compiled kernel for every Blender they serve, and a kernel that cannot load falls
-back to numpy with the reason shown.
+"""The packages carry the compiled kernel for every Blender they serve, and a kernel that cannot load
+falls back to numpy with the reason shown.
 
-* Blender's OWN wheel filter (`bl_pkg`, from the bpy wheel this suite runs on: 5.0, 4.5 LTS or 4.2 LTS)
-  picks exactly one numba and one llvmlite for every (Python, platform) pair: Python 3.11 (Blender
-  4.2–5.0, run by `make test`) and 3.13 (Blender 5.1+, whose cp313 bpy wheels cannot run here: checked,
-  not run) × linux-x64, windows-x64, macos-arm64, macos-x64. The filter reads the running Python and
-  `sysconfig.get_platform()`; the tests set both to the target's, then apply Blender's de-duplication
-  (`wheel_manager`, which keeps the newest wheel of a name) as installing does.
-* A numba that fails to import (its import-time check rejects the numpy it finds: "Numba needs NumPy
-  2.1 or less") leaves the add-on on the numpy kernel, with the reason in `accel.backend()` and in the
-  preferences, and the deformation still right.
+* The kernel is a C library (csrc/affine_kernel.c) in a wheel of ours per platform,
+  `affine_deformers_kernel-<version>-py3-none-<platform tag>.whl` (tools/build_native.py): one library
+  serves every Python. Blender's OWN wheel filter (`bl_pkg`, from the bpy wheel this suite runs on: 5.0,
+  4.5 LTS or 4.2 LTS) picks exactly that platform's wheel for Python 3.11 (Blender 4.2–5.0, run by
+  `make test`) and 3.13 (Blender 5.1+, whose cp313 bpy wheels cannot run here: checked, not run) on
+  linux-x64, windows-x64, macos-arm64 and macos-x64, and nothing of another platform. The filter reads
+  the running Python and `sysconfig.get_platform()`; the tests set both to the target's, then apply
+  Blender's de-duplication (`wheel_manager`) as installing does.
+* The manifest lists exactly the four wheels tools/build_native.py builds for its version; each built
+  package, unpacked as Blender installs it, holds its own platform's wheel with that platform's
+  libraries (format and architecture read from their headers).
+* A library that does not load (damaged, or a system it cannot run on) leaves the add-on on the numpy
+  kernel, with the reason in `accel.backend()` and in the preferences, and the deformation still right.
 """
 
 from __future__ import annotations
@@ -22,20 +26,16 @@ import sys
 import sysconfig
 import tomllib
 import zipfile
-from collections import Counter
 from pathlib import Path
 
 import pytest
-from packaging.requirements import Requirement
-from packaging.version import Version
 
 ROOT = Path(__file__).resolve().parents[2]
 ADDON = "bl_ext.user_default.affine_deformers"
 PACKAGE = f"{ADDON}.affine_deformers"
 
-#: The Pythons of the Blenders the package serves, and the numpy those Blenders come with (bpy wheels on
-#: PyPI: 4.2–5.0 require numpy>=1.26,<2.0 and bundle 1.26.4; 5.1–5.3 require numpy>=2.2,<3.0).
-PYTHONS = {(3, 11): ("1.26.4",), (3, 13): ("2.2.0", "2.3.5")}
+#: The Pythons of the Blenders the package serves (4.2–5.0: 3.11; 5.1 and newer: 3.13).
+PYTHONS = ((3, 11), (3, 13))
 #: What `sysconfig.get_platform()` says in Blender's Python on each Blender platform (the filter uses
 #: only the architecture of the macOS ones).
 SYSCONFIG_PLATFORM = {
@@ -44,15 +44,27 @@ SYSCONFIG_PLATFORM = {
     "macos-arm64": "macosx-11.2-arm64",
     "macos-x64": "macosx-11.2-x86_64",
 }
-KERNEL = {"numba", "llvmlite"}
+#: What each platform's libraries are (tools/binary_headers.py's names).
+LIBRARY_FORMAT = {
+    "linux-x64": ("ELF", "x86_64"),
+    "windows-x64": ("PE32+", "x86_64"),
+    "macos-arm64": ("Mach-O", "arm64"),
+    "macos-x64": ("Mach-O", "x86_64"),
+}
+KERNEL = "affine_deformers_kernel"
+
+
+def _tool(name: str):
+    path = ROOT / "tools" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"affdef_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
 
 
 def _build_tool():
-    path = ROOT / "tools" / "build_extension.py"
-    spec = importlib.util.spec_from_file_location("affdef_build_extension", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return _tool("build_extension")
 
 
 def _bl_pkg():
@@ -76,27 +88,13 @@ def _as_blender(python: tuple[int, int], platform: str):
 def _installed(wheels: list[str], python: tuple[int, int], platform: str) -> list[str]:
     """The wheels Blender would install from a package listing `wheels` (relative paths as in the
     manifest), by its own filter and de-duplication; the filter alone must already leave nothing to
-    de-duplicate (no second numba for one Python in a package)."""
+    de-duplicate."""
     ops, wheel_manager = _bl_pkg()
     with _as_blender(python, platform):
         compatible = ops._extensions_wheel_filter_for_this_system(wheels)
     skip = wheel_manager.wheel_list_deduplicate_as_skip_set([("affine_deformers", compatible)])
     assert not skip, f"more than one wheel of a name for Python {python} on {platform}: {sorted(skip)}"
     return compatible
-
-
-def _dist(wheel: str) -> tuple[str, str, str]:
-    """(name, version, python tag) of a wheel file name."""
-    name, version, python_tag, _abi, _platform = Path(wheel).name[: -len(".whl")].split("-")
-    return name, version, python_tag
-
-
-def _check_one_pair(chosen: list[str], python: tuple[int, int]) -> dict[str, str]:
-    names = Counter(_dist(w)[0] for w in chosen)
-    assert names == Counter(KERNEL), f"Blender would install {chosen}"
-    for wheel in chosen:
-        assert _dist(wheel)[2] == f"cp{python[0]}{python[1]}", wheel
-    return {_dist(w)[0]: w for w in chosen}
 
 
 def _package_manifests() -> dict[str, dict]:
@@ -108,39 +106,33 @@ def _package_manifests() -> dict[str, dict]:
             for target in manifest["platforms"]}
 
 
+def _kernel_wheel(platform: str) -> str:
+    """The manifest path of `platform`'s kernel wheel, as tools/build_native.py names it."""
+    manifest = tomllib.loads((ROOT / "blender_manifest.toml").read_text(encoding="utf-8"))
+    return "./wheels/" + _tool("build_native").wheel_filename(platform.replace("-", "_"), manifest["version"])
+
+
 PAIRS = [(python, platform) for python in PYTHONS for platform in SYSCONFIG_PLATFORM]
 
 
-def test_the_manifest_serves_every_platform():
+def test_the_manifest_serves_every_platform_with_the_wheels_the_build_makes():
     assert sorted(_package_manifests()) == sorted(SYSCONFIG_PLATFORM)
+    manifest = tomllib.loads((ROOT / "blender_manifest.toml").read_text(encoding="utf-8"))
+    assert sorted(manifest["wheels"]) == sorted(_kernel_wheel(p) for p in SYSCONFIG_PLATFORM)
+    assert sorted(manifest["wheels"]) == sorted(_build_tool().expected_wheels(manifest))
 
 
 @pytest.mark.parametrize(("python", "platform"), PAIRS, ids=[f"py{p[0]}.{p[1]}-{t}" for p, t in PAIRS])
-def test_blender_picks_one_numba_and_one_llvmlite(python, platform):
+def test_blender_picks_the_platforms_kernel_wheel(python, platform):
     package = _package_manifests()[platform]
     assert package["platforms"] == [platform]
-    _check_one_pair(_installed(package["wheels"], python, platform), python)
-    # and the package holds nothing for another platform
+    assert package["wheels"] == [_kernel_wheel(platform)]
+    assert _installed(package["wheels"], python, platform) == [_kernel_wheel(platform)]
+    # the package holds nothing for another platform, and another platform's wheel is not taken here
     for other in SYSCONFIG_PLATFORM:
         if other != platform:
             assert _installed(package["wheels"], python, other) == [], other
-
-
-def test_one_numba_version_for_every_blender_and_the_dev_venv_tests_it():
-    """One numba/llvmlite release in every package (so the numba and LLVM the kernel is tested with on
-    Python 3.11 are those the 3.13 wheels carry), and it is the one tools/requirements-dev.txt pins, so
-    `make test-core` tests the numba that ships."""
-    versions = {_dist(w)[:2] for m in _package_manifests().values() for w in m["wheels"]}
-    by_name = {name: {v for n, v in versions if n == name} for name in KERNEL}
-    assert all(len(v) == 1 for v in by_name.values()), by_name
-    pins = {}
-    for line in (ROOT / "tools" / "requirements-dev.txt").read_text().splitlines():
-        line = line.split("#", 1)[0].strip()
-        if line:
-            req = Requirement(line)
-            pins[req.name] = str(req.specifier)
-    for name in KERNEL:
-        assert pins.get(name) == f"=={next(iter(by_name[name]))}", (name, pins.get(name), by_name[name])
+            assert _installed([_kernel_wheel(other)], python, platform) == [], other
 
 
 def _packages_to_check(extension_zip: Path) -> list[Path]:
@@ -153,52 +145,51 @@ def _packages_to_check(extension_zip: Path) -> list[Path]:
     return zips
 
 
-def _metadata(wheel: Path) -> list[str]:
-    with zipfile.ZipFile(wheel) as zf:
-        name = next(n for n in zf.namelist() if n.endswith(".dist-info/METADATA"))
-        return zf.read(name).decode("utf-8").splitlines()
-
-
-def _requires(wheel: Path) -> dict[str, Requirement]:
-    reqs = [Requirement(line.split(":", 1)[1].strip()) for line in _metadata(wheel)
-            if line.startswith("Requires-Dist:")]
-    return {r.name: r for r in reqs if not r.marker}
-
-
-def test_built_packages_install_a_consistent_kernel_for_each_python(extension_zip, tmp_path):
+def test_built_packages_install_their_platforms_kernel(extension_zip, tmp_path):
     """Each built package, unpacked as Blender installs it: Blender's `pkg_wheel_filter` (which also
-    drops wheels missing from the package) gives one numba and one llvmlite per Python, that numba's
-    llvmlite requirement holds, and its numpy range admits the numpy of the Blenders with that Python."""
+    drops wheels missing from the package) gives the one kernel wheel for every Python, and that wheel
+    holds the package's platform's libraries (read from their headers), nothing else of note."""
     ops, wheel_manager = _bl_pkg()
+    headers = _tool("binary_headers")
     checked = 0
     for package in _packages_to_check(extension_zip):
         repo = tmp_path / package.stem
         with zipfile.ZipFile(package) as zf:
             zf.extractall(repo / "affine_deformers")
+            assert not [n for n in zf.namelist() if n.startswith("csrc/")], "C sources in the package"
         manifest = tomllib.loads((repo / "affine_deformers" / "blender_manifest.toml").read_text())
         wheels = manifest.get("wheels", [])
         if not wheels:
             continue  # built with --platform none: the numpy kernel only, by design
         (platform,) = manifest["platforms"]
-        for python, numpys in PYTHONS.items():
+        assert wheels == [_kernel_wheel(platform)], (package.name, wheels)
+        for python in PYTHONS:
             with _as_blender(python, platform):
                 found = ops.pkg_wheel_filter("user_default", "affine_deformers", str(repo), wheels)
             assert found is not None, (package.name, python)
             assert not wheel_manager.wheel_list_deduplicate_as_skip_set([found]), found
-            chosen = _check_one_pair(found[1], python)
-            numba, llvmlite = Path(chosen["numba"]), Path(chosen["llvmlite"])
-            requires = _requires(numba)
-            assert requires["llvmlite"].specifier.contains(Version(_dist(llvmlite.name)[1]), prereleases=True)
-            for numpy in numpys:
-                assert requires["numpy"].specifier.contains(numpy), (package.name, python, numpy)
-            checked += 1
+            (wheel,) = found[1]
+            assert Path(wheel).name == Path(_kernel_wheel(platform)).name
+        with zipfile.ZipFile(wheel) as zf:
+            libraries = [n for n in zf.namelist() if n.startswith(f"{KERNEL}/affine_kernel")]
+            assert libraries, zf.namelist()
+            for name in libraries:
+                (tmp_path / "lib").write_bytes(zf.read(name))
+                info = headers.read(tmp_path / "lib")
+                assert (info.format, info.arch) == LIBRARY_FORMAT[platform], (package.name, name)
+        checked += 1
     if checked == 0:
-        pytest.skip("no package with wheels was built (--platform none)")
+        pytest.skip("no package with the kernel was built (--platform none)")
 
 
-# ------------------------------------------------------------------------------------ numba unusable
+# ------------------------------------------------------------------------------- library unusable
 
-FAKE_NUMBA = '''raise ImportError("Numba needs NumPy 2.1 or less. Got NumPy 2.3.")\n'''
+#: A stand-in for the bundled wheel's package whose libraries are not libraries (a damaged install, or
+#: a file for another system): loading them fails as dlopen/LoadLibrary fail.
+FAKE_KERNEL = '''"""A damaged affine_deformers_kernel (tests/blender/test_wheels.py)."""
+import os
+LIBRARY_DIR = os.path.dirname(os.path.abspath(__file__))
+'''
 
 FALLBACK_SCRIPT = """
 import importlib, sys, types, warnings
@@ -262,20 +253,24 @@ print("FALLBACK OK", err)
 """
 
 
-def test_numba_that_fails_to_import_falls_back_to_numpy_with_the_reason(bl, tmp_path):
-    """A fresh Blender process whose `import numba` fails as numba's own import-time check does when it
-    meets a numpy newer than it supports (numba 0.62 raises 'Numba needs NumPy 2.3 or less' on a
-    Blender whose numpy is newer): the fake package comes first on sys.path, ahead of the bundled wheels
-    and of the venv's numba."""
-    fake = tmp_path / "fake_site"
-    (fake / "numba").mkdir(parents=True)
-    (fake / "numba" / "__init__.py").write_text(FAKE_NUMBA)
-    path = os.pathsep.join(p for p in (str(fake), os.environ.get("PYTHONPATH", "")) if p)
-    # AFFINE_DEFORMERS_ACCEL=1: the compiled kernel is wanted (an outer "0" would hide the failure)
-    proc = bl.run_blender(FALLBACK_SCRIPT, env_extra={"PYTHONPATH": path, "AFFINE_DEFORMERS_ACCEL": "1"})
+def test_a_library_that_does_not_load_falls_back_to_numpy_with_the_reason(bl, tmp_path):
+    """A fresh Blender process whose kernel wheel package holds files that are not libraries: the fake
+    package comes first on sys.path, ahead of the bundled wheel Blender installed, and loading its
+    library fails as the system's loader does (on Linux: "invalid ELF header")."""
+    fake = tmp_path / "fake_site" / KERNEL
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text(FAKE_KERNEL)
+    for suffix in (".so", ".dll", ".dylib"):
+        for name in ("affine_kernel", "affine_kernel_avx2"):
+            (fake / (name + suffix)).write_bytes(b"\0not a shared library\n" * 200)
+    path = os.pathsep.join(p for p in (str(fake.parent), os.environ.get("PYTHONPATH", "")) if p)
+    # AFFINE_DEFORMERS_ACCEL=1: the compiled kernel is wanted (an outer "0" would hide the failure);
+    # no explicit library path either
+    env = {"PYTHONPATH": path, "AFFINE_DEFORMERS_ACCEL": "1", "AFFINE_DEFORMERS_KERNEL_LIB": ""}
+    proc = bl.run_blender(FALLBACK_SCRIPT, env_extra=env)
     out = proc.stdout.splitlines()
     assert "FALLBACK OK" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-3000:]
-    reason = "Numba needs NumPy 2.1 or less. Got NumPy 2.3."
+    reason = "invalid ELF header" if sys.platform.startswith("linux") else "affine_kernel"
     backend = next(line for line in out if line.startswith("BACKEND:")).removeprefix("BACKEND: ")
     assert backend.startswith("numpy (") and reason in backend, backend
     prefs = next(line for line in out if line.startswith("PREFS:"))

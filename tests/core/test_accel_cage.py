@@ -1,26 +1,35 @@
-"""The compiled face path of a cage (accel.cage_faces) against core.cage's numpy functions: the same
-motions to ~1e-15, the same validity and messages, per-face results independent of which other faces
-moved, and the numpy fallback."""
+"""The compiled face path of a cage (accel.cage_faces, the C kernel's ak_cage_faces and ak_cage_nodes)
+against core.cage's numpy functions: the same motions to ~1e-15, the same validity and messages,
+per-face results independent of which other faces moved, the constants the C code repeats, the
+wrappers' argument checks and the numpy fallback."""
 
 from __future__ import annotations
 
-from types import ModuleType
+import re
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from affine_deformers import accel
+from affine_deformers.accel import native
 from affine_deformers.core import aff3, unwrap
 from affine_deformers.core import cage as cage_module
 from affine_deformers.core.cage import affected_faces, face_motions, signed_volume
 from tests.core.test_cage import box_cage, mixed_prism, similarity
 
+ROOT = Path(__file__).resolve().parents[2]
+
 
 @pytest.fixture
-def compiled(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
-    """The compiled module, enabled and loaded (skips without numba)."""
-    pytest.importorskip("numba")
+def kernel(monkeypatch: pytest.MonkeyPatch) -> native.Kernel:
+    """The C kernel, enabled and loaded (skips when the library is not built here)."""
     monkeypatch.delenv(accel.ACCEL_ENV, raising=False)
+    try:
+        native.library_path()
+    except native.KernelUnavailableError as exc:
+        pytest.skip(f"the compiled kernel is not available: {exc}")
     module = accel._load()
     assert module is not None, accel.backend()
     return module
@@ -61,7 +70,7 @@ def edits(points: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
 
 
 @pytest.mark.parametrize("case", ["box", "prism"])
-def test_compiled_faces_match_numpy(compiled: ModuleType, case: str) -> None:
+def test_compiled_faces_match_numpy(kernel: native.Kernel, case: str) -> None:
     rng = np.random.default_rng(151)
     points, topology = box_cage((4, 3, 5), (2.0, 1.5, 3.0)) if case == "box" else mixed_prism()
     for cur in edits(points, rng):
@@ -70,7 +79,7 @@ def test_compiled_faces_match_numpy(compiled: ModuleType, case: str) -> None:
     assert not at_rest[1].any() and np.array_equal(at_rest[0].params, np.zeros((topology.n_faces, 12)))
 
 
-def test_common_affine_motion_is_exact(compiled: ModuleType) -> None:
+def test_common_affine_motion_is_exact(kernel: native.Kernel) -> None:
     points, topology = box_cage((3, 3, 3), (2.0, 2.0, 2.0))
     G = similarity(0.7, [0.2, 1.0, -0.4], 1.3, [0.5, -1.0, 2.0])
     G[:3, :3] = G[:3, :3] @ np.array([[1.0, 0.4, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.7]])  # shear, stretch
@@ -80,7 +89,7 @@ def test_common_affine_motion_is_exact(compiled: ModuleType) -> None:
     np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-12)
 
 
-def test_faces_near_a_half_turn_are_lifted_like_numpy(compiled: ModuleType,
+def test_faces_near_a_half_turn_are_lifted_like_numpy(kernel: native.Kernel,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """Corners of one face on both sides of a half turn: their principal logs differ by ~2π, so the
     face is lifted onto its first corner's branch (here with unwrap.lift_params, as face_motions)."""
@@ -100,7 +109,7 @@ def test_faces_near_a_half_turn_are_lifted_like_numpy(compiled: ModuleType,
     assert_agree(got, numpy_faces(points, cur, topology), tol=1e-11)
 
 
-def test_collapsed_and_broken_faces_match_numpy(compiled: ModuleType) -> None:
+def test_collapsed_and_broken_faces_match_numpy(kernel: native.Kernel) -> None:
     points = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float)
     faces = [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
     topology = cage_module.CageTopology.from_polygons(faces)
@@ -119,7 +128,7 @@ def test_collapsed_and_broken_faces_match_numpy(compiled: ModuleType) -> None:
     assert_agree(accel.cage_faces(rest, points, topology), numpy_faces(rest, points, topology))
 
 
-def test_a_face_does_not_depend_on_which_other_faces_moved(compiled: ModuleType) -> None:
+def test_a_face_does_not_depend_on_which_other_faces_moved(kernel: native.Kernel) -> None:
     """Two edits far apart, alone and together: every face reached by one of them only gets the
     same bits either way (the results of a face depend on its own inputs only)."""
     points, topology = box_cage((8, 2, 2), (8.0, 1.0, 1.0))
@@ -136,7 +145,7 @@ def test_a_face_does_not_depend_on_which_other_faces_moved(compiled: ModuleType)
     assert np.array_equal(fab.params[ra], fa.params[ra]) and np.array_equal(fab.params[rb], fb.params[rb])
 
 
-def test_face_tables_are_kept_per_rest_cage(compiled: ModuleType) -> None:
+def test_face_tables_are_kept_per_rest_cage(kernel: native.Kernel) -> None:
     points, topology = box_cage((2, 2, 2), (1.0, 1.0, 1.0))
     first = cage_module.face_tables(points, topology)
     assert cage_module.face_tables(points.copy(), topology) is first  # same content: kept
@@ -145,11 +154,41 @@ def test_face_tables_are_kept_per_rest_cage(compiled: ModuleType) -> None:
     assert np.array_equal(cage_module.face_tables(other, topology).rest, other)
 
 
-def test_constants_repeat_the_core_ones(compiled: ModuleType) -> None:
-    assert compiled.COLLAPSED_SIN == cage_module.COLLAPSED_SIN
-    assert compiled.FOLD_KAPPA == cage_module.FOLD_KAPPA
-    assert compiled.NO_LIFT_DIST_SQ == unwrap._NO_LIFT_DIST_SQ
-    assert compiled.NO_LIFT_NORM_SQ == unwrap._NO_LIFT_NORM_SQ
+CORE_CONSTANTS = {
+    "COLLAPSED_SIN": cage_module.COLLAPSED_SIN,
+    "FOLD_KAPPA": cage_module.FOLD_KAPPA,
+    "NO_LIFT_DIST_SQ": unwrap._NO_LIFT_DIST_SQ,
+    "NO_LIFT_NORM_SQ": unwrap._NO_LIFT_NORM_SQ,
+}
+FACE_FLAGS = ("FACE_REACHED", "FACE_HAS_CORNER", "FACE_VALID", "FACE_NEEDS_LIFT")
+
+
+def test_constants_repeat_the_core_ones() -> None:
+    """core.cage's and core.unwrap's thresholds as native.py and the Kernel class state them (no
+    library needed), and the face flags: one bit each."""
+    for name, value in CORE_CONSTANTS.items():
+        assert getattr(native, name) == value, name
+        assert getattr(native.Kernel, name) == value, name
+    flags = [getattr(native, name) for name in FACE_FLAGS]
+    assert flags == [getattr(native.Kernel, name) for name in FACE_FLAGS]
+    assert sorted(flags) == [1, 2, 4, 8]
+
+
+def test_the_c_source_states_the_same_constants() -> None:
+    """csrc/affine_kernel.c's #defines of the same thresholds and flags (the library's values)."""
+    source = ROOT / "csrc" / "affine_kernel.c"
+    if not source.is_file():
+        pytest.skip("no C source in this tree")
+    defines = dict(re.findall(r"^#define\s+(\w+)\s+([-+0-9.eE]+)\s*(?:/\*.*)?$", source.read_text(), re.M))
+    for name, value in CORE_CONSTANTS.items():
+        assert float(defines[name]) == value, name
+    for name in FACE_FLAGS:
+        assert int(defines[name]) == getattr(native, name), name
+
+
+def test_the_loaded_kernel_has_the_core_constants(kernel: native.Kernel) -> None:
+    for name, value in CORE_CONSTANTS.items():
+        assert getattr(kernel, name) == value, name
 
 
 def test_inactive_kernel_returns_none(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -176,8 +215,8 @@ def node_case(rng: np.random.Generator, G: int = 60, F: int = 40) -> tuple[np.nd
 
 
 @pytest.mark.parametrize("broken", [False, True])
-def test_compiled_nodes_match_numpy(compiled: ModuleType, broken: bool) -> None:
-    from affine_deformers.core.cage_harmonic import node_params
+def test_compiled_nodes_match_numpy(kernel: native.Kernel, broken: bool) -> None:
+    from affine_deformers.core.cage.harmonic import node_params
 
     rng = np.random.default_rng(157)
     x, W, P = node_case(rng)
@@ -196,7 +235,7 @@ def test_compiled_nodes_match_numpy(compiled: ModuleType, broken: bool) -> None:
     np.testing.assert_allclose(totals, W @ keep, rtol=1e-14)
 
 
-def test_compiled_nodes_with_kept_totals_are_bit_identical(compiled: ModuleType) -> None:
+def test_compiled_nodes_with_kept_totals_are_bit_identical(kernel: native.Kernel) -> None:
     """The totals one call returns, passed to later calls with the same weights and valid faces
     (what the cage deformer does on every update), change no bit of any later result; totals of the
     wrong shape are refused."""
@@ -215,7 +254,7 @@ def test_compiled_nodes_with_kept_totals_are_bit_identical(compiled: ModuleType)
         accel.cage_nodes(x, W, P, np.arange(3), valid, totals=totals[:-1])
 
 
-def test_compiled_nodes_of_a_common_motion_are_exact(compiled: ModuleType) -> None:
+def test_compiled_nodes_of_a_common_motion_are_exact(kernel: native.Kernel) -> None:
     """Every face with the same motion: each node gets exactly ψ of it (to rounding), whatever its
     position (the blend is pivoted at the node)."""
     rng = np.random.default_rng(163)
@@ -231,3 +270,110 @@ def test_compiled_nodes_inactive_kernel_returns_none(monkeypatch: pytest.MonkeyP
     monkeypatch.setenv(accel.ACCEL_ENV, "0")
     x, W, P = node_case(np.random.default_rng(1))
     assert accel.cage_nodes(x, W, P, np.arange(3)) is None
+
+
+# --------------------------------------------------------------------------------------------------
+# the wrappers of the cage entries: indices the C code follows are bounded before it runs
+
+
+def _faces_arguments() -> dict[str, np.ndarray]:
+    """Valid keyword arguments of Kernel.cage_faces for a 2 × 2 × 2 box (26 vertices, 24 quads, 96
+    corners) moved at one corner (the layout of accel.cage_faces); outputs filled with 7."""
+    points, topology = box_cage((2, 2, 2), (1.0, 1.0, 1.0))
+    t = cage_module.face_tables(points, topology)
+    cur = points.copy()
+    cur[0] += (0.1, -0.05, 0.2)
+    F, T = topology.n_faces, t.triples.shape[0]
+    return {"cur": cur, "rest": t.rest.copy(), "triples": t.triples.copy(), "first": t.first.copy(),
+            "usable": t.usable.copy(), "weight": t.weight.copy(), "rest_ok": t.rest_ok.copy(),
+            "centres": t.centres.copy(), "inverses": t.inverses.copy(), "sv": t.stencil_vertices.copy(),
+            "sg": t.stencil_gamma.copy(), "smom": t.stencil_moments.copy(),
+            "sspread": t.stencil_spread.copy(), "sactive": t.stencil_active.copy(), "fan": t.fan.copy(),
+            "moved": np.ones(len(cur), bool),
+            "params": np.full((F, 12), 7.0), "corner_params": np.full((T, 12), 7.0),
+            "flags": np.full(F, 7, np.int64)}
+
+
+def _nodes_arguments() -> dict[str, object]:
+    """Valid keyword arguments of Kernel.cage_nodes (the layout of accel.cage_nodes)."""
+    x, W, P = node_case(np.random.default_rng(3), G=12, F=9)
+    reached = np.array([0, 2, 5], np.int64)
+    G, F = W.shape
+    return {"Wt": np.ascontiguousarray(W.T), "reached": reached, "faces": reached.copy(),
+            "face_params": np.ascontiguousarray(P[reached]), "keep": np.ones(F), "totals": np.full(G, 7.0),
+            "fill_totals": True, "x": x, "terms": np.full((3, 21), 7.0), "blend": np.full((21, G), 7.0),
+            "out": np.full((G, 12), 7.0), "touched": np.zeros(G, bool)}
+
+
+def _set(index: tuple, value: int) -> Callable[[np.ndarray], np.ndarray]:
+    def change(a: np.ndarray) -> np.ndarray:
+        a = a.copy()
+        a[index] = value
+        return a
+
+    return change
+
+
+CAGE_WRAPPER_BAD = [
+    ("cage_faces", "triples", _set((0, 1), 26), ValueError, r"triples must index \[0, 26\)"),
+    ("cage_faces", "triples", _set((3, 0), -1), ValueError, r"triples must index \[0, 26\)"),
+    ("cage_faces", "sv", _set((0, 0), 99), ValueError, r"sv must index \[0, 26\)"),
+    ("cage_faces", "fan", _set((1, 2), 26), ValueError, r"fan must index \[0, 26\)"),
+    ("cage_faces", "first", _set((-1,), 10**6), ValueError, "first must rise from 0 to at most"),
+    ("cage_faces", "first", _set((2,), 0), ValueError, "first must rise from 0 to at most"),
+    ("cage_faces", "first", _set((0,), -1), ValueError, "first must rise from 0 to at most"),
+    ("cage_faces", "triples", lambda a: a.astype(np.int32), TypeError, "triples must be a C-contiguous int6"),
+    ("cage_faces", "usable", lambda a: a.astype(np.uint8), TypeError, "usable must be a C-contiguous bool"),
+    ("cage_faces", "cur", lambda a: a[:-1].copy(), ValueError, r"rest must have shape \(25, 3\)"),
+    ("cage_faces", "inverses", lambda a: a[:, :2].copy(), ValueError, "inverses must have shape"),
+    ("cage_faces", "fan", lambda a: a[:, :2].copy(), ValueError, r"fan must have shape \(n, 3\)"),
+    ("cage_faces", "params", lambda a: a[:-1].copy(), ValueError, "params must have shape"),
+    ("cage_faces", "flags", lambda a: a.astype(np.int32), TypeError, "flags must be a C-contiguous int64"),
+    ("cage_nodes", "reached", _set((1,), 9), ValueError, r"reached must index \[0, 9\)"),
+    ("cage_nodes", "faces", _set((0,), -1), ValueError, r"faces must index \[0, 9\)"),
+    ("cage_nodes", "reached", lambda a: a[:, None].copy(), ValueError, r"reached must index"),
+    ("cage_nodes", "Wt", lambda a: a.ravel().copy(), ValueError, "Wt must be 2-D"),
+    ("cage_nodes", "Wt", np.asfortranarray, TypeError, "Wt must be a C-contiguous float64"),
+    ("cage_nodes", "x", lambda a: a[:-1].copy(), ValueError, r"x must have shape \(12, 3\)"),
+    ("cage_nodes", "keep", lambda a: a[:-1].copy(), ValueError, r"keep must have shape \(9,\)"),
+    ("cage_nodes", "face_params", lambda a: a[:-1].copy(), ValueError, r"face_params must have shape \(3,"),
+    ("cage_nodes", "touched", lambda a: a.astype(np.uint8), TypeError, "touched must be a C-contiguous bool"),
+]
+
+
+@pytest.mark.parametrize(("entry", "name", "bad", "error", "message"), CAGE_WRAPPER_BAD,
+                         ids=[f"{e}-{a}-{i}" for i, (e, a, *_) in enumerate(CAGE_WRAPPER_BAD)])
+def test_cage_wrappers_refuse_arguments_the_c_code_cannot_follow_safely(
+    kernel: native.Kernel, entry: str, name: str, bad: Callable, error: type, message: str
+) -> None:
+    """Vertex and face indices out of range, face spans that do not rise within the corners, wrong
+    dtypes and shapes that disagree are refused before the C code runs (nothing is written); the
+    same call with the valid argument runs."""
+    make = _faces_arguments if entry == "cage_faces" else _nodes_arguments
+    fn = getattr(kernel, entry)
+    fn(**make())  # valid
+    args = make()
+    args[name] = bad(args[name])
+    before = {k: v.copy() for k, v in args.items() if isinstance(v, np.ndarray)}
+    with pytest.raises(error, match=message):
+        fn(**args)
+    for k, v in before.items():
+        assert np.array_equal(args[k], v, equal_nan=True), k  # nothing written
+
+
+def test_the_cage_entries_called_directly_give_accel_s_results(kernel: native.Kernel) -> None:
+    """The wrappers with the layouts above return what accel.cage_faces and accel.cage_nodes return."""
+    points, topology = box_cage((2, 2, 2), (1.0, 1.0, 1.0))
+    a = _faces_arguments()
+    volume = kernel.cage_faces(**a)
+    faces, reached, want_volume = accel.cage_faces(points, a["cur"], topology)
+    assert volume == want_volume
+    assert np.array_equal((a["flags"] & kernel.FACE_REACHED) != 0, reached)
+    assert reached.any() and not reached.all()
+    assert np.array_equal(a["params"][reached], faces.params[reached])
+    b = _nodes_arguments()
+    count = kernel.cage_nodes(**b)
+    x, W, P = node_case(np.random.default_rng(3), G=12, F=9)
+    params, touched, totals = accel.cage_nodes(x, W, P, b["reached"])
+    assert count == touched.sum() and np.array_equal(b["touched"], touched)
+    assert np.array_equal(b["out"], params) and np.array_equal(b["totals"], totals)

@@ -1,4 +1,4 @@
-"""Cage geometry (core/cage.py): corner tetrahedra and face motions, distances, weights, validation."""
+"""Cage geometry (core/cage/): corner tetrahedra and face motions, distances, weights, validation."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import affine_deformers.core.cage as cage_module
+import affine_deformers.core.cage.motions as cage_motions
 from affine_deformers.core.aff3 import matrices_from_params, so3_exp
 from affine_deformers.core.cage import (
     STENCIL_MIN_BETA,
@@ -502,7 +503,7 @@ def test_fold_guard_keeps_faces_valid_when_a_vertex_crosses_the_cage(monkeypatch
 
     invalid, jump, det = sweep()
     assert not invalid.any() and jump < 0.2 and det > 0.05
-    monkeypatch.setattr(cage_module, "FOLD_KAPPA", 0.0)
+    monkeypatch.setattr(cage_motions, "FOLD_KAPPA", 0.0)
     invalid, jump, _ = sweep()
     assert invalid.sum() > 30 and jump > 1.0
 
@@ -590,14 +591,14 @@ def test_collapsed_face_is_reported_and_zeroed_never_nan() -> None:
 
 
 def test_corner_rejected_by_psi_invalidates_only_its_face(monkeypatch: pytest.MonkeyPatch) -> None:
-    real = cage_module.params_from_matrices
+    real = cage_motions.params_from_matrices
 
     def picky(A: np.ndarray) -> np.ndarray:  # rejects batches and every non-identity matrix
         if A.ndim == 3 or not np.allclose(A, np.eye(4)):
             raise ValueError("transform is too degenerate to take its logarithm")
         return real(A)
 
-    monkeypatch.setattr(cage_module, "params_from_matrices", picky)
+    monkeypatch.setattr(cage_motions, "params_from_matrices", picky)
     points, topo = box_cage((8, 1, 1), (8.0, 1.0, 1.0))
     current = points.copy()
     end = int(np.argmax(points @ [1.0, 1.0, 1.0]))  # a corner vertex at the +x end

@@ -1,4 +1,4 @@
-"""core.cage_harmonic: harmonic cage weights on a grid and the pivoted node blend, against
+"""core.cage.harmonic: harmonic cage weights on a grid and the pivoted node blend, against
 independent references (an analytic inside test, the series solution of a cube's face harmonic
 measure, a sparse direct solve of the same system, the blend of explicitly conjugated matrices)."""
 
@@ -11,7 +11,6 @@ import pytest
 import scipy.sparse
 import scipy.sparse.linalg
 
-from affine_deformers.core import cage_harmonic as ch
 from affine_deformers.core.aff3 import matrices_from_params, params_from_matrices
 from affine_deformers.core.cage import (
     CageTopology,
@@ -20,6 +19,7 @@ from affine_deformers.core.cage import (
     nearest_faces,
     polygon_distance_sq,
 )
+from affine_deformers.core.cage import harmonic as ch
 from affine_deformers.core.deform import deform_points_params
 
 

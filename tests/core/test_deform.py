@@ -1,4 +1,5 @@
-"""The per-vertex kernel (core/deform.py) against the reference φ(Σ w ψ(A)) v built from aff3."""
+"""The per-vertex kernel (core/deform.py, kernel.py, kernel_stages.py) against the reference
+φ(Σ w ψ(A)) v built from aff3."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from affine_deformers import core
-from affine_deformers.core import aff3, deform
+from affine_deformers.core import aff3, deform, kernel_stages
+from affine_deformers.core import kernel as core_kernel
 from affine_deformers.core.weights import top_k_dense
 from tests.core.conftest import random_affine
 
@@ -362,12 +364,12 @@ def test_default_threads_use_every_core(monkeypatch: pytest.MonkeyPatch) -> None
     monkeypatch.delenv(deform.THREADS_ENV, raising=False)
     try:
         for cores, expected in ((2, 2), (64, deform.MAX_DEFAULT_THREADS), (None, 1)):
-            monkeypatch.setattr(deform.os, "cpu_count", lambda cores=cores: cores)
-            deform._cpu_count.cache_clear()  # the core count is read once per process
+            monkeypatch.setattr(core_kernel.os, "cpu_count", lambda cores=cores: cores)
+            core_kernel._cpu_count.cache_clear()  # the core count is read once per process
             assert deform.default_threads() == expected, cores
     finally:
         monkeypatch.undo()
-        deform._cpu_count.cache_clear()
+        core_kernel._cpu_count.cache_clear()
 
 
 @pytest.mark.parametrize("m", [8, 60])  # dense-blend and gather paths
@@ -637,7 +639,7 @@ def test_motions_of_lifted_rotations(monkeypatch: pytest.MonkeyPatch) -> None:
         got = deform.vertex_motions(params, idx, one)
     assert_motions_match_reference(params, got, tol)
     # without the fallback the quarter-angle polynomial is far off there: the fallback did the work
-    monkeypatch.setattr(deform, "_exact_rotation_coeffs", lambda *args: None)
+    monkeypatch.setattr(kernel_stages, "_exact_rotation_coeffs", lambda *args: None)
     with np.errstate(invalid="ignore"):
         err_m, _ = motion_errors(params, deform.vertex_motions(params, idx, one))
     assert np.nanmax(err_m[theta > 1.8 * np.pi + 0.1]) > 1e-6

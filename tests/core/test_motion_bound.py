@@ -40,7 +40,9 @@ def test_bound_holds_for_every_vertex(y_scale: float, u_scale: float, theta_max:
     exact = np.einsum("nij,nj->ni", aff3.matrices_from_params(blended)[:, :3, :3], pts) \
         + aff3.matrices_from_params(blended)[:, :3, 3]
     assert np.isfinite(bound)
-    assert np.linalg.norm(exact, axis=1).max() <= bound
+    # `exact` is φ evaluated in floating point: a pure rotation of a point on the sphere can round
+    # to one ulp above its radius, as the kernel's result can
+    assert np.linalg.norm(exact, axis=1).max() <= bound * (1 + 1e-12)
     assert np.linalg.norm(moved, axis=1).max() <= bound * (1 + 1e-12)
     # and it is not vacuous: within a modest factor of the largest result for mild rows
     if y_scale <= 0.01:

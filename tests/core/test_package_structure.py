@@ -1,6 +1,6 @@
 """The package's shape, checked from its source (no Blender needed): no import cycle, no bpy below the
-Blender layer, no function of 100 lines or more, and docs/DEVELOPING.md's module map naming exactly
-the modules in the tree."""
+Blender layer, no function of 100 lines or more, no module of the numerical core over 900 lines, and
+docs/DEVELOPING.md's module map naming exactly the modules in the tree."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGE = ROOT / "affine_deformers"
 MAX_FUNCTION_LINES = 100
+MAX_CORE_MODULE_LINES = 900
 
 
 def _modules() -> dict[str, Path]:
@@ -115,6 +116,12 @@ def _functions():
 
 def test_no_function_of_100_lines_or_more():
     long = [f"{path}:{name} ({n} lines)" for path, name, n in _functions() if n >= MAX_FUNCTION_LINES]
+    assert not long
+
+
+def test_no_core_module_over_900_lines():
+    long = [f"{path.relative_to(ROOT)} ({n} lines)" for path in sorted((PACKAGE / "core").rglob("*.py"))
+            if (n := len(path.read_text().splitlines())) > MAX_CORE_MODULE_LINES]
     assert not long
 
 

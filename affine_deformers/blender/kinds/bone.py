@@ -56,6 +56,7 @@ from .transforms import (
     in_a_scene,
     inverse3,
     motion_problem,
+    ordered_matmul,
     rotation_channels,
 )
 
@@ -151,22 +152,23 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
     matrix R (armature space, float64), its rotation mode and channels."""
     identity = np.eye(4)
     rotation = tuple(float(c) for c in channels) + (0.0,) * (4 - len(channels))
-    rested = frame_matrix @ rest
+    rested = ordered_matmul(frame_matrix, rest)
     head = rested[:3, 3].copy()
-    if not (finite_transform(pose) and finite_transform(frame_matrix @ pose)):
+    if not (finite_transform(pose) and finite_transform(ordered_matmul(frame_matrix, pose))):
         return _BoneRow(identity, False, False, np.zeros(3), np.zeros(3),
                         "Bone '{bone}' has a non-finite pose (NaN or infinity): the mesh shows its input")
     try:
         with np.errstate(all="ignore"):
-            local = pose @ _inverse_affine(rest)
+            local = ordered_matmul(pose, _inverse_affine(rest))
     except np.linalg.LinAlgError:
         return _BoneRow(identity, False, False, np.zeros(3), head,
                         "Bone '{bone}' has a zero-length rest: fix it in Edit Mode")
     width = 4 if mode in ("QUATERNION", "AXIS_ANGLE") else 3
     rest_frame = _rest_frame(rested)
     try:
-        turn = rest_frame @ unwrap.channel_rotvec(mode, np.array(identity_channels(mode)[:width]),
-                                                  np.array(rotation[:width], dtype=np.float64))
+        rotvec = unwrap.channel_rotvec(mode, np.array(identity_channels(mode)[:width]),
+                                       np.array(rotation[:width], dtype=np.float64))
+        turn = ordered_matmul(rest_frame, rotvec)
     except ValueError:
         turn = np.full(3, np.nan)  # reported only when the branch rule needs it (see current_motions)
     # At rest = the rest matrix AND identity channels (a full turn changes only the channels).
@@ -174,7 +176,7 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
     if unturned and np.max(np.abs(local - identity)) <= AT_REST_TOL:
         return _BoneRow(identity, True, True, turn, head)
     with np.errstate(all="ignore"):
-        matrix = frame_matrix @ local @ frame_inverse
+        matrix = ordered_matmul(ordered_matmul(frame_matrix, local), frame_inverse)
     matrix[3] = (0.0, 0.0, 0.0, 1.0)
     reason = motion_problem(matrix, "has a non-finite pose (NaN or infinity)")
     if reason:
@@ -196,23 +198,23 @@ def _bone_rows(frame_matrix: np.ndarray, frame_inverse: np.ndarray, poses: np.nd
     identities = np.array([identity_channels(mode) for mode in modes])
     euler = np.array([mode not in ("QUATERNION", "AXIS_ANGLE") for mode in modes])
     with np.errstate(all="ignore"):
-        rested = frame_matrix @ rests
+        rested = ordered_matmul(frame_matrix, rests)
         finite = ((np.abs(poses) < MAX_COORDINATE).all(axis=(1, 2))
-                  & (np.abs(frame_matrix @ poses) < MAX_COORDINATE).all(axis=(1, 2)))
+                  & (np.abs(ordered_matmul(frame_matrix, poses)) < MAX_COORDINATE).all(axis=(1, 2)))
         inverses = [_rest_inverse(rest) for rest in rests]
-        local = poses @ np.stack([inverse for inverse, _ in inverses])
+        local = ordered_matmul(poses, np.stack([inverse for inverse, _ in inverses]))
         frames = np.stack([_rest_frame(r) for r in rested])
         try:
             rotvecs = unwrap.channel_rotvec(modes, identities, rotation_array)
         except ValueError:  # some row cannot be unwrapped: the others keep their (row-independent) turn
             rotvecs = np.stack([_channel_turn(mode, identities[i], rotation_array[i])
                                 for i, mode in enumerate(modes)])
-        turns = (frames @ rotvecs[:, :, None])[:, :, 0]
+        turns = ordered_matmul(frames, rotvecs[:, :, None])[:, :, 0]
         # Euler channels compare three values, the others four (the fourth Euler slot is padding).
         same = np.float32(rotation_array) == np.float32(identities)
         unturned = same[:, :3].all(axis=1) & (euler | same[:, 3])
         at_rest = unturned & (np.abs(local - np.eye(4)).reshape(n, 16).max(axis=1) <= AT_REST_TOL)
-        matrices = frame_matrix @ local @ frame_inverse
+        matrices = ordered_matmul(ordered_matmul(frame_matrix, local), frame_inverse)
         matrices[:, 3] = (0.0, 0.0, 0.0, 1.0)
         motion_ok = ((np.abs(matrices) < MAX_COORDINATE).all(axis=(1, 2))
                      & (np.linalg.det(matrices[:, :3, :3]) > 0.0))
@@ -462,7 +464,7 @@ def _inverse_affine(matrix: np.ndarray) -> np.ndarray:
     linear = inverse3(matrix[:3, :3])
     out = np.eye(4)
     out[:3, :3] = linear
-    out[:3, 3] = -linear @ matrix[:3, 3]
+    out[:3, 3] = -ordered_matmul(linear, matrix[:3, 3])
     return out
 
 

@@ -37,11 +37,11 @@ many faces are skipped.
 Weights (`cage_weights` option, `weight_mode`):
 
 * 'HARMONIC' (default): harmonic face weights solved on a grid over the rest cage
-  (core.cage_harmonic). The controls the target blends are then the grid nodes around it, not the
+  (core.cage.harmonic). The controls the target blends are then the grid nodes around it, not the
   faces: bind stores the used nodes' positions (`cage_node_points`, float64, G·3) and their face
   weights (`cage_node_weights`, float32, G·F) on the deformer item, and each vertex's 8 trilinear
   node weights as the usual weight attributes (K = 8). Per frame the faces' motions become node
-  parameters (core.cage_harmonic.node_params, blended about each node), only for nodes with weight
+  parameters (core.cage.harmonic.node_params, blended about each node), only for nodes with weight
   on a face that moved; the others are exactly at rest. For the 'LINEAR' blend the nodes' matrices
   are the linear blend of the face matrices, I + Σ_f W_cf (A_f − I).
 * 'INVERSE_DISTANCE' (the weights of 0.1): inverse distance to each face, the half-space rule (a
@@ -69,7 +69,7 @@ from ...core.cage import (
     face_motions,
     signed_volume,
 )
-from ...core.cage_harmonic import harmonic_weights, node_matrices_linear
+from ...core.cage.harmonic import harmonic_weights, node_matrices_linear
 from .. import nodes, storage
 from .base import Adopted, BindError, Motions, ignored_note, single_selected
 from .transforms import (
@@ -143,7 +143,7 @@ def node_data(obj: bpy.types.Object, deformer, n_faces: int) -> NodeBind:
     weights = weights.reshape(len(points), n_faces)
     total = weights.sum(axis=1, keepdims=True)
     weights = np.where(total > 0.0, weights / np.where(total > 0.0, total, 1.0), 0.0)
-    # Column-major: an update gathers the columns of the faces that moved (core.cage_harmonic).
+    # Column-major: an update gathers the columns of the faces that moved (core.cage.harmonic).
     weights = np.asfortranarray(weights)
     bind = NodeBind(points, weights, {})
     _node_data[key] = (deformer.bind_generation, bind)
@@ -358,7 +358,7 @@ class CageKind:
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
         """From the stored rest cage only. 'HARMONIC': each vertex's 8 trilinear grid-node weights
-        (core.cage_harmonic.harmonic_weights), the nodes' face weights stored on the deformer;
+        (core.cage.harmonic.harmonic_weights), the nodes' face weights stored on the deformer;
         'INVERSE_DISTANCE': inverse distance^exponent to each face polygon, half-space ramp,
         continuous top-K, rows summing to 1 (core.cage.cage_weights)."""
         points, topology, *_ = rest_cage(deformer)
@@ -517,7 +517,7 @@ def _identities(n: int) -> np.ndarray:
 
 def _node_motions(faces: Motions, bind: NodeBind, *, linear: bool = False) -> Motions:
     """The faces' motions as the grid nodes' ('HARMONIC' weights): node c's parameters are the
-    pivoted blend of its faces' (core.cage_harmonic.node_params), computed for the nodes with weight
+    pivoted blend of its faces' (core.cage.harmonic.node_params), computed for the nodes with weight
     on a face that moved; the others are exactly at rest (parameters 0). Collapsed faces are left
     out of each node's blend (their weight goes to the node's other faces), so every node is valid.
     matrices: with `linear` the nodes' linear blend of the face matrices (what the 'LINEAR' blend

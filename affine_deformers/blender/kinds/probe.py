@@ -31,6 +31,7 @@ from .transforms import (
     local_solve,
     local_solves,
     motion_problem,
+    ordered_matmul,
     relative_motion,
     rotation_channels,
     unnamed_control_stale,
@@ -411,10 +412,11 @@ def _probe_rows(target_world: np.ndarray, worlds: np.ndarray, channels: list[tup
                    & (np.float32(rotation_array) == np.float32(rest_rotations)).all(axis=1))
         inverses = [_rest_inverse(rest) for rest in rests]
         moved = current.astype(np.float64)
-        lin = moved[:, :3, :3] @ np.stack([inverse for inverse, _ in inverses])
+        lin = ordered_matmul(moved[:, :3, :3], np.stack([inverse for inverse, _ in inverses]))
         matrices = np.zeros((n, 4, 4))
         matrices[:, :3, :3] = lin
-        matrices[:, :3, 3] = moved[:, :3, 3] - (lin @ rests[:, :3, 3, None].astype(np.float64))[:, :, 0]
+        rest_origins = rests[:, :3, 3].astype(np.float64)[:, :, None]
+        matrices[:, :3, 3] = moved[:, :3, 3] - ordered_matmul(lin, rest_origins)[:, :, 0]
         matrices[:, 3, 3] = 1.0
         motion_ok = ((np.abs(matrices) < MAX_COORDINATE).all(axis=(1, 2)) & (np.linalg.det(lin) > 0.0)
                      & np.array([ok for _, ok in inverses]))

@@ -49,13 +49,30 @@ def inverse3(matrix: np.ndarray) -> np.ndarray:
         return adjugate / det
 
 
+def ordered_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b for (stacks of) small matrices, b a matrix or a vector, with every entry Σ_j a_ij b_jk
+    summed in j order by elementwise operations: a product gets the same bits in any batch, alone
+    included. numpy's matmul picks BLAS (gemm, gemv) or its own loops by shape and stride, and they
+    round differently (measured with OpenBLAS's AVX-512 kernels: a stacked matrix · vector differed
+    in the last bit from the same product alone), which the per-control memos cannot allow."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    vector = b.ndim == 1
+    if vector:
+        b = b[:, None]
+    out = a[..., :, 0, None] * b[..., 0, None, :]
+    for j in range(1, a.shape[-1]):
+        out = out + a[..., :, j, None] * b[..., j, None, :]
+    return out[..., 0] if vector else out
+
+
 def local_solve(target_world: np.ndarray, control_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(`local_matrix`, the float64 3×4 solve it was rounded from): the channel frame reuses the
     solve's linear part (target_world⁻¹ · control_world's 3×3), so one solve serves both."""
     out = np.zeros((4, 4), dtype=np.float64)
     rhs = control_world[:3, :].copy()
     rhs[:, 3] -= target_world[:3, 3]
-    solved = inverse3(target_world[:3, :3]) @ rhs
+    solved = ordered_matmul(inverse3(target_world[:3, :3]), rhs)
     out[:3, :] = solved
     out[3, 3] = 1.0
     return out.astype(np.float32), solved
@@ -68,7 +85,7 @@ def local_solves(target_world: np.ndarray, control_worlds: np.ndarray) -> tuple[
     Raises numpy.linalg.LinAlgError when the target's matrix is singular."""
     rhs = control_worlds[:, :3, :].copy()
     rhs[:, :, 3] -= target_world[:3, 3]
-    solved = inverse3(target_world[:3, :3]) @ rhs
+    solved = ordered_matmul(inverse3(target_world[:3, :3]), rhs)
     out = np.zeros((len(control_worlds), 4, 4), dtype=np.float64)
     out[:, :3, :] = solved
     out[:, 3, 3] = 1.0
@@ -89,7 +106,7 @@ def frame_rotations(linear: np.ndarray, modes: list[str], channels: np.ndarray,
             rows = [i for i, m in enumerate(modes) if m == mode]
             R[rows] = _channel_matrices(mode, channels[rows])
     with np.errstate(all="ignore"):
-        frame = (linear / (scales[:, :3] * scales[:, 3:])[:, None, :]) @ R.transpose(0, 2, 1)
+        frame = ordered_matmul(linear / (scales[:, :3] * scales[:, 3:])[:, None, :], R.transpose(0, 2, 1))
         det = np.linalg.det(frame)  # non-finite entries give a non-finite det
         usable = np.isfinite(det) & (np.abs(det) > 1e-30)
     if usable.all():
@@ -109,7 +126,7 @@ def _rotation_parts(frames: np.ndarray) -> np.ndarray:
     if split is not None:
         return split[0]
     U, _, Vh = np.linalg.svd(frames)
-    return U @ Vh
+    return ordered_matmul(U, Vh)
 
 
 def _channel_matrices(mode: str, channels: np.ndarray) -> np.ndarray:
@@ -121,9 +138,9 @@ def _channel_matrices(mode: str, channels: np.ndarray) -> np.ndarray:
 def relative_motion(current: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """A = current · rest⁻¹ for affine 4×4 matrices, with an exact (0, 0, 0, 1) bottom row."""
     out = np.eye(4)
-    lin = current[:3, :3] @ inverse3(rest[:3, :3])
+    lin = ordered_matmul(current[:3, :3], inverse3(rest[:3, :3]))
     out[:3, :3] = lin
-    out[:3, 3] = current[:3, 3] - lin @ rest[:3, 3]
+    out[:3, 3] = current[:3, 3] - ordered_matmul(lin, rest[:3, 3])
     return out
 
 
@@ -157,7 +174,7 @@ def channel_frame(evaluated: bpy.types.Object, target_world: np.ndarray) -> np.n
     world = np.array(evaluated.matrix_world, dtype=np.float64)
     try:
         with np.errstate(all="ignore"):
-            linear = inverse3(target_world[:3, :3]) @ world[:3, :3]
+            linear = ordered_matmul(inverse3(target_world[:3, :3]), world[:3, :3])
     except np.linalg.LinAlgError:
         return np.eye(3)
     scale = (*evaluated.scale, *evaluated.delta_scale)
@@ -170,7 +187,7 @@ def frame_rotation(linear: np.ndarray, mode: str, channels, scale) -> np.ndarray
     R = _channel_matrix(mode, channels)
     factors = np.array(scale, dtype=np.float64)
     with np.errstate(all="ignore"):
-        frame = linear / (factors[:3] * factors[3:])[None, :] @ R.T
+        frame = ordered_matmul(linear / (factors[:3] * factors[3:])[None, :], R.T)
     if not np.isfinite(frame).all():
         return np.eye(3)
     (a, b, c), (d, e, f), (g, h, i) = frame.tolist()

@@ -69,9 +69,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .aff3 import left_jacobian_inv, matrices_from_params
-from .cage import CageTopology, face_normals, nearest_faces
-from .deform import default_threads
+from ..aff3 import left_jacobian_inv, matrices_from_params
+from ..kernel import default_threads
+from .distances import nearest_faces
+from .topology import CageTopology, face_normals
 
 #: Largest number of nodes of the finest grid over the cage's bounding box (plus padding): the
 #: resolution of the weights, like Mesh Deform's precision. 4000 nodes is 15–16 along a cube's side.
