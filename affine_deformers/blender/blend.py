@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import accel
-from ..core import deform, hierarchy
+from ..core import deform, hierarchy, weights
 from . import params as parameters
 from .bound import BoundData
 from .kinds import Motions
@@ -33,10 +33,27 @@ def redistribute(indices: np.ndarray, values: np.ndarray, valid: np.ndarray) -> 
 
 
 def _values(deformer, motions: Motions, bound: BoundData) -> np.ndarray:
-    """The bound weights at the deformer's strength, with skipped controls' weight redistributed."""
+    """The bound weights at the deformer's strength, with skipped controls' weight redistributed (the
+    pooled control, a mix of the valid ones, is valid while any is)."""
     if motions.valid is not None and not np.all(motions.valid):
-        return redistribute(bound.indices, bound.values, motions.valid) * deformer.strength
+        valid = np.append(motions.valid, motions.valid.any()) if bound.pooled else motions.valid
+        return redistribute(bound.indices, bound.values, valid) * deformer.strength
     return bound.scaled_values(deformer.strength)
+
+
+def _pooled(table: np.ndarray, motions: Motions, bound: BoundData) -> np.ndarray:
+    """`table` (m, ...) — parameters, or matrices for the linear blend — with the truncation's pooled
+    control appended as row m when the bound weights point at it (MATH.md §12): the mix
+    Σ a_i table[i] of the controls not skipped, a = `motions.pool` (uniform when None)."""
+    if not bound.pooled:
+        return table
+    m = len(table)
+    a = np.full(m, 1.0 / m) if motions.pool is None else np.asarray(motions.pool, dtype=np.float64)
+    if motions.valid is not None and not np.all(motions.valid):
+        a = np.where(motions.valid, a, 0.0)
+        total = a.sum()
+        a = a / total if total > 0.0 else a  # none valid: every weight was redistributed to zero
+    return weights.with_pool(table, a)
 
 
 def blend_offsets(deformer, motions: Motions, bound: BoundData,
@@ -64,9 +81,10 @@ def blend_offsets(deformer, motions: Motions, bound: BoundData,
         bound.forget_result()
         indices, values = bound.indices, _values(deformer, motions, bound)
         if deformer.blend_mode == "LINEAR":
-            deformed = deform.blend_linear_sparse(points, motions.matrices, indices, values)
+            deformed = deform.blend_linear_sparse(points, _pooled(motions.matrices, motions, bound), indices,
+                                                  values)
         else:
-            params = parameters.motions_to_params(motions, deformer.branch_rule)
+            params = _pooled(parameters.motions_to_params(motions, deformer.branch_rule), motions, bound)
             deformed = accel.deform_points_params(points, params, indices, values)
     if outer is not None:
         deformed = deformed @ outer[:3, :3].T + outer[:3, 3]
@@ -81,7 +99,7 @@ def _offsets_affine(deformer, motions: Motions, bound: BoundData,
     depends only on its rest position, its weights and its controls' parameters; the kernel's rows
     are independent of how vertices are grouped). Controls at rest have zero parameters, so vertices
     that only they influence keep offset 0, exactly what φ(0) gives."""
-    params = parameters.motions_to_params(motions, deformer.branch_rule)
+    params = _pooled(parameters.motions_to_params(motions, deformer.branch_rule), motions, bound)
     values = bound.scaled_values(deformer.strength)
     points = bound.points
     key = (bound.serial, deformer.strength)
@@ -172,9 +190,9 @@ def blend_motions(deformer, motions: Motions, bound: BoundData,
     else:
         indices, values = bound.indices, _values(deformer, motions, bound)
         if deformer.blend_mode == "LINEAR":
-            result = _linear_motions(motions.matrices, indices, values)
+            result = _linear_motions(_pooled(motions.matrices, motions, bound), indices, values)
         else:
-            params = parameters.motions_to_params(motions, deformer.branch_rule)
+            params = _pooled(parameters.motions_to_params(motions, deformer.branch_rule), motions, bound)
             result = accel.vertex_motions(params, indices, values)
     if outer is not None:
         result = _compose(outer, result)
@@ -211,7 +229,7 @@ def _motions_affine(deformer, motions: Motions, bound: BoundData,
                     state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
     """`blend_motions` for the plain affine blend, recomputing only the vertices whose motion can
     differ from the cached one (the rule of `_offsets_affine`, for motions instead of offsets)."""
-    params = parameters.motions_to_params(motions, deformer.branch_rule)
+    params = _pooled(parameters.motions_to_params(motions, deformer.branch_rule), motions, bound)
     values = bound.scaled_values(deformer.strength)
     key = (bound.serial, deformer.strength)
     result = bound.motions

@@ -43,6 +43,9 @@ class BoundData:
     points: np.ndarray  # (N, 3) float64
     indices: np.ndarray  # (N, K) int32
     values: np.ndarray  # (N, K) float64, strength not applied
+    # the last column is the truncation's pooled control, index m (core.weights, MATH.md §12): the
+    # blend appends its parameter row (blend.py, `with_pool`)
+    pooled: bool = False
     scaled: tuple[float, np.ndarray] | None = None  # (strength, values · strength)
     # per control: the rows it influences (ptr, rows), and the rows with any weight
     csr: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -147,9 +150,11 @@ def cached(obj: bpy.types.Object, deformer) -> BoundData | None:
     return _bound.get((obj.session_uid, deformer.uid))
 
 
-def bind_data(obj: bpy.types.Object, deformer, n_controls: int) -> BoundData:
+def bind_data(obj: bpy.types.Object, deformer, n_controls: int, pool: bool = False) -> BoundData:
     """The cached bind data of `deformer`, re-read when the bind generation, mesh, vertex or control
-    count changed or the rest positions differ from the cached ones. Raises storage.StorageError."""
+    count changed or the rest positions differ from the cached ones. `pool`: whether its weights may
+    point at the pooled control (index n_controls; not for a hierarchy, whose bind gives that weight
+    to the root bones). Raises storage.StorageError."""
     mesh = obj.data
     rest = storage.read_positions(mesh)
     key = (mesh.session_uid, deformer.bind_generation, len(rest), n_controls)
@@ -159,8 +164,9 @@ def bind_data(obj: bpy.types.Object, deformer, n_controls: int) -> BoundData:
         return bound
     _bound.pop(cache_key, None)
     _check_vertices(mesh, deformer, rest)
-    indices, values = storage.read_weights(mesh, deformer.uid, n_controls)
-    bound = BoundData(key, next(_serial), rest, rest.astype(np.float64), indices, values)
+    indices, values = storage.read_weights(mesh, deformer.uid, n_controls + pool)
+    pooled = bool(pool and indices.size and int(indices.max()) == n_controls)
+    bound = BoundData(key, next(_serial), rest, rest.astype(np.float64), indices, values, pooled=pooled)
     _bound[cache_key] = bound
     return bound
 

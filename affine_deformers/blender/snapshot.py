@@ -110,7 +110,7 @@ def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Sna
         error = motions.error
     if not error:
         try:
-            bound = bound_data.bind_data(obj, deformer, len(motions.matrices))
+            bound = bound_data.bind_data(obj, deformer, len(motions.matrices), pool=motions.chain is None)
         except storage.StorageError as exc:
             error = str(exc)
     if not error:

@@ -6,8 +6,8 @@ renamed probes, per-probe state, and the probe list's select button.
   (to float32 rounding) and the artist paints corrections on top. Painted mode takes, per vertex,
   the K largest of (group weight × weight scale), normalises them, then applies the mask
   (core.weights.probe_weights, binding.reweight); the conversion is exact because the groups hold
-  at most K non-zero weights per vertex (the stored top-K), and the options are set so the rest of
-  that pipeline is the identity on them:
+  at most K non-zero weights per vertex (the stored top-K, see Max Influences below), and the
+  options are set so the rest of that pipeline is the identity on them:
     - Normalize Sum / Softmax: each group holds the stored weight divided by the vertex's stored sum
       (the weights before the mask: they summed to 1 before it was applied); Normalize becomes Sum
       (Softmax of softmaxed weights would change them) and every Weight Scale becomes 1 (the scales
@@ -15,7 +15,10 @@ renamed probes, per-probe state, and the probe list's select button.
     - Normalize None: each group holds the stored weight divided by the mask (where it is not 0)
       and by c_j = max(1, largest such weight of probe j) (a vertex group holds 0…1); Weight Scale j
       becomes c_j (1 unless a scale above 1 made weights above 1);
-    - Max Influences and the Mask stay as they are.
+    - the Mask stays as it is, and so does Max Influences unless a vertex has more controls with
+      weight than it: where the truncation pooled weight (MATH.md §12) it is spread over all the
+      controls (probes: by the pooled mix; bones: the roots), and Max Influences is raised to keep
+      them (exact up to the property's maximum of 16 controls per vertex).
   Groups are written vectorised: a FLOAT point attribute per probe (foreach_set), turned into a
   vertex group by `geometry.attribute_convert` (only non-zero weights are assigned).
   Cage deformers are not offered this: their controls are cage faces (hundreds of groups, and with
@@ -45,7 +48,7 @@ import numpy as np
 from ..core import aff3
 from . import binding, storage, weight_preview
 from .kinds import BindError, KindId
-from .kinds.probe import group_name
+from .kinds.probe import group_name, pool_coefficients
 from .kinds.transforms import finite_transform, in_a_scene, local_matrix, relative_motion, world_matrix
 
 PROBE_STATES = [
@@ -288,14 +291,18 @@ def _planned_names(obj: bpy.types.Object, deformer, overwrite: bool) -> list[str
 
 
 def dense_weights(obj: bpy.types.Object, deformer) -> np.ndarray:
-    """The stored weights of a probe deformer as a dense (N, m) float64 array (mask included)."""
+    """The stored weights of a probe deformer as a dense (N, m) float64 array (mask included); a share
+    pooled by the truncation (index m, MATH.md §12) is spread over the probes by the pooled mix."""
     m = len(_controls(deformer))
-    indices, values = storage.read_weights(obj.data, deformer.uid, m)
-    dense = np.zeros((len(indices), m))
+    pooled_ok = deformer.kind == KindId.PROBE  # bones give pooled weight to their roots at bind
+    indices, values = storage.read_weights(obj.data, deformer.uid, m + pooled_ok)
+    dense = np.zeros((len(indices), m + 1))
     rows = np.arange(len(indices))
-    for k in range(indices.shape[1]):  # a vertex's K indices are distinct: one entry per (row, k)
+    for k in range(indices.shape[1]):  # a pass per column (a root bone may repeat a kept one: summed)
         dense[rows, indices[:, k]] += values[:, k]
-    return dense
+    if pooled_ok and dense[:, m].any():
+        dense[:, :m] += dense[:, m:] * pool_coefficients(deformer)[None, :]
+    return dense[:, :m]
 
 
 def painted_equivalent(obj: bpy.types.Object, deformer) -> tuple[np.ndarray, np.ndarray, str]:
@@ -372,11 +379,20 @@ def weights_to_groups(obj: bpy.types.Object, deformer, overwrite: bool = False) 
     changes = ["Weights: Vertex Groups"]
     if deformer.normalize != normalize:
         changes.append(f"Normalize: {normalize.title()}")
+    # Painted weights keep each vertex's K largest: where the truncation pooled weight (MATH.md §12)
+    # a vertex has more controls than Max Influences, so it is raised to keep them all (as far as the
+    # property allows; beyond, `max_difference` says how far the conversion is from exact).
+    needed = int(np.count_nonzero(groups, axis=1).max(initial=0))
+    most = deformer.bl_rna.properties["max_influences"].hard_max
+    influences = min(max(needed, deformer.max_influences), most)
+    if influences != deformer.max_influences:
+        changes.append(f"Max Influences: {influences} (pooled weight spread over the controls)")
     if any(item.weight_scale != float(s) for item, s in zip(_controls(deformer), scales, strict=True)):
         changes.append("Weight Scale: in the groups")
     with binding.quiet():  # re-weighted once below
         deformer.weight_mode = "VERTEX_GROUPS"
         deformer.normalize = normalize
+        deformer.max_influences = influences
         for item, name, scale in zip(_controls(deformer), names, scales, strict=True):
             item.weight_scale = float(scale)
             if deformer.kind == KindId.PROBE:

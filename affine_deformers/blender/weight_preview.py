@@ -39,6 +39,7 @@ import numpy as np
 from . import storage
 from .kinds import BindError, KindId
 from .kinds.cage import LOOP_TOTAL, bound_with_nodes, node_data
+from .kinds.probe import pool_coefficients
 
 PREVIEW_MODIFIER = "Affine Weight Preview"
 GROUP_NAME = ".AffineDeformer Weight Preview"
@@ -134,25 +135,37 @@ def preview_control(deformer) -> int:
     return int(min(max(index, 0), m - 1))
 
 
-def _stored(obj: bpy.types.Object, deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """(indices (N, K), values (N, K) float64, node → face weights (G, F) or None): the deformer's
-    stored weights; for a 'HARMONIC' cage the indices are grid nodes, each with face weights.
-    Raises storage.StorageError / BindError when the bind data is missing or damaged."""
+def _stored(obj: bpy.types.Object,
+            deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(indices (N, K), values (N, K) float64, node → face weights (G, F) or None, pool (m,) or None):
+    the deformer's stored weights; for a 'HARMONIC' cage the indices are grid nodes, each with face
+    weights. `pool`: the coefficients of the truncation's pooled control when the weights point at it
+    (index m, MATH.md §12), the mix of controls that share of a vertex follows. Raises
+    storage.StorageError / BindError when the bind data is missing or damaged."""
     if deformer.kind == KindId.CAGE and bound_with_nodes(deformer):
         node_weights = node_data(obj, deformer, _cage_faces(deformer)).weights
         indices, values = storage.read_weights(obj.data, deformer.uid, len(node_weights))
-        return indices, values, node_weights
-    indices, values = storage.read_weights(obj.data, deformer.uid, control_count(deformer))
-    return indices, values, None
+        return indices, values, node_weights, None
+    m = control_count(deformer)
+    pooled_ok = deformer.kind != KindId.BONE  # bones give pooled weight to their roots at bind
+    indices, values = storage.read_weights(obj.data, deformer.uid, m + pooled_ok)
+    pool = None
+    if pooled_ok and indices.size and int(indices.max()) == m:
+        pool = pool_coefficients(deformer) if deformer.kind == KindId.PROBE else np.full(m, 1.0 / m)
+    return indices, values, None, pool
 
 
 def control_weights(obj: bpy.types.Object, deformer, control: int) -> np.ndarray:
     """The stored weight (N,) float64 of one control (probe index, or cage face) at every vertex —
-    exactly the value the deformation uses (the mask included, the strength not)."""
-    indices, values, node_weights = _stored(obj, deformer)
+    exactly the value the deformation uses (the mask included, the strength not; a pooled share
+    counted by the control's part in the pooled mix)."""
+    indices, values, node_weights, pool = _stored(obj, deformer)
     if node_weights is not None:  # a vertex blends 8 grid nodes, each node blends the faces
         return np.einsum("nk,nk->n", values, node_weights[:, control][indices])
-    return np.where(indices == control, values, 0.0).sum(axis=1)
+    own = np.where(indices == control, values, 0.0).sum(axis=1)
+    if pool is not None:
+        own += values[:, -1] * pool[control]
+    return own
 
 
 def preview_colors(obj: bpy.types.Object, deformer) -> np.ndarray:
@@ -164,10 +177,12 @@ def preview_colors(obj: bpy.types.Object, deformer) -> np.ndarray:
         if deformer.weight_preview_fit and top > 0.0:
             weights = weights / top
         return ramp_colors(weights)
-    indices, values, node_weights = _stored(obj, deformer)
+    indices, values, node_weights, pool = _stored(obj, deformer)
     palette = control_palette(control_count(deformer))
     if node_weights is not None:
         palette = node_weights @ palette  # each node's colour: its faces' colours by their weights
+    if pool is not None:
+        palette = np.vstack([palette, pool @ palette])  # the pooled share: its controls' colours mixed
     return mix_colors(indices, values, palette)
 
 

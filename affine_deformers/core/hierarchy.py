@@ -39,6 +39,10 @@ IntArray = NDArray[np.intp]
 #: A cumulative weight within this of 1 counts as 1 (stored weights are float32: a vertex's weights
 #: sum to 1 within ~1e-7), so its factor is the control's exact local motion and joins the prefix.
 FULL_TOL = 1e-5
+#: Most roots the truncation's pooled weight is spread over (`pool_to_roots`); a forest with more
+#: (a flat rig: every bone a root) leaves the pooled weight at rest instead, since a column per root
+#: would cost as much as keeping every bone.
+MAX_POOL_ROOTS = 4
 
 PointKernel = Callable[[FloatArray, FloatArray, NDArray[np.int32], FloatArray], FloatArray]
 MotionKernel = Callable[[FloatArray, NDArray[np.int32], FloatArray], np.ndarray]
@@ -62,6 +66,45 @@ def depths(parents: ArrayLike) -> IntArray:
         depth += ~rooted
         above = np.where(rooted, -1, parents[np.maximum(above, 0)])
     raise ValueError("parents form a cycle")
+
+
+def pool_to_roots(indices: ArrayLike, values: ArrayLike, parents: ArrayLike, scales: ArrayLike,
+                  max_roots: int = MAX_POOL_ROOTS) -> tuple[NDArray[np.int32], FloatArray]:
+    """Truncated weights (indices (N, K + 1), values) whose last column is the pooled control (index
+    m = len(parents), weights.sparse_from_blocks) -> the same weights with that column's weight λ
+    given to the roots of the forest instead: root r gets λ a_r, a_r = Σ_{i in r's tree} s_i / Σ_i s_i
+    (s = `scales`), one column per root (MATH.md §12). The blend down the hierarchy (MATH.md §14)
+    then follows the roots fully (W_root = 1 for a single tree), so a motion shared by all bones,
+    which is the root's, stays exact wherever weight is pooled, and the pooled share does not follow
+    the bones below the root. With more than `max_roots` roots the pooled column is dropped (that
+    weight stays at rest). Weights without a pooled column are returned as they are."""
+    indices = np.asarray(indices)
+    values = np.asarray(values, dtype=np.float64)
+    parents = np.asarray(parents, dtype=np.intp)
+    m = len(parents)
+    if indices.size == 0 or int(indices.max()) != m:
+        return indices.astype(np.int32), values
+    if not np.all(indices[:, -1] == m) or np.any(indices[:, :-1] == m):
+        raise ValueError("the pooled control must be the last column of every row")
+    s = np.asarray(scales, dtype=np.float64).reshape(-1)
+    if s.shape != (m,) or not np.all(np.isfinite(s)) or np.any(s < 0.0):
+        raise ValueError(f"scales must be {m} finite non-negative numbers")
+    depths(parents)  # checks the forest (no cycle)
+    root = np.arange(m)
+    for _ in range(m):  # a pass per level: every control climbs to its root
+        up = parents[root]
+        if np.all(up < 0):
+            break
+        root = np.where(up >= 0, up, root)
+    share = np.bincount(root, weights=s, minlength=m) if s.sum() > 0.0 else np.bincount(root, minlength=m)
+    roots = np.flatnonzero(share > 0.0)
+    pooled = values[:, -1]
+    if len(roots) > max_roots:
+        return indices[:, :-1].astype(np.int32), values[:, :-1].copy()
+    share = share[roots] / share[roots].sum()
+    new_idx = np.concatenate([indices[:, :-1], np.broadcast_to(roots, (len(indices), len(roots)))], axis=1)
+    new_val = np.concatenate([values[:, :-1], pooled[:, None] * share[None, :]], axis=1)
+    return new_idx.astype(np.int32), new_val
 
 
 def local_motions(matrices: ArrayLike, parents: ArrayLike) -> FloatArray:

@@ -11,13 +11,20 @@ Kernels (d = distance to a control's rest position):
 * inverse distance  w = (r / max(d, d_min))^p — finite and dominant on top of a control;
 * smooth falloff    w = (1 − (d/R)²)^q for d < R, exactly 0 for d ≥ R (C^{q−1} at R, smooth at 0).
 
-Truncation to K is continuous (`truncate`: the kept K are lowered so that each reaches 0 where it
-meets the (K+1)-th weight), so a control leaving a vertex's K strongest fades out instead of jumping
-to zero.
+Truncation to K (`truncate`, MATH.md §12) is continuous and its slope is bounded near ties: each
+kept weight is lowered by the (K+1)-th, w_j − w_{K+1}, and divided by D = max(S, c·T), S the sum of
+the lowered weights and T a total the caller gives (by default the kept weights' sum). Where S < c·T
+the kept weights sum to S/D < 1; the rest, the pooled weight λ = 1 − S/D, goes to a pooled control:
+`sparse_from_blocks` stores it as one more column whose index is m (one past the last control), and
+the deformer blends there the mean of all controls' parameters weighted by `pool_weights`
+(`with_pool`), so a motion shared by all controls stays exact everywhere. Nothing is pooled when
+m ≤ K.
 
 Normalisation of the kept K weights of a row: 'NONE' (as is), 'SUM' (divide by the row sum; all-zero
 rows stay zero), 'SOFTMAX' (exp(w − max w) over the row's positive entries, summing to 1; zero
-entries stay zero, so a falloff's locality survives).
+entries stay zero, so a falloff's locality survives). With m > K, 'SUM' and 'SOFTMAX' weights are
+truncated as above (the softmax numerators exp(w − max w) in place of w), 'NONE' ones by the raw rule
+of `truncate`.
 """
 
 from __future__ import annotations
@@ -36,12 +43,14 @@ __all__ = [
     "WEIGHT_MODES",
     "inverse_distance",
     "normalize",
+    "pool_weights",
     "probe_weights",
     "smooth_falloff",
     "sparse_from_blocks",
     "top_k",
     "top_k_dense",
     "truncate",
+    "with_pool",
 ]
 
 NORMALIZE_MODES = ("NONE", "SUM", "SOFTMAX")
@@ -51,6 +60,29 @@ WEIGHT_MODES = ("INVERSE_DISTANCE", "FALLOFF", "VERTEX_GROUPS", "SURFACE")
 BLOCK_ELEMENTS = 1 << 18
 #: Default distance floor of `inverse_distance`, relative to its reference distance r.
 MIN_DISTANCE_FRACTION = 1e-6
+#: Max Influences of a new probe deformer (kinds/probe.py sets it; the property's own default, 4,
+#: stays for files saved by 0.1.0, which store no value when it was left alone). 8 keeps every probe
+#: of rigs of up to 8 (a ring of 8, the corners of a cube: no truncation at all) and passes the tie
+#: tests beyond (tests/core/test_field_ties.py; 6 left steps of 3.7× the untruncated field's along
+#: the mid-planes of a 3×3×3 grid). Each influence beyond costs the compiled kernel a blend row per
+#: vertex; the numpy kernel's dense blend (≤ 48 probes) does not depend on it
+#: (bench/influence_cost.py).
+PROBE_INFLUENCES = 8
+#: c in the truncation's divisor D = max(S, c·T) (MATH.md §12) for probe and bone weights, T the
+#: row's total weight over every control: the kept weights are renormalised exactly (nothing pooled)
+#: wherever their excess over the (K+1)-th keeps half of the total weight, and no slope exceeds
+#: about 2(1 + K)/c times the untruncated field's. Measured on rings, grids and a mirrored bar
+#: (tests/core/test_field_ties.py): relative to the kept weights' sum instead of T, steps through
+#: the 8-probe ties of a 3×3×3 grid reach 10× the untruncated field's at K = 4; c = 1 pools weight
+#: at every truncated vertex, which carries the mean of far probes' motions into all of them (MATH.md
+#: §12 has the numbers).
+POOL_FLOOR = 0.5
+#: c when `truncate` is given no total (the cage: it measures only the faces that can matter, so it
+#: knows the kept weights' sum P but not the total): D = max(S, c·P). Small, because inside a box
+#: cage many faces are about equally far and a larger c pools weight over much of the interior
+#: (with c = 0.5, 40% of the points deep in a rigidly moved half of a long box cage pooled up to
+#: 2/3 of their weight and left it by 0.26 of the box's width); 0.1 pools only near true ties.
+LOCAL_FLOOR = 0.1
 
 
 def inverse_distance(
@@ -102,10 +134,7 @@ def normalize(W: ArrayLike, mode: str = "SUM", temperature: float = 1.0) -> Floa
     if mode == "SOFTMAX":
         if not temperature > 0.0:
             raise ValueError(f"temperature must be positive, got {temperature}")
-        positive = W > 0.0
-        top = np.max(np.where(positive, W, -np.inf), axis=-1, keepdims=True)
-        top = np.where(np.isfinite(top), top, 0.0)
-        e = np.where(positive, np.exp((np.where(positive, W, top) - top) / temperature), 0.0)
+        e = _softmax_numerators(W, temperature)
         total = e.sum(axis=-1, keepdims=True)
         return np.where(total > 0.0, e / np.where(total > 0.0, total, 1.0), 0.0)
     raise ValueError(f"normalize mode must be one of {NORMALIZE_MODES}, got {mode!r}")
@@ -133,44 +162,113 @@ def top_k(W: ArrayLike, k: int) -> tuple[IntArray, FloatArray]:
     return idx, np.take_along_axis(vals, order, axis=1)
 
 
-def truncate(W: ArrayLike, k: int, raw: bool = False) -> tuple[IntArray, FloatArray]:
-    """Continuous top-K: the k largest entries w_1 ≥ … ≥ w_K of each row of W (n, m), each lowered so
-    that it reaches 0 where it meets the row's (k+1)-th largest w_{K+1} -> (indices (n, K) int32,
-    values (n, K) ≥ 0), K = min(k, m), ordered as `top_k`; nothing changes when m ≤ k.
+def truncate(
+    W: ArrayLike,
+    k: int,
+    raw: bool = False,
+    total: ArrayLike | None = None,
+    floor: float = LOCAL_FLOOR,
+    with_pooled: bool = False,
+) -> tuple[IntArray, FloatArray] | tuple[IntArray, FloatArray, FloatArray]:
+    """Continuous top-K of non-negative weights W (n, m) with a bounded slope -> (indices (n, K) int32,
+    values (n, K) ≥ 0), K = min(k, m), ordered as `top_k` (MATH.md §12).
 
     Plain top-K jumps where the K-th and (K+1)-th controls swap: the one leaving drops from w_K to 0.
-    Here the kept values are functions of (w_j, w_{K+1}) that vanish at w_j = w_{K+1}, and w_{K+1}
-    is an order statistic, a continuous function of W, so a control fades out as it leaves:
+    Here every kept value is a function of (w_j, w_{K+1}, …) that vanishes at w_j = w_{K+1}, and
+    w_{K+1} is an order statistic, a continuous function of W, so a control fades out as it leaves:
 
-    * raw=False (for normalised weights): v_j = w_j − w_{K+1}. After 'SUM' normalisation
-      u_j = v_j / S, S = Σ_{i≤K} v_i, is continuous wherever S > 0, with ∂u_K/∂w_K = 1/S at a swap.
-      That steepness is inherent, not a choice of rule: near a point where the K+1 strongest nearly
-      tie, any K-sparse rule with weights summing to 1 must hand O(1) of weight from one control to
-      another while the weights change by O(S). Where they tie exactly (S = 0, e.g. the centre of 8
-      probes at the corners of a cube for K = 4) no such rule is continuous (which K to keep is a
-      choice); these rows get the plain top-K values (one of the one-sided limits) rather than all
-      zeros, which would leave the vertex at rest.
+    * raw=False: v_j = e_j / D with e_j = max(w_j − w_{K+1}, 0), S = Σ_{j≤K} e_j and
+      D = max(S, floor·T), T = `total` (n,) (the row's weight over all controls, ≥ the kept weights'
+      sum; default: the kept weights' sum Σ_{j≤K} w_j). Σ_j v_j = S/D ≤ 1, with equality (the kept
+      weights renormalised, as 'SUM' does) wherever S ≥ floor·T; the caller gives the rest
+      λ = 1 − S/D to a pooled control (`sparse_from_blocks`). Dividing by S alone would make
+      ∂v_K/∂w_K = 1/S unbounded where the K+1 strongest nearly tie (S → 0: the centre of a ring of
+      probes, all of whose weights tie); with D ≥ floor·T every slope is bounded: with
+      γ = max_i |∇w_i|, |∇e_j| ≤ 2γ and |∇D| = |∇S| ≤ 2Kγ where D = S, floor·|∇T| elsewhere, so
+      |∇v_j| ≤ (|∇e_j| + v_j |∇D|)/D ≤ 2(1 + K v_j) γ / (floor·T) + v_j |∇T| / T. Where all K+1 tie
+      exactly every value is 0 (λ = 1), the limit of its neighbourhood. With m ≤ k nothing is
+      lowered: v = w / max(Σw, floor·T). All-zero rows stay zero. with_pooled=True returns λ (n,)
+      as a third array (exactly 0 where S ≥ floor·T and in all-zero rows).
     * raw=True (for weights used as they are, normalisation 'NONE'): v_j = min(w_j, 2 (w_j − w_{K+1})):
       a weight at least twice the first dropped one is kept exactly (a vertex on a probe still follows
       it fully), smaller ones ramp linearly to 0; never above w_j, slope at most 2: continuous
-      everywhere (ties included: all values are then 0).
+      everywhere (ties included: all values are then 0, the vertex stays at rest as raw weights
+      that small leave it). `total` and `floor` are not used; with m ≤ k the values are W's.
     """
     W = np.asarray(W, dtype=np.float64)
     if W.ndim != 2:
         raise ValueError(f"weights must have shape (n, m), got {W.shape}")
     if k < 1:
         raise ValueError(f"k must be at least 1, got {k}")
-    if W.shape[1] <= k:
-        return top_k(W, k)
-    idx, vals = top_k(W, k + 1)
-    kept, first_dropped = vals[:, :k], vals[:, k:]
-    excess = np.maximum(kept - first_dropped, 0.0)
+    if not 0.0 < floor <= 1.0:
+        raise ValueError(f"floor must be in (0, 1], got {floor}")
+    m = W.shape[1]
+    K = min(int(k), m)
+    idx, vals = top_k(W, K + 1) if m > K else top_k(W, K)
+    kept = vals[:, :K]
     if raw:
-        values = np.minimum(kept, 2.0 * excess)
-    else:
-        tie = (excess.sum(axis=1) == 0.0)[:, None]
-        values = np.where(tie, kept, excess)
-    return idx[:, :k].copy(), values
+        if with_pooled:
+            raise ValueError("raw truncation pools nothing")
+        if m <= K:
+            return idx, kept
+        return idx[:, :K].copy(), np.minimum(kept, 2.0 * np.maximum(kept - vals[:, K:], 0.0))
+    excess = np.maximum(kept - vals[:, K:], 0.0) if m > K else kept
+    if total is None:
+        total = kept.sum(axis=1)
+    values, pooled = _lowered(excess, total, floor)
+    if with_pooled:
+        return idx[:, :K].copy(), values, pooled
+    return idx[:, :K].copy(), values
+
+
+def _lowered(excess: FloatArray, total: ArrayLike, floor: float) -> tuple[FloatArray, FloatArray]:
+    """(v = excess / D, λ) with D = max(S, floor·total), S = Σ excess per row, and the pooled weight
+    λ = 1 − S/D: exactly 0 where S ≥ floor·total (nothing pooled there, so such rows never read the
+    pooled control) and in all-zero rows."""
+    S = excess.sum(axis=1)
+    T = np.asarray(total, dtype=np.float64).reshape(-1)
+    if T.shape != S.shape:
+        raise ValueError(f"total must have one value per row ({S.size}), got shape {T.shape}")
+    F = floor * T
+    D = np.maximum(S, F)
+    ok = D > 0.0
+    safe = np.where(ok, D, 1.0)
+    values = np.where(ok[:, None], excess / safe[:, None], 0.0)
+    pooled = np.where(ok & (S < F), 1.0 - S / safe, 0.0)
+    return values, pooled
+
+
+def pool_weights(scales: ArrayLike) -> FloatArray:
+    """The pooled control's coefficients a_i = s_i / Σ s (m,) for controls scaled by `scales` (m,)
+    (weight scales, ≥ 0): the mix of motions a row takes where all its controls tie exactly in
+    distance (untruncated weights are then proportional to the scales). Uniform if all are 0."""
+    s = np.asarray(scales, dtype=np.float64).reshape(-1)
+    if s.size == 0 or not np.all(np.isfinite(s)) or np.any(s < 0.0):
+        raise ValueError("scales must be at least one finite non-negative number")
+    total = s.sum()
+    return s / total if total > 0.0 else np.full(s.size, 1.0 / s.size)
+
+
+def with_pool(table: ArrayLike, coefficients: ArrayLike) -> FloatArray:
+    """`table` (m, ...) (blend parameters (m, 12), or motion matrices for a linear blend) with the
+    pooled control's row Σ_i a_i table[i] appended -> (m + 1, ...): what index m of pooled weights
+    (`sparse_from_blocks`) reads. A motion G shared by all controls gives the pooled row ψ(G) too
+    (Σ a_i = 1), so a vertex blending it with any weights summing to 1 gets exactly G."""
+    table = np.asarray(table, dtype=np.float64)
+    a = np.asarray(coefficients, dtype=np.float64).reshape(-1)
+    if table.shape[:1] != a.shape:
+        raise ValueError(f"{a.size} pool coefficients for a table of {table.shape[0]} rows")
+    pooled = np.tensordot(a, table, axes=(0, 0))
+    return np.concatenate([table, pooled[None]], axis=0)
+
+
+def _softmax_numerators(W: FloatArray, temperature: float) -> FloatArray:
+    """exp((w − max w)/temperature) on each row's positive entries, 0 elsewhere (`normalize`'s
+    'SOFTMAX' before its division): monotone in w, so the top K of W are the top K of these."""
+    positive = W > 0.0
+    top = np.max(np.where(positive, W, -np.inf), axis=-1, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    return np.where(positive, np.exp((np.where(positive, W, top) - top) / temperature), 0.0)
 
 
 def sparse_from_blocks(
@@ -182,15 +280,26 @@ def sparse_from_blocks(
     chunk_size: int | None = None,
     temperature: float = 1.0,
     continuous: bool = True,
+    floor: float = POOL_FLOOR,
 ) -> tuple[IntArray, FloatArray]:
     """Build sparse top-K weights from `block(lo, hi)` -> dense non-negative (hi − lo, n_controls).
 
-    Each chunk's block is reduced to its K = min(k, n_controls) largest entries, lowered to reach 0 at
-    the (K+1)-th (`truncate`, raw for normalize_mode 'NONE': continuous where controls swap ranks; with
-    continuous=False the K largest as they are, for painted weights whose values the artist chose),
-    which are then normalised ('SUM'
-    renormalises over the kept K, so rows still sum to 1). Peak memory is
-    O(n_points · K + chunk · n_controls); the result does not depend on chunk_size.
+    With K = min(k, n_controls) ≥ n_controls every control is kept and the row is normalised. With
+    more controls, each chunk's block is truncated continuously (`truncate`, MATH.md §12):
+
+    * 'SUM': v_j = max(w_j − w_{K+1}, 0) / max(S, floor·T), T = Σ_i w_i over all controls;
+      'SOFTMAX': the same on the softmax numerators exp((w − max w)/temperature) of the positive
+      entries. The pooled weight λ = 1 − Σ_j v_j goes to one more column, index n_controls (the
+      pooled control: the mean of all controls' parameters, `with_pool`), so a row still sums to 1
+      (0 for an all-zero row). The column is left out when no row pools anything. (With floor = 1,
+      D = T: each kept weight would be the untruncated weight w_j/T lowered by w_{K+1}/T, and what is
+      taken off all weights, min(w_i, w_{K+1})/T each, pooled at every truncated row; POOL_FLOOR says
+      why the default is 1/2.)
+    * 'NONE': the raw rule of `truncate` (values as they are, the rest stays at rest).
+    * continuous=False: the K largest as they are, then normalised (for painted weights, whose values
+      the artist chose; nothing is pooled).
+
+    Peak memory is O(n_points · K + chunk · n_controls); the result does not depend on chunk_size.
     ValueError if a block has the wrong shape, negative or non-finite entries.
     """
     if normalize_mode not in NORMALIZE_MODES:
@@ -199,12 +308,17 @@ def sparse_from_blocks(
         raise ValueError("at least one control is needed")
     if k < 1:
         raise ValueError(f"k must be at least 1, got {k}")
+    if normalize_mode == "SOFTMAX" and not temperature > 0.0:
+        raise ValueError(f"temperature must be positive, got {temperature}")
     K = min(int(k), n_controls)
     chunk = int(chunk_size) if chunk_size else max(1, BLOCK_ELEMENTS // n_controls)
     if chunk < 1:
         raise ValueError(f"chunk_size must be positive, got {chunk_size}")
-    indices = np.zeros((n_points, K), dtype=np.int32)
-    values = np.zeros((n_points, K), dtype=np.float64)
+    pooled = continuous and normalize_mode != "NONE" and n_controls > K
+    indices = np.zeros((n_points, K + pooled), dtype=np.int32)
+    values = np.zeros((n_points, K + pooled), dtype=np.float64)
+    if pooled:
+        indices[:, K] = n_controls
     for lo in range(0, n_points, chunk):
         hi = min(lo + chunk, n_points)
         W = np.asarray(block(lo, hi), dtype=np.float64)
@@ -216,9 +330,23 @@ def sparse_from_blocks(
             raise ValueError(f"weights for rows {lo}:{hi} contain non-finite values")
         if np.any(W < 0.0):
             raise ValueError(f"weights for rows {lo}:{hi} contain negative values")
-        idx, val = truncate(W, K, raw=normalize_mode == "NONE") if continuous else top_k(W, K)
-        indices[lo:hi] = idx
-        values[lo:hi] = normalize(val, normalize_mode, temperature)
+        if not continuous:
+            idx, val = top_k(W, K)
+            val = normalize(val, normalize_mode, temperature)
+        elif normalize_mode == "NONE":
+            idx, val = truncate(W, K, raw=True)
+        elif not pooled:  # every control kept: plain normalisation, as the untruncated field
+            idx, val = top_k(W, K)
+            val = normalize(val, normalize_mode, temperature)
+        else:
+            E = W if normalize_mode == "SUM" else _softmax_numerators(W, temperature)
+            idx, top = top_k(E, K + 1)
+            val, values[lo:hi, K] = _lowered(np.maximum(top[:, :K] - top[:, K:], 0.0), E.sum(axis=1), floor)
+            idx = idx[:, :K]
+        indices[lo:hi, :K] = idx
+        values[lo:hi, :K] = val
+    if pooled and not np.any(values[:, K]):
+        return indices[:, :K].copy(), values[:, :K].copy()
     return indices, values
 
 
@@ -287,6 +415,7 @@ def probe_weights(
     solved: ArrayLike | None = None,
     tails: ArrayLike | None = None,
     chunk_size: int | None = None,
+    floor: float = POOL_FLOOR,
 ) -> tuple[IntArray, FloatArray]:
     """Sparse probe weights for points (N, 3) and probe rest positions centers (m, 3).
 
@@ -305,8 +434,10 @@ def probe_weights(
     another dominates drops faster); inverse-distance weights as above on the other rows (loose
     parts without a probe).
     `scales` (m,) multiplies each probe's weight before the top-K selection. Distance and surface
-    weights are truncated continuously (`truncate`), painted ones keep their K largest values as
-    painted. Returns (indices (N, K) int32, values (N, K)).
+    weights are truncated continuously with a bounded slope (`sparse_from_blocks` with `floor`; with
+    more than k probes and normalize 'SUM' or 'SOFTMAX' a row may have one more column, index m:
+    the pooled control, whose parameters are `with_pool`'s mean with `pool_weights(scales)`), painted
+    ones keep their K largest values as painted. Returns (indices (N, K or K + 1) int32, values).
     """
     pts, ctr, ends, scale = _control_inputs(points, centers, tails, scales)
     m = ctr.shape[0]
@@ -360,4 +491,4 @@ def probe_weights(
     else:
         raise ValueError(f"weight mode must be one of {WEIGHT_MODES}, got {mode!r}")
     return sparse_from_blocks(pts.shape[0], m, block, k, normalize, chunk_size,
-                              continuous=mode != "VERTEX_GROUPS")
+                              continuous=mode != "VERTEX_GROUPS", floor=floor)

@@ -147,9 +147,11 @@ def rest_positions(obj) -> np.ndarray:
 
 
 def dense_weights(obj, deformer) -> np.ndarray:
-    """(N, m) weights rebuilt from the stored `.affdef_<uid>_idx<k>` / `_w<k>` attributes."""
+    """(N, m) weights rebuilt from the stored `.affdef_<uid>_idx<k>` / `_w<k>` attributes; a share
+    pooled by the truncation (index m, docs/MATH.md §12) spread over the probes in proportion to their
+    weight scales, as the deformer blends it."""
     n, m = len(obj.data.vertices), len(deformer.probes)
-    dense = np.zeros((n, m))
+    dense = np.zeros((n, m + 1))
     k = 0
     while (a_i := obj.data.attributes.get(f".affdef_{deformer.uid}_idx{k}")) is not None:
         a_w = obj.data.attributes[f".affdef_{deformer.uid}_w{k}"]
@@ -160,7 +162,10 @@ def dense_weights(obj, deformer) -> np.ndarray:
         np.add.at(dense, (np.arange(n), idx), w)
         k += 1
     assert k > 0, "no stored weights"
-    return dense
+    scales = np.array([item.weight_scale for item in deformer.probes])
+    if dense[:, m].any():
+        dense[:, :m] += dense[:, m:] * (scales / scales.sum())[None, :]
+    return dense[:, :m]
 
 
 def stored_offsets(target, deformer) -> np.ndarray:

@@ -159,6 +159,15 @@ def node_weights(deformer) -> tuple[np.ndarray, np.ndarray] | None:
             np.asarray(deformer["cage_node_weights"], dtype=np.float64).reshape(-1, m))
 
 
+def pooled(params: np.ndarray, idx: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """`params` (F, 12) with the truncation's pooled control appended as row F when the weights `idx`
+    point at it (docs/MATH.md §12): the uniform mean of the faces (of the valid ones)."""
+    if idx.max() < len(params):
+        return params
+    a = np.ones(len(params)) if valid is None else valid.astype(np.float64)
+    return np.vstack([params, (a / a.sum()) @ params])
+
+
 def dense_weights(obj, deformer) -> np.ndarray:
     """(N, faces) face weights rebuilt from the stored attributes (and, for 'HARMONIC' weights, the
     grid nodes' face weights: a vertex's face weights are its trilinear blend of its nodes')."""
@@ -167,9 +176,9 @@ def dense_weights(obj, deformer) -> np.ndarray:
     nodes = node_weights(deformer)
     if nodes is not None:
         return np.einsum("nk,nkf->nf", val, nodes[1][idx])
-    dense = np.zeros((n, m))
+    dense = np.zeros((n, m + 1))  # column m: the truncation's pooled control (docs/MATH.md §12)
     np.add.at(dense, (np.arange(n)[:, None], idx), val)
-    return dense
+    return dense[:, :m] + dense[:, m:] / m  # its mix: the faces' uniform mean
 
 
 def harmonic_expected(installed, core_harmonic, rest, rest_cage, topo, current_cage, face_motions):
@@ -456,7 +465,7 @@ def test_animated_cage_matches_the_core_at_every_frame(bl, installed, core_cage,
             return harmonic_expected(installed, core_harmonic, rest, rest_cage, topo, current,
                                      core_cage.face_motions)
         motion = core_cage.face_motions(rest_cage, current, topo)
-        return installed.deform.deform_points_params(rest, motion.params, idx, val)
+        return installed.deform.deform_points_params(rest, pooled(motion.params, idx), idx, val)
 
     results = bl.check_frames_in_any_order(target, deformer, rest, expected_at)
     assert np.abs(results[10] - results[1]).max() > 0.05
@@ -548,7 +557,8 @@ def test_collapsed_face_is_skipped_and_reported(bl, installed, core_cage, core_h
     else:
         kept = np.where(idx == 0, 0.0, val)
         kept /= kept.sum(axis=1, keepdims=True)
-        expected = installed.deform.deform_points_params(rest, motion.params, idx, kept)
+        expected = installed.deform.deform_points_params(rest, pooled(motion.params, idx, motion.valid), idx,
+                                                         kept)
     assert np.abs(got - expected).max() < 1e-5
 
     set_cage_points(cage, points)  # fixed: no message, bit-for-bit rest again
@@ -1011,12 +1021,13 @@ def test_weight_options_reweight_live_from_the_stored_rest(bl, core_cage, core_h
         kwargs = {"half_space": deformer.half_space, "exponent": deformer.exponent,
                   "k": deformer.max_influences}
         idx, val = core_cage.cage_weights(rest, stored_rest, topo, **kwargs)
-        expected = np.zeros((len(rest), 24))
+        expected = np.zeros((len(rest), 25))  # column 24: the pooled control, the faces' mean
         np.add.at(expected, (np.arange(len(rest))[:, None], idx), val)
+        expected = expected[:, :24] + expected[:, 24:] / 24
         assert np.abs(dense_weights(target, deformer) - expected).max() < 1e-6, options
     assert np.array_equal(np.asarray(deformer["cage_rest_points"]).reshape(-1, 3), stored_rest)
     columns = [a for a in affdef_attributes(target) if a.startswith(f".affdef_{deformer.uid}_idx")]
-    assert len(columns) == 3
+    assert len(columns) == idx.shape[1] in (3, 4)  # 3 faces, and the pooled control where any pools
     idx_on, _ = core_cage.cage_weights(rest, stored_rest, topo, half_space=True)
     idx_off, _ = core_cage.cage_weights(rest, stored_rest, topo, half_space=False)
     assert not np.array_equal(idx_on, idx_off), "the half-space rule matters for this target"

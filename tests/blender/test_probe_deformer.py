@@ -3,6 +3,7 @@ rigidity, locality, and the life-cycle operators (rebind, remove, apply, probe a
 
 from __future__ import annotations
 
+import importlib
 import math
 
 import bpy
@@ -191,7 +192,9 @@ def test_weight_options_update_live_and_keep_the_rest_pose(bl):
     assert np.abs(large - small).max() > 0.05
     assert [tuple(p.rest_matrix) for p in deformer.probes] == rest_before
     deformer.max_influences = 1
-    assert len([a for a in target.data.attributes if a.name.startswith(f".affdef_{deformer.uid}_idx")]) == 1
+    columns = [a for a in target.data.attributes if a.name.startswith(f".affdef_{deformer.uid}_idx")]
+    # 1 probe per vertex, and the pooled control where the two probes about tie (docs/MATH.md §12)
+    assert len(columns) == 2 and {a.data[0].value for a in columns[1:]} == {2}
 
 
 def test_remove_gives_back_the_exact_rest_shape(bl):
@@ -268,3 +271,75 @@ def test_undo_and_redo_restore_consistent_shapes(bl):
     target = bpy.data.objects["Sphere"]
     assert bpy.data.objects["P"].location.z == 0.75
     assert np.array_equal(bl.evaluated_positions(target), moved)
+
+
+def _stored_sparse(target, deformer) -> tuple[np.ndarray, np.ndarray]:
+    """(indices (N, K), values (N, K) float64) as stored in the `.affdef_<uid>_idx<k>` / `_w<k>`
+    attributes."""
+    n, columns = len(target.data.vertices), []
+    while (a_i := target.data.attributes.get(f".affdef_{deformer.uid}_idx{len(columns)}")) is not None:
+        idx, w = np.empty(n, dtype=np.int32), np.empty(n, dtype=np.float32)
+        a_i.data.foreach_get("value", idx)
+        target.data.attributes[f".affdef_{deformer.uid}_w{len(columns)}"].data.foreach_get("value", w)
+        columns.append((idx, w.astype(np.float64)))
+    return np.stack([c[0] for c in columns], axis=1), np.stack([c[1] for c in columns], axis=1)
+
+
+def test_pooled_weight_of_a_ring_of_probes(bl, installed):
+    """12 probes on a ring around a sphere, 4 influences (issue 39): near the ring's axis, where the
+    probes tie, part of each vertex's weight is pooled (a 5th column, index 12; docs/MATH.md §12).
+    Moving the whole ring moves the sphere exactly with it; moving one probe gives the core's field
+    with the pooled control's row (the weight-scaled mean of the probes' parameters); an incremental
+    update equals a full recompute bit for bit; the preview's weights include the pooled share; and
+    Weights → Vertex Groups keeps the deformation, raising Max Influences to keep every probe."""
+    target = bl.uv_sphere(segments=48, rings=24, radius=0.9)
+    rig = bl.empty("Rig")
+    probes = []
+    for i in range(12):
+        angle = 2.0 * math.pi * i / 12
+        probe = bl.empty(f"P{i:02d}", (math.cos(angle), math.sin(angle), 0.0))
+        probe.parent = rig
+        probes.append(probe)
+    deformer = bl.add_probe_deformer(target, probes, max_influences=4)
+    deformer.probes[3].weight_scale = 1.5
+    assert deformer.status == ""
+    idx, val = _stored_sparse(target, deformer)
+    assert idx.shape[1] == 5 and np.all(idx[:, 4] == 12), "the pooled control's column"
+    assert (val[:, 4] > 0.0).mean() > 0.2 and val[:, 4].max() > 0.9, "the poles pool (nearly) everything"
+    rest = bl.rest_positions(target).astype(np.float64)
+
+    rig.location, rig.rotation_euler, rig.scale = (0.2, -0.3, 0.4), (0.3, -0.2, 0.8), (1.2, 0.9, 1.1)
+    G = np.array(rig.evaluated_get(bpy.context.evaluated_depsgraph_get()).matrix_world, dtype=np.float64)
+    common = bl.evaluated_positions(target)
+    assert np.abs(common - _world(rest, G)).max() < 1e-5, "a common motion is exact"
+
+    rig.location, rig.rotation_euler, rig.scale = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+    probes[0].location.z += 0.36
+    probes[0].rotation_euler.y = math.radians(60.0)
+    got = bl.evaluated_positions(target)
+    A = np.stack([bl.local_motion(target, p, item.rest_matrix) for p, item in zip(probes, deformer.probes,
+                                                                                 strict=True)])
+    A[np.abs(A - np.eye(4)).max(axis=(1, 2)) < 1e-6] = np.eye(4)
+    weights = importlib.import_module(f"{installed.package}.core.weights")
+    scales = np.array([item.weight_scale for item in deformer.probes])
+    params = weights.with_pool(installed.aff3.params_from_matrices(A), weights.pool_weights(scales))
+    expected = installed.deform.deform_points_params(rest, params, idx, val)
+    assert np.abs(got - expected).max() < 1e-5
+    assert np.abs(got - rest).max() > 0.2
+
+    probes[5].location.x -= 0.2  # an incremental update (the pooled row changes too)
+    bpy.context.view_layer.update()
+    assert np.array_equal(bl.stored_offsets(target, deformer), bl.recomputed_offsets(target, deformer))
+
+    preview = importlib.import_module(f"{installed.package}.blender.weight_preview")
+    shares = np.stack([preview.control_weights(target, deformer, i) for i in range(12)], axis=1)
+    np.testing.assert_allclose(shares, bl.dense_weights(target, deformer), atol=1e-12)
+    assert np.abs(shares.sum(axis=1) - 1.0).max() < 1e-5
+    deformer.weight_preview = "ALL"
+    assert preview.preview_colors(target, deformer).shape == (len(rest), 3)
+
+    moved = bl.evaluated_positions(target).copy()
+    with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target]):
+        assert bpy.ops.object.affine_deformer_weights_to_groups(index=0) == {"FINISHED"}
+    assert deformer.weight_mode == "VERTEX_GROUPS" and deformer.max_influences == 12
+    assert np.abs(bl.evaluated_positions(target) - moved).max() < 1e-5

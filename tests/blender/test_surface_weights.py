@@ -95,8 +95,8 @@ def test_a_fingertip_moves_its_finger_only(bl):
     hand, centres, tips, palm = hand_rig(bl)
     fingers = finger_of(bl.rest_positions(hand), centres)
     assert all((fingers == i).sum() > 300 for i in range(4))
-    deformer = bl.add_probe_deformer(hand, [*tips, palm])  # the defaults: inverse distance, 6 influences
-    assert deformer.weight_mode == "INVERSE_DISTANCE" and deformer.max_influences == 6
+    deformer = bl.add_probe_deformer(hand, [*tips, palm])  # the defaults: inverse distance, 8 influences
+    assert deformer.weight_mode == "INVERSE_DISTANCE" and deformer.max_influences == 8
     euclidean = leakage(bl, hand, tips, fingers)
 
     deformer.weight_mode = "SURFACE"  # as in the panel: the weights recompute from the rest data

@@ -25,6 +25,7 @@ from affine_deformers.core.cage import (
 )
 from affine_deformers.core.cage import cage_weights as _cage_weights
 from affine_deformers.core.deform import deform_points, deform_points_params
+from affine_deformers.core.weights import LOCAL_FLOOR, pool_weights, with_pool
 
 CUBE_POINTS = np.array(list(itertools.product([0, 1], repeat=3)), dtype=float)[:, ::-1] - 0.5
 # vertex i has (x, y, z) bits (i & 1, i >> 1 & 1, i >> 2 & 1): 0 (0,0,0) 1 (1,0,0) 2 (0,1,0) 3 (1,1,0) ...
@@ -96,16 +97,23 @@ def apply(G: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def cage_weights(*args, **kwargs):  # type: ignore[no-untyped-def]
+    """core.cage.cage_weights with its invariants checked: faces' weights strongest first, then (when
+    any row pools weight) one column of index F, the pooled control; every row sums to 1."""
     indices, values = _cage_weights(*args, **kwargs)
     assert indices.dtype == np.int32 and values.dtype == np.float64
     assert np.all(np.isfinite(values)) and np.all(values >= 0.0)
     np.testing.assert_allclose(values.sum(axis=1), 1.0, atol=1e-12)
-    assert np.all(np.diff(values, axis=1) <= 0.0)  # strongest first
+    faces = values
+    if indices.size and indices.max() == args[2].n_faces:  # the pooled column
+        assert np.all(indices[:, -1] == args[2].n_faces) and np.all(indices[:, :-1] < args[2].n_faces)
+        faces = values[:, :-1]
+    assert np.all(np.diff(faces, axis=1) <= 0.0)  # strongest first
     return indices, values
 
 
 def dense_rows(indices: np.ndarray, values: np.ndarray, n_faces: int) -> np.ndarray:
-    dense = np.zeros((indices.shape[0], n_faces))
+    """(N, n_faces + 1): column n_faces holds the pooled weight (0 when nothing is pooled)."""
+    dense = np.zeros((indices.shape[0], n_faces + 1))
     np.add.at(dense, (np.arange(indices.shape[0])[:, None], indices), values)
     return dense
 
@@ -247,9 +255,11 @@ def test_any_common_affine_motion_gives_every_face_exactly_g(name: str) -> None:
         np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-9)
         q = interior_points(points, topo, 40, seed=topo.n_faces)
         idx, val = cage_weights(q, points, topo)
-        np.testing.assert_allclose(deform_points_params(q, motion.params, idx, val), apply(G, q), atol=1e-9)
+        params = with_pool(motion.params, pool_weights(np.ones(topo.n_faces)))  # index F: the pool
+        np.testing.assert_allclose(deform_points_params(q, params, idx, val), apply(G, q), atol=1e-9)
         dense = dense_rows(idx, val, topo.n_faces)
-        np.testing.assert_allclose(deform_points(q, A, dense), apply(G, q), atol=1e-9)
+        np.testing.assert_allclose(deform_points(q, matrices_from_params(params), dense), apply(G, q),
+                                   atol=1e-9)
 
 
 def test_random_affine_motions_of_the_cage_are_exact() -> None:
@@ -755,7 +765,7 @@ def test_half_space_rule_on_a_cube() -> None:
     raw[[3, 5]] = 0.0
     raw[TOP] *= ramp(0.2 / np.sqrt(0.29))
     assert 0.0 < ramp(0.2 / np.sqrt(0.29)) < 0.5
-    np.testing.assert_allclose(weight, raw / raw.sum(), rtol=1e-7)  # HALF_SPACE_TOL shifts the plane
+    np.testing.assert_allclose(weight[:6], raw / raw.sum(), rtol=1e-7)  # HALF_SPACE_TOL shifts the plane
 
     on_face = np.array([[0.1, 0.2, 0.5]])  # on the top face: it keeps (almost all) the weight
     idx, val = cage_weights(on_face, points, topo, k=6)
@@ -839,11 +849,12 @@ def dense_reference_weights(points, cage, topo, k, exponent=2.0, half_space=True
     ranked = -np.sort(-w, axis=1)
     dropped = ranked[:, k : k + 1] if w.shape[1] > k else np.zeros((len(w), 1))
     cut = np.where(w >= ranked[:, k - 1 : k], np.maximum(w - dropped, 0.0), 0.0)
-    # Where the k+1 strongest (nearly) tie, the kept sum is (nearly) 0 and rounding decides the row
-    # (k = 1: faces sharing the closest edge): those rows are NaN.
-    total = cut.sum(axis=1, keepdims=True)
-    with np.errstate(invalid="ignore"):
-        return np.where(total > 1e-9 * ranked[:, :1], cut / total, np.nan)
+    # divided by D = max(S, c Σ kept) (MATH.md §12); the rest, near ties only, is pooled (last column).
+    # A face tied with the (k+1)-th gets 0 whichever is kept, so no row depends on rounding.
+    S = cut.sum(axis=1, keepdims=True)
+    F = LOCAL_FLOOR * ranked[:, :k].sum(axis=1, keepdims=True)
+    D = np.maximum(S, F)
+    return np.hstack([cut / D, np.where(S < F, 1.0 - S / D, 0.0)])
 
 
 def test_weights_match_a_dense_reference_for_any_chunking() -> None:

@@ -313,11 +313,15 @@ def test_surface_mode_of_probe_weights() -> None:
     solved = np.arange(50) < 40
     idx, val = wt.probe_weights(pts, centers, mode="SURFACE", dense=H, solved=solved, exponent=2.0, k=4)
     sharp = H**2 / (H**2).sum(axis=1, keepdims=True)
-    kept_idx, kept = wt.truncate(sharp[:40], 4)
-    assert np.array_equal(idx[:40], kept_idx)
-    np.testing.assert_allclose(val[:40], kept / kept.sum(axis=1, keepdims=True), rtol=1e-12)
+    kept_idx, kept, pooled = wt.truncate(sharp[:40], 4, total=sharp[:40].sum(axis=1), floor=wt.POOL_FLOOR,
+                                         with_pooled=True)
+    assert np.array_equal(idx[:40, :4], kept_idx)
+    np.testing.assert_allclose(val[:40, :4], kept, rtol=1e-12)
+    np.testing.assert_allclose(val[:40, 4], pooled, rtol=1e-12)  # column 4: the pooled control
+    assert np.all(idx[:, 4] == 6)
     dist_idx, dist_val = wt.probe_weights(pts[40:], centers, mode="INVERSE_DISTANCE", k=4)
-    assert np.array_equal(idx[40:], dist_idx) and np.array_equal(val[40:], dist_val)
+    assert np.array_equal(idx[40:, :dist_idx.shape[1]], dist_idx)
+    assert np.array_equal(val[40:, :dist_val.shape[1]], dist_val)
     # exponent 1: the harmonic weights themselves (they are a partition of unity already)
     _, plain = wt.probe_weights(pts, centers, mode="SURFACE", dense=H, solved=solved, exponent=1.0, k=6,
                                 normalize="NONE")

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from affine_deformers.core import aff3, deform
 from affine_deformers.core import weights as wt
 
 
@@ -72,37 +73,107 @@ def test_top_k_orders_by_value_then_index() -> None:
     assert idx.shape == (3, 4) and np.array_equal(np.take_along_axis(W, idx.astype(np.intp), 1), val)
 
 
+def _dense(idx: np.ndarray, val: np.ndarray, m: int) -> np.ndarray:
+    """Sparse weights as a dense (n, m + 1) array (column m: the pooled control)."""
+    dense = np.zeros((len(idx), m + 1))
+    np.put_along_axis(dense, idx.astype(np.intp), val, 1)
+    return dense
+
+
 def test_truncation_is_continuous_where_controls_swap_ranks() -> None:
     """Along a path where the 3rd and 4th strongest of 6 controls swap, plain top-3 jumps; the
-    continuous truncation changes by O(step) per step, and rows still sum to 1."""
+    truncation changes by O(step) per step ('SUM' and 'SOFTMAX'), and each row's kept and pooled
+    weights sum to 1."""
     t = np.linspace(0.0, 1.0, 2001)[:, None]
     W = np.hstack([np.full_like(t, 5.0), np.full_like(t, 4.0), 2.0 + t, 3.0 - t, 0.5 + 0 * t, 0.2 + 0 * t])
-    jumps = {}
-    for name, (idx, val) in (("plain", wt.top_k(W, 3)), ("continuous", wt.truncate(W, 3))):
-        dense = np.zeros_like(W)
-        np.put_along_axis(dense, idx.astype(np.intp), wt.normalize(val, "SUM"), 1)
+    idx, val = wt.top_k(W, 3)
+    plain = _dense(idx, wt.normalize(val, "SUM"), 6)
+    assert np.abs(np.diff(plain, axis=0)).max() > 0.1, "plain top-K does jump (the test can fail)"
+    for mode in ("SUM", "SOFTMAX"):
+        dense = _dense(*wt.sparse_from_blocks(len(W), 6, lambda lo, hi: W[lo:hi], 3, mode), 6)
         np.testing.assert_allclose(dense.sum(1), 1.0, atol=1e-15)
-        jumps[name] = np.abs(np.diff(dense, axis=0)).max()
-    assert jumps["plain"] > 0.1, "plain top-K does jump (the test can fail)"
-    assert jumps["continuous"] < 5 * (t[1, 0] - t[0, 0])
-    idx, val = wt.truncate(W, 3)
+        assert np.abs(np.diff(dense, axis=0)).max() < 5 * (t[1, 0] - t[0, 0]), mode
+    # the 'SUM' values: (w_j − w_4)/D, D = max(S, c T) with T the total over all six
+    idx, val = wt.sparse_from_blocks(len(W), 6, lambda lo, hi: W[lo:hi], 3, "SUM")
     fourth = np.sort(W, axis=1)[:, -4]
-    kept = np.take_along_axis(W, idx.astype(np.intp), 1)
-    np.testing.assert_allclose(val, kept - fourth[:, None], atol=1e-15)
-    assert np.array_equal(wt.truncate(W, 6)[1], wt.top_k(W, 6)[1]), "nothing dropped: nothing subtracted"
+    kept = np.take_along_axis(W, idx[:, :3].astype(np.intp), 1)
+    excess = kept - fourth[:, None]
+    D = np.maximum(excess.sum(1), wt.POOL_FLOOR * W.sum(1))
+    np.testing.assert_allclose(val[:, :3], excess / D[:, None], atol=1e-15)
+    # truncate on its own (the cage's use): D = max(S, c Σ kept), exactly renormalised where S is large
+    idx, val = wt.truncate(W, 3)
+    D = np.maximum(excess.sum(1), wt.LOCAL_FLOOR * kept.sum(1))
+    np.testing.assert_allclose(val, excess / D[:, None], atol=1e-15)
+    idx, val = wt.truncate(W, 6)
+    np.testing.assert_allclose(val, wt.normalize(wt.top_k(W, 6)[1], "SUM"), rtol=1e-15)
 
 
-def test_truncation_at_an_exact_tie_keeps_the_plain_top_k() -> None:
-    """Where the K+1 strongest tie the subtracted values are all 0: such a row gets the plain top-K
-    values (one of the one-sided limits) instead of zeros, which would leave the vertex at rest."""
-    W = np.array([[2.0, 2.0, 2.0, 1.0], [3.0, 2.0, 2.0, 2.0], [1.0, 1.0, 1.0, 1.0]])
-    idx, val = wt.truncate(W, 2)
-    assert idx[0].tolist() == [0, 1] and val[0].tolist() == [2.0, 2.0]
-    assert val[1].tolist() == [1.0, 0.0]
-    assert val[2].tolist() == [1.0, 1.0]
+def test_truncation_slope_is_bounded_where_the_strongest_tie() -> None:
+    """A path through a point where the 4 strongest of 6 weights tie (K = 3): dividing by
+    S = Σ (w_j − w_4) (the former rule) swings the weights by O(1) across a hair's width; the
+    bounded rule keeps every slope within its stated bound 2 (1 + K v_j) max|∂w| / (floor · T),
+    and at the tie itself all of the weight is pooled (the rows' limit there, not a jump)."""
+    t = np.linspace(-1.0, 1.0, 4001)[:, None]
+    h = 1e-3  # the ties split by a hair: ±h t
+    W = np.hstack([2.0 + h * t, 2.0 - h * t, 2.0 + 0.5 * h * t, 2.0 - 0.5 * h * t,
+                   np.full_like(t, 1.0), np.full_like(t, 0.5)])
+    idx, top = wt.top_k(W, 4)
+    excess = top[:, :3] - top[:, 3:]
+    steep = _dense(idx[:, :3], excess / np.maximum(excess.sum(1, keepdims=True), 1e-300), 6)
+    assert np.abs(np.diff(steep, axis=0)).max() > 0.3, "the former rule does swing (the test can fail)"
+    idx, val = wt.sparse_from_blocks(len(W), 6, lambda lo, hi: W[lo:hi], 3, "SUM")
+    dense = _dense(idx, val, 6)
+    slope = np.abs(np.diff(dense[:, :6], axis=0)).max() / (t[1, 0] - t[0, 0])
+    T = W.sum(1).min()
+    assert slope <= 2 * (1 + 3) * h / (wt.POOL_FLOOR * T)
+    mid = len(t) // 2
+    assert np.all(dense[mid, :6] == 0.0) and dense[mid, 6] == 1.0
+    np.testing.assert_allclose(dense.sum(1), 1.0, atol=1e-15)
+
+
+def test_pooled_control_keeps_common_motions_exact() -> None:
+    """Rows that pool weight read index m, whose parameters are the probes' mean (with_pool): a motion
+    shared by every probe moves every vertex exactly by it, also where weight is pooled; a vertex
+    equidistant from all probes (all pooled) gets the mean of their motions, the untruncated field's
+    value there."""
     octahedron = np.concatenate([np.eye(3), -np.eye(3)])
-    idx, val = wt.probe_weights(np.zeros((1, 3)), octahedron, k=4)
-    assert val.sum() == pytest.approx(1.0), "a vertex equidistant from all probes still moves"
+    pts = np.random.default_rng(4).uniform(-0.6, 0.6, (400, 3))
+    pts[0] = 0.0
+    idx, val = wt.probe_weights(pts, octahedron, k=4)
+    assert idx.shape == (400, 5) and np.all(idx[:, 4] == 6)
+    assert val[0, :4].sum() == 0.0 and val[0, 4] == 1.0, "the tied centre pools everything"
+    np.testing.assert_allclose(val.sum(1), 1.0, atol=1e-15)
+    G = np.eye(4)
+    G[:3, :3] = aff3.so3_exp([0.3, -0.4, 0.2]) * 1.3
+    G[:3, 3] = [0.5, -1.0, 2.0]
+    params = wt.with_pool(np.tile(aff3.params_from_matrices(G), (6, 1)), wt.pool_weights(np.ones(6)))
+    moved = deform.deform_points_params(pts, params, idx, val)
+    np.testing.assert_allclose(moved, pts @ G[:3, :3].T + G[:3, 3], atol=1e-12)
+    # the centre gets the mean of the six motions (scale-weighted), as the untruncated weights give
+    P = aff3.params_from_matrices(np.stack([np.eye(4) + 0.1 * i * np.eye(4, k=3) for i in range(6)]))
+    a = wt.pool_weights([1.0, 1.0, 2.0, 0.0, 1.0, 1.0])
+    np.testing.assert_allclose(a, [1 / 6, 1 / 6, 1 / 3, 0.0, 1 / 6, 1 / 6])
+    np.testing.assert_allclose(wt.with_pool(P, a)[6], a @ P, rtol=1e-15)
+    with pytest.raises(ValueError, match="pool coefficients"):
+        wt.with_pool(P, a[:5])
+
+
+def test_nothing_is_pooled_when_every_control_is_kept_or_truncation_leaves_a_partition() -> None:
+    """m ≤ K: no pooled column, the rows are the normalised weights (the untruncated field); a
+    falloff with at most K probes reaching any vertex pools nothing either (w_{K+1} = 0), so the
+    column is left out; 'NONE' and painted weights never pool."""
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-2, 2, (300, 3))
+    centers = rng.uniform(-2, 2, (6, 3))
+    idx, val = wt.probe_weights(pts, centers, k=6)
+    assert idx.shape == (300, 6)
+    W = wt.inverse_distance(np.linalg.norm(pts[:, None] - centers[None], axis=2))
+    np.testing.assert_allclose(_dense(idx, val, 6)[:, :6], W / W.sum(1, keepdims=True), rtol=1e-14)
+    far = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10], [10, 10, 10]])
+    idx, val = wt.probe_weights(pts, far, mode="FALLOFF", radius=3.0, k=2)
+    assert idx.shape == (300, 2)
+    assert wt.probe_weights(pts, centers, k=2, normalize="NONE")[0].shape == (300, 2)
+    assert wt.top_k_dense(W, 2)[0].shape == (300, 2)
 
 
 def test_raw_truncation_keeps_dominant_weights_and_never_raises_one() -> None:
@@ -156,10 +227,20 @@ def test_probe_weights_inverse_distance() -> None:
     pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
     idx, val = wt.probe_weights(pts, centers, mode="INVERSE_DISTANCE", exponent=2.0, normalize="SUM", k=2)
     assert idx[0, 0] == 0 and val[0, 0] > 1 - 1e-10  # a vertex on a probe follows it
-    assert idx[1].tolist() == [0, 1] and np.allclose(val[1], [0.5, 0.5], rtol=0, atol=1e-15)
-    # distances 0.5 and 1.5 to the two nearest probes, minus the third's weight (√9.25 away)
+    assert idx[1, :2].tolist() == [0, 1] and val[1, 0] == val[1, 1]  # midway: equal weights
+    # distances 0.5 and 1.5 to the two nearest probes, minus the third's weight (√9.25 away): their
+    # excess keeps more than half of the total weight, so they are renormalised and nothing is pooled
     w = np.array([1 / 0.25, 1 / 2.25]) - 1 / 9.25
+    assert w.sum() >= wt.POOL_FLOOR * (1 / 0.25 + 1 / 2.25 + 1 / 9.25)
     np.testing.assert_allclose(val[2], w / w.sum(), rtol=1e-14)
+    # farther out the three probes are about as near: their excess is small, the rest is pooled
+    # (column 2, index 3: the pooled control)
+    far = np.array([[0.7, 1.0, 8.0]])
+    idx, val = wt.probe_weights(far, centers, mode="INVERSE_DISTANCE", exponent=2.0, normalize="SUM", k=2)
+    w = 1.0 / ((far - centers) ** 2).sum(1)
+    top = np.sort(w)[::-1]
+    np.testing.assert_allclose(val[0, :2], (top[:2] - top[2]) / (wt.POOL_FLOOR * w.sum()), rtol=1e-14)
+    assert idx[0, 2] == 3 and val[0].sum() == pytest.approx(1.0, rel=1e-15) and val[0, 2] > 0.5
     scaled = wt.probe_weights(
         pts, centers, mode="INVERSE_DISTANCE", normalize="SUM", k=2, scales=[0.0, 1.0, 1.0]
     )

@@ -85,7 +85,9 @@ class Motions:
     outer (4, 4): a motion applied after the blend, v' = outer · blend(v) (a cage object's motion);
     outer_reference (3,) and outer_pivot (3,): the reference rotation vector and current origin of
       the object `outer` belongs to, for the branch of ψ(outer) when it is scaled by a strength;
-    chain: the controls' hierarchy — the affine blend then goes down it (bones) and `turns` is unused.
+    chain: the controls' hierarchy — the affine blend then goes down it (bones) and `turns` is unused;
+    pool (m,): the coefficients a_i of the truncation's pooled control (core.weights.pool_weights),
+      whose parameters Σ a_i ψ(A_i) weights pointing at index m blend (MATH.md §12); None: uniform.
     """
 
     matrices: np.ndarray
@@ -99,6 +101,7 @@ class Motions:
     outer_reference: np.ndarray | None = None
     outer_pivot: np.ndarray | None = None
     chain: Chain | None = None
+    pool: np.ndarray | None = None
 
     @classmethod
     def invalid(cls, m: int, error: str) -> Motions:
@@ -113,7 +116,8 @@ class Motions:
                                             turns.frames.tobytes(), turns.pivots.tobytes(),
                                             None if turns.references is None else turns.references.tobytes()),
                 *(None if a is None else np.asarray(a).tobytes()
-                  for a in (self.params, self.valid, self.outer, self.outer_reference, self.outer_pivot)),
+                  for a in (self.params, self.valid, self.outer, self.outer_reference, self.outer_pivot,
+                            self.pool)),
                 None if self.chain is None else self.chain.key())
 
 

@@ -81,6 +81,22 @@ def deform_bones(armature: bpy.types.Object) -> list[str]:
     return [bone.name for bone in armature.data.bones if bone.use_deform]
 
 
+def bone_parents(armature: bpy.types.Object, names: list[str]) -> np.ndarray:
+    """Each bone's parent among `names` (its nearest ancestor there, −1 for none) (m,) intp, from the
+    armature's bones, as the update's hierarchy takes them (`_hierarchy`, from the pose bones)."""
+    index = {name: i for i, name in enumerate(names)}
+    bones = armature.data.bones
+    parents = np.full(len(names), -1, dtype=np.intp)
+    for i, name in enumerate(names):  # a walk up per bone, never per vertex
+        bone = bones.get(name)
+        parent = bone.parent if bone is not None else None
+        while parent is not None and parent.name not in index:
+            parent = parent.parent
+        if parent is not None:
+            parents[i] = index[parent.name]
+    return parents
+
+
 def armature_problem(target: bpy.types.Object, armature: bpy.types.Object | None) -> str:
     """Why `armature` cannot drive `target` ('' when it can)."""
     if armature is None:
@@ -342,6 +358,13 @@ class BoneKind:
             rest_points, heads, mode=mode, radius=deformer.radius, exponent=deformer.exponent,
             normalize=deformer.normalize, k=deformer.max_influences, scales=scales, dense=dense,
             solved=solved, tails=tails if mode in ("INVERSE_DISTANCE", "FALLOFF") else None)
+        if indices.size and int(indices.max()) == len(names):
+            # Weight the truncation pools (near ties of more bones than Max Influences) follows the
+            # root bones, so a motion of the whole skeleton stays exact there (MATH.md §12, §14).
+            armature = deformer.armature
+            parents = (bone_parents(armature, names) if armature is not None and armature.type == "ARMATURE"
+                       else np.full(len(names), -1, dtype=np.intp))
+            indices, values = hierarchy.pool_to_roots(indices, values, parents, scales)
         return indices, values, warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:

@@ -39,10 +39,20 @@ from .transforms import (
     world_matrix,
 )
 
-#: Max Influences of a new probe deformer (the property's default, 4, stays for files of 0.1.0): with
-#: 4, steps near points where the 5 strongest probes nearly tie reach 5× the untruncated field's
-#: inside clouds of 8 probes (tests/core/test_probe_seams.py).
-DEFAULT_INFLUENCES = 6
+#: Max Influences of a new probe deformer (core.weights.PROBE_INFLUENCES; the property's default, 4,
+#: stays for files of 0.1.0).
+DEFAULT_INFLUENCES = weights.PROBE_INFLUENCES
+
+
+def pool_coefficients(deformer) -> np.ndarray:
+    """The coefficients a_i = s_i / Σ s of the truncation's pooled control (m,) from the probes'
+    weight scales s (core.weights.pool_weights, MATH.md §12): where every probe is equally far, the
+    untruncated weights are in proportion to the scales, and so is the pooled mix."""
+    scales = np.empty(len(deformer.probes), dtype=np.float32)
+    if len(scales):
+        deformer.probes.foreach_get("weight_scale", scales)
+        return weights.pool_weights(scales.astype(np.float64))
+    return np.zeros(0)
 
 
 def selected_probes(context: bpy.types.Context, target: bpy.types.Object) -> tuple[list, list]:
@@ -242,7 +252,8 @@ class ProbeKind:
         turns = ChannelTurns(rest_modes, rest_rotations, [r.mode for r in rows],
                              np.array([r.rotation for r in rows], dtype=np.float64),
                              np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
-        return Motions(np.stack([r.matrix for r in rows]), np.array([r.at_rest for r in rows]), turns=turns)
+        return Motions(np.stack([r.matrix for r in rows]), np.array([r.at_rest for r in rows]), turns=turns,
+                       pool=pool_coefficients(deformer))
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
         """The selected Empties; none selected: one new Empty at the mesh's origin."""

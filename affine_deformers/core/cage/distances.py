@@ -2,8 +2,9 @@
 
 Weights (`cage_weights`, the 'INVERSE_DISTANCE' option; MATH.md §10, §12): inverse distance to the
 face polygon (exact point–triangle distance, minimum over the polygon's fan triangles), faded to zero
-over a band above each face's plane (the half-space rule as a C¹ ramp), continuous top-K, rows
-normalised to 1; computed in chunks of vertices. The default harmonic weights: core/cage/harmonic.py.
+over a band above each face's plane (the half-space rule as a C¹ ramp), continuous top-K with a
+bounded slope (what the kept faces leave of 1 near ties goes to the pooled control, index F), rows
+summing to 1; computed in chunks of vertices. The default harmonic weights: core/cage/harmonic.py.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..kernel import default_threads
-from ..weights import normalize, truncate
+from ..weights import truncate
 from .topology import CageTopology, _check_points, _norm, face_centroids, face_normals
 
 # Points this close to a face plane (relative to the cage size) are not "outside" it, so a target
@@ -427,11 +428,15 @@ def _batch_weights(
     faces = np.zeros((per_row.size, width), dtype=np.int32)
     W[row_of_pair, column] = w
     faces[row_of_pair, column] = pair_face
-    cols, vals = truncate(W, k)
+    # D = max(S, c Σ kept): the cage measures only the faces that can matter, so the divisor's floor
+    # is relative to the kept faces' weight (c = weights.LOCAL_FLOOR); the pooled rest goes to index F
+    cols, vals, pooled = truncate(W, k, with_pooled=True)
     idx = np.take_along_axis(faces, cols, axis=1)
     idx = np.where(vals > 0.0, idx, idx[:, :1])  # zero-weight slots point at the row's best face
     real = rows.ravel() >= 0
-    return rows.ravel()[real], idx[real], normalize(vals[real], "SUM")
+    idx = np.concatenate([idx, np.full((len(idx), 1), fields.centers.shape[0], dtype=idx.dtype)], axis=1)
+    vals = np.concatenate([vals, pooled[:, None]], axis=1)
+    return rows.ravel()[real], idx[real], vals[real]
 
 
 def _group_weights(
@@ -482,7 +487,8 @@ def cage_weights(
     k: int = 8,
     chunk_size: int = 64,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Sparse cage weights: (indices (N, K) int32, values (N, K) float64), K = min(k, F), rows sum to 1.
+    """Sparse cage weights: (indices (N, K or K + 1) int32, values float64), K = min(k, F), rows sum to 1
+    (index F in column K, when present: the pooled control, the mean of all faces' parameters).
 
     w_f(v) = d_f(v)^(−exponent), d_f the exact distance from v to face f's polygon (minimum over its
     fan triangles), floored at DISTANCE_FLOOR × cage size. With half_space (MATH.md §10, made
@@ -491,9 +497,12 @@ def cage_weights(
     normal, c_f the face centroid), so it is full up to f's plane and 0 from HALF_SPACE_BAND above
     it (a hard cut would jump where the plane of a face of a non-convex cage crosses its inside).
     A vertex cut off from every face (outside an open or broken cage) falls back to plain inverse
-    distance, so no row is zero. Truncation to the K largest is continuous (weights.truncate: the
-    (K+1)-th weight, measured exactly, is subtracted; zero-weight slots repeat the row's first
-    index) and rows are renormalised, so no weight jumps where faces swap ranks.
+    distance, so no row is zero. Truncation to the K largest is continuous with a bounded slope
+    (weights.truncate, MATH.md §12: the (K+1)-th weight, measured exactly, is subtracted and the
+    rest divided by D = max(S, c Σ kept), c = weights.LOCAL_FLOOR; zero-weight slots repeat the
+    row's first index), so no weight jumps or swings where faces swap ranks or tie; what the kept
+    faces leave of 1 (only near such ties) goes to the pooled control, so any motion shared by all
+    faces stays exact.
 
     Only distances that can matter are measured exactly: vertices are grouped in spatially sorted
     chunks of chunk_size, each chunk keeps the faces its bounding sphere can reach
@@ -513,10 +522,10 @@ def cage_weights(
         raise ValueError(f"k and chunk_size must be at least 1, got {k} and {chunk_size}")
     K = min(int(k), topology.n_faces)
     N = points.shape[0]
-    indices = np.zeros((N, K), dtype=np.int32)
-    values = np.zeros((N, K), dtype=np.float64)
+    indices = np.zeros((N, K + 1), dtype=np.int32)  # column K: the pooled control (index F)
+    values = np.zeros((N, K + 1), dtype=np.float64)
     if N == 0:
-        return indices, values
+        return indices[:, :K].copy(), values[:, :K].copy()
     fields = _CageFields.build(cage, topology)
     local = points - fields.origin
     C = int(chunk_size)
@@ -540,4 +549,6 @@ def cage_weights(
         with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="affine_cage_weights") as pool:
             for future in [pool.submit(run, rows) for rows in groups]:
                 future.result()
+    if not np.any(values[:, K]):  # nothing pooled: the faces' weights sum to 1 on every row
+        return indices[:, :K].copy(), values[:, :K].copy()
     return indices, values
