@@ -159,6 +159,7 @@ def reweight(obj: bpy.types.Object, deformer) -> None:
     relations.sync(obj, deformer)  # e.g. a probe was removed
     deformer.bound_vertex_count = len(rest)
     deformer.bound_topology = storage.topology_signature(mesh, rest)
+    storage.stamp_file_format(deformer)
     deformer.bound_flag = True
     deformer.bind_warning = warning
     deformer.bind_generation += 1

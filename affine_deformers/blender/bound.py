@@ -181,7 +181,7 @@ def _check_vertices(mesh: bpy.types.Mesh, deformer, rest32: np.ndarray) -> None:
     when the rest positions differ from the cached ones (or on the first read), so updates pay nothing.
     """
     stored = deformer.bound_topology
-    if not stored:  # bound by 0.1.0
+    if not stored:  # file format 1 (0.1.x) stored no signature
         return
     now = storage.topology_signature(mesh, rest32)
     if now == stored:

@@ -90,6 +90,10 @@ def precheck(obj: bpy.types.Object, deformer, mod: bpy.types.Modifier | None = N
         return f"Deformer kind '{deformer.kind}' is not available in this version"
     if not deformer.is_bound:
         return "Not bound: press Bind" + (f" ({deformer.bind_warning})" if deformer.bind_warning else "")
+    stamped = storage.file_format(deformer)
+    if stamped > storage.FILE_FORMAT:
+        return (f"Bound by a newer version of Affine Deformers (file format {stamped}, this version reads "
+                f"up to {storage.FILE_FORMAT}): update the add-on; the mesh passes through")
     if (mod if mod is not None else outputs.modifier(obj, deformer.uid)) is None:
         return "The deformer's modifier was removed or applied: Rebind to recreate it"
     n = len(obj.data.vertices)

@@ -25,6 +25,24 @@ class StorageError(Exception):
     """Bind data on the mesh is missing or inconsistent (the message says what to do)."""
 
 
+#: The layout of the bind data in a .blend, versioned apart from the extension (which can change
+#: without touching it). 1: written by 0.1.x (no format stamp). 2: weights may use the pooled column
+#: (index m, MATH.md §12), a bound topology signature. Stamped on each deformer at bind; a deformer
+#: of a higher format (bound by a newer add-on) is not evaluated: its status says to update.
+FILE_FORMAT = 2
+FORMAT_KEY = "file_format"
+
+
+def file_format(deformer) -> int:
+    """The format the deformer's bind data was written in (1 for files from before the stamp)."""
+    value = deformer.get(FORMAT_KEY, 1)
+    return value if isinstance(value, int) else 1
+
+
+def stamp_file_format(deformer) -> None:
+    deformer[FORMAT_KEY] = FILE_FORMAT
+
+
 def offset_name(uid: str) -> str:
     return f"affdef_{uid}_offset"
 
