@@ -286,7 +286,7 @@ def _stored_sparse(target, deformer) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_pooled_weight_of_a_ring_of_probes(bl, installed):
-    """12 probes on a ring around a sphere, 4 influences (issue 39): near the ring's axis, where the
+    """12 probes on a ring around a sphere, 4 influences: near the ring's axis, where the
     probes tie, part of each vertex's weight is pooled (a 5th column, index 12; docs/MATH.md §12).
     Moving the whole ring moves the sphere exactly with it; moving one probe gives the core's field
     with the pooled control's row (the weight-scaled mean of the probes' parameters); an incremental

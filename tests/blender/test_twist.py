@@ -1,4 +1,4 @@
-"""Twists past 180° (issue 5, MATH.md §8): a probe keyed through several turns twists continuously, by the
+"""Twists past 180° (MATH.md §8): a probe keyed through several turns twists continuously, by the
 angle of its own rotation channels, the same in every rotation mode, and frame f is computed from frame
 f alone (a fresh process jumping to f, or a render farm rendering only f, gives the same result).
 

@@ -1,4 +1,4 @@
-"""Weights an artist can see, start from and paint (issue #13), driven like an artist does.
+"""Weights an artist can see, start from and paint, driven like an artist does.
 
 - the weight preview shows exactly the stored weights (active probe / cage face on the weight-paint
   ramp, or all controls as a colour map), never changes the deformation or a render, and leaves no
@@ -440,7 +440,8 @@ def test_a_renamed_probe_updates_its_item_name_with_any_weights(bl):
 
 
 def test_a_renamed_probe_of_an_older_painted_file_follows_too(bl):
-    """Painted by hand, named after the probes, no stored group name (files before issue #13)."""
+    """Painted by hand, named after the probes, no stored group name (as files from before groups
+    were stored)."""
     target, probes, deformer = _rig(bl)
     n = len(target.data.vertices)
     for name, _location in PROBES:

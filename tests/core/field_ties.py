@@ -1,4 +1,4 @@
-"""Probe layouts whose influences tie, and the seam measure of issue 39 (numpy only, no Blender).
+"""Probe layouts whose influences tie, and the seam measure of the tie tests (numpy only, no Blender).
 
 A layout is a mesh (≥ 20,000 vertices, with its edges), probe rest positions, the one probe that moves
 (0.36 along its ring's axis or the grid's z, turned 60° about a horizontal axis through itself, every
@@ -269,7 +269,7 @@ docs/MATH.md §12. Each number is (largest jump between neighbours / largest dis
 by the same for the untruncated field (every probe kept) on the same mesh (edges) or line (the worst
 of the layout's lines of {points:,} points through its tie sets); 1 means as smooth as keeping every
 probe. "now": the truncation in core.weights (defaults: Max Influences {default}); "former": the
-lowered weights w_j − w_{{K+1}} divided by their own sum (the rule before issue 39). Inverse distance,
+lowered weights w_j − w_{{K+1}} divided by their own sum (the rule of 0.1.x). Inverse distance,
 exponent 2, Normalize Sum; one probe moved {shift} and turned 60°.
 
 """

@@ -246,7 +246,7 @@ def interior_points(points: np.ndarray, topo: CageTopology, n: int, seed: int) -
 @pytest.mark.parametrize("name", list(COMMON_MOTIONS))
 def test_any_common_affine_motion_gives_every_face_exactly_g(name: str) -> None:
     """The 'NEIGHBOURS' apex (default): shear and non-uniform scale of the whole cage are exact too,
-    so blending the faces reproduces G·v inside the cage (issue 4)."""
+    so blending the faces reproduces G·v inside the cage."""
     G = COMMON_MOTIONS[name]
     for points, topo in (mixed_prism(), box_cage((3, 2, 4), (1.5, 1.0, 2.0)), cube()):
         motion = face_motions(points, apply(G, points), topo)

@@ -1,4 +1,4 @@
-"""No seam where probes tie (issue 39): rings of 8, 12 and 16 probes around a sphere and a cylinder, a
+"""No seam where probes tie: rings of 8, 12 and 16 probes around a sphere and a cylinder, a
 3×3×3 grid of probes inside a cube, a mirrored set on a bar (tests/core/field_ties.py builds them,
 on meshes of 25,000–41,000 vertices, with lines of 4,001 points through the tie sets).
 

@@ -1,4 +1,4 @@
-"""No seams where probes swap ranks (issue 12): 8 probes, inverse distance, exponent 2, 'SUM', fewer
+"""No seams where probes swap ranks: 8 probes, inverse distance, exponent 2, 'SUM', fewer
 influences than probes (6; the add operator now sets 8, which keeps all 8: see
 tests/core/test_field_ties.py for the defaults and for layouts whose probes tie).
 
