@@ -59,7 +59,7 @@ def _key_cage_bulge(cage: bpy.types.Object, frames: int) -> None:
         key.keyframe_insert("value", frame=f)
 
 
-def time_playback(target: bpy.types.Object, frames: int) -> Samples:
+def time_playback(target: bpy.types.Object | list[bpy.types.Object], frames: int) -> Samples:
     """Seconds per frame of frame_set(f) + settle over frames 1..frames (after one untimed pass);
     a frame whose evaluated positions equal the previous frame's counts as stale."""
     scene = bpy.context.scene
@@ -67,15 +67,16 @@ def time_playback(target: bpy.types.Object, frames: int) -> Samples:
     for f in (1, 2, 1):  # warm-up: caches and the compiled kernel
         scene.frame_set(f)
         common.settle()
+    targets = target if isinstance(target, list) else [target]
     out = Samples()
-    prev = common.evaluated_positions(target)
+    prev = [common.evaluated_positions(t) for t in targets]
     for f in range(2, frames + 1):
         t0 = time.perf_counter()
         scene.frame_set(f)
         common.settle()
         out.seconds.append(time.perf_counter() - t0)
-        cur = common.evaluated_positions(target)
-        if np.array_equal(cur, prev):
+        cur = [common.evaluated_positions(t) for t in targets]
+        if any(np.array_equal(c, p) for c, p in zip(cur, prev, strict=True)):
             out.stale += 1
         prev = cur
     return out
@@ -85,7 +86,8 @@ def _row(label: str, build, frames: int, report) -> Samples | None:
     try:
         target = build()
         samples = time_playback(target, frames)
-        status = [d.status for d in getattr(target, "affine_deformers", ()) if d.status]
+        targets = target if isinstance(target, list) else [target]
+        status = [d.status for t in targets for d in getattr(t, "affine_deformers", ()) if d.status]
         if status:
             report.notes.append(f"(p) {label}: the deformer reported “{status[0]}”")
         if samples.stale:
@@ -183,3 +185,56 @@ def part_p(plan, have_ours: bool, report) -> None:
             line += (f"; cage ours {1.0 / cage.median:.1f} vs Mesh Deform {1.0 / md_s.median:.1f} frames/s "
                      f"({fmt_ratio(cage.median, md_s.median)})")
         report.summary.append(line + ".")
+
+
+def part_m(plan, have_ours: bool, report) -> None:
+    """(m) Many deformed objects: a crowd or a prop-heavy shot multiplies whatever an update costs per
+    object. `plan.m_objects` spheres of ~`plan.m_verts` vertices side by side, each with its own
+    `plan.m_probes` keyed probes; playback as (p): ours vs the same rigs built with Hooks."""
+    count, n_target, m, frames = plan.m_objects, plan.m_verts, plan.m_probes, plan.p_frames
+    print(f"(m) playback of {frames} keyed frames, {count} objects of ~{n_target:,} vertices, {m} probes "
+          f"each", flush=True)
+    sites = common.probe_sites(m)
+
+    def scene(rig) -> list:
+        targets = []
+        for i in range(count):
+            offset = np.array([3.0 * i, 0.0, 0.0])
+            target = common.sphere_object(f"Target.{i:02d}", n_target)
+            target.location = tuple(offset)
+            empties = native.add_empties(sites + offset, prefix=f"Probe.{i:02d}")
+            bpy.context.view_layer.update()
+            rig(target, empties)
+            _key_objects(empties, frames)
+            targets.append(target)
+        return targets
+
+    def ours_rigs() -> list:
+        return scene(lambda target, empties: ours.probe_rig(target, empties, plan.radius))
+
+    def hook_rigs() -> list:
+        return scene(lambda target, empties: native.hooks(target, empties, plan.radius))
+
+    hook_label = f"Hook ×{m} per object, Smooth, same radius"
+    rows = []
+    if have_ours and ours.operator_exists(ours.PROBE_OP):
+        rows.append((f"Affine probes (ours), {m} per object", _row("ours: many objects", ours_rigs, frames,
+                                                                   report)))
+    rows.append((hook_label, _row("Hooks: many objects", hook_rigs, frames, report)))
+    t = Table(f"(m) playback: {count} objects of ~{n_target:,} vertices, {m} keyed probes each, "
+              f"{frames} frames", ["method", "per frame", "frames/s", "ours ÷ native", "check"])
+    mine = rows[0][1] if rows and rows[0][0].startswith("Affine") else None
+    for label, s in rows:
+        if s is None:
+            continue
+        native_row = mine is not None and not label.startswith("Affine")
+        ratio = fmt_ratio(mine.median, s.median) if native_row else "1.00×"
+        t.add(label, fmt_ms(s.median), f"{1.0 / s.median:.1f}", ratio, f"{s.stale} stale" if s.stale else "")
+    t.notes.append("one frame = frame_set + settle with every object's probes keyed; ratio: ours ÷ Hooks")
+    report.tables.append(t)
+    hook_s = dict(rows).get(hook_label)
+    if mine is not None and hook_s is not None:
+        report.summary.append(
+            f"(m) {count} objects of ~{n_target:,} vertices, {m} keyed probes each: ours "
+            f"{fmt_ms(mine.median)} per frame, Hooks {fmt_ms(hook_s.median)} "
+            f"({fmt_ratio(mine.median, hook_s.median)}).")

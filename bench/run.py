@@ -11,12 +11,14 @@ handler and Blender's re-evaluation included) — median of `--reps` repetitions
       groups: our bone deformer vs the Armature modifier with and without Preserve Volume, turning the
       tip bone or all bones;
   (p) playback: frames per second over 48 keyed frames with every control animated, ours vs Hooks,
-      Armature (Preserve Volume) and Mesh Deform.
+      Armature (Preserve Volume) and Mesh Deform;
+  (m) many deformed objects: playback of 10 objects of ~5k vertices with 4 keyed probes each, ours
+      vs the same rigs built with Hooks.
 
 Exit status 1 when a measurement is not trustworthy (an update that changed nothing, a result still
 moving after the timed passes) or our operators fail; a missing operator is a printed note, not a failure.
 
-Usage: python bench/run.py [--quick] [--reps N] [--markdown docs/benchmarks.md] [--only a,b,c,d,p] [--zip Z]
+Usage: python bench/run.py [--quick] [--reps N] [--markdown docs/benchmarks.md] [--only a,b,c,d,p,m] [--zip Z]
 """
 
 from __future__ import annotations
@@ -40,13 +42,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true", help="small meshes, few reps (smoke test)")
     parser.add_argument("--reps", type=int, help="timed repetitions per case (default 15, quick 3)")
     parser.add_argument("--markdown", type=Path, help="also write the tables to this markdown file")
-    parser.add_argument("--only", default="a,b,c,d,p", help="comma list of parts to run (a, b, c, d, p)")
+    parser.add_argument("--only", default="a,b,c,d,p,m", help="comma list of parts to run (a, b, c, d, p, m)")
     parser.add_argument("--zip", type=Path, help="extension package (default: newest dist/*.zip)")
     ns = parser.parse_args(argv)
     ns.parts = {p.strip() for p in ns.only.split(",") if p.strip()}
-    unknown = ns.parts - {"a", "b", "c", "d", "p"}
+    unknown = ns.parts - {"a", "b", "c", "d", "p", "m"}
     if unknown:
-        parser.error(f"unknown part(s) {sorted(unknown)}: use a, b, c, d, p")
+        parser.error(f"unknown part(s) {sorted(unknown)}: use a, b, c, d, p, m")
     if ns.reps is not None and ns.reps < 1:
         parser.error("--reps must be at least 1")
     if ns.zip is None:

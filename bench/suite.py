@@ -37,6 +37,9 @@ class Plan:
     d_verts: tuple[int, ...] = (10_000, 130_000)  # (d): the sphere of (a) and a small one
     d_bones: int = 8
     p_frames: int = 48  # (p) playback: keyed frames
+    m_objects: int = 10  # (m) many deformed objects: how many
+    m_verts: int = 5_000  # (m) vertices of each
+    m_probes: int = 4  # (m) keyed probes on each
 
 
 FULL = Plan(
@@ -62,6 +65,8 @@ QUICK = Plan(
     c_probes=(1, 8),
     d_verts=(2_000,),
     p_frames=6,
+    m_objects=3,
+    m_verts=1_000,
 )
 
 STAGES = (
@@ -597,7 +602,8 @@ def run(ns: argparse.Namespace) -> int:
 
     report = Report()
     t0 = time.perf_counter()
-    for part, fn in (("a", part_a), ("b", part_b), ("c", part_c), ("d", part_d), ("p", playback.part_p)):
+    for part, fn in (("a", part_a), ("b", part_b), ("c", part_c), ("d", part_d), ("p", playback.part_p),
+                     ("m", playback.part_m)):
         if part in ns.parts:
             fn(plan, have_ours, report)
     if report.split_rows:

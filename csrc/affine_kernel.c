@@ -306,6 +306,16 @@ static void scratch_put(void *buf, int slot) {
 
 static inline int64_t claim(int64_t *counter) { return __atomic_fetch_add(counter, 1, __ATOMIC_RELAXED); }
 
+/* Whether every row of a work list indexes [0, n): checked before anything is written (a row out of
+ * range would be written to). One compare per row, against numpy's two reductions. */
+static int rows_in_range(const int64_t *rows, int64_t n_rows, int64_t n) {
+    int bad = 0;
+    for (int64_t i = 0; i < n_rows; i++) bad |= (rows[i] < 0) | (rows[i] >= n);
+    return !bad;
+}
+
+#define ROWS_OUT_OF_RANGE (-2)
+
 /* ------------------------------------------------------------------------------------------------
  * one chunk: blend, map, fix-up, store */
 
@@ -522,6 +532,7 @@ int64_t ak_deform_points(const double *points, int64_t n_points, const double *t
                          int32_t offsets, double *out, float *out32, int32_t use32, int64_t *counter) {
     int64_t n = use_rows ? n_rows : n_points;
     int64_t n_chunks = (n + CHUNK - 1) / CHUNK;
+    if (use_rows && !rows_in_range(rows, n_rows, n_points)) return ROWS_OUT_OF_RANGE;
     int slot;
     double *W = scratch_get(sizeof(double) * N_POINT_ROWS * STRIDE, &slot);
     if (!W) return -1;
@@ -544,6 +555,7 @@ int64_t ak_motion_params(const double *table, int64_t m, const int32_t *idx, con
                          int32_t use32, int64_t *counter) {
     int64_t n = use_rows ? n_rows : N;
     int64_t n_chunks = (n + CHUNK - 1) / CHUNK;
+    if (use_rows && !rows_in_range(rows, n_rows, N)) return ROWS_OUT_OF_RANGE;
     int slot;
     double *W = scratch_get(sizeof(double) * N_MOTION_ROWS * STRIDE, &slot);
     if (!W) return -1;
@@ -670,6 +682,7 @@ int64_t ak_chain_points(const double *points, int64_t N, const double *table, in
                         double *out, float *out32, int32_t use32, int64_t *counter) {
     int64_t n = use_rows ? n_rows : N;
     int64_t n_chunks = (n + CHUNK - 1) / CHUNK;
+    if (use_rows && !rows_in_range(rows, n_rows, N)) return ROWS_OUT_OF_RANGE;
     int slot;
     size_t wbytes = sizeof(double) * N_CHAIN_ROWS * STRIDE;
     char *buf = scratch_get(wbytes + sizeof(uint64_t) * CHUNK, &slot);
@@ -696,6 +709,7 @@ int64_t ak_chain_motion(const double *table, int64_t m, const int32_t *idx, cons
                         int32_t use32, int64_t *counter) {
     int64_t n = use_rows ? n_rows : N;
     int64_t n_chunks = (n + CHUNK - 1) / CHUNK;
+    if (use_rows && !rows_in_range(rows, n_rows, N)) return ROWS_OUT_OF_RANGE;
     int slot;
     size_t wbytes = sizeof(double) * N_CHAIN_MOTION_ROWS * STRIDE;
     char *buf = scratch_get(wbytes + sizeof(uint64_t) * CHUNK, &slot);

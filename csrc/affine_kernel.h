@@ -6,7 +6,8 @@
  * Conventions: every array is C-contiguous; float64 = double, float32 = float, int32 indices,
  * int64 for numpy's intp on every supported 64-bit platform, bool = uint8_t (numpy's bool_).
  * Entries that run on several threads take a shared chunk counter (int64, 0 at the start of a call)
- * and return how many chunks the calling thread did (negative: out of memory). */
+ * and return how many chunks the calling thread did (-1: out of memory; -2: a row of the work list out
+ * of range, checked before anything is written). */
 #ifndef AFFINE_KERNEL_H
 #define AFFINE_KERNEL_H
 

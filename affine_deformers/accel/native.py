@@ -167,14 +167,12 @@ def _shape(a: Arr, shape: tuple[int, ...], name: str) -> None:
 
 
 def _rows_ok(rows: Arr, use_rows: bool, n: int) -> int:
-    """The work list's length; rows (if used) must index [0, n) (checked: an out-of-range row would be
-    written to)."""
+    """The work list's length; its values are checked against [0, n) in C before anything is written
+    (`_done` turns the refusal into ValueError)."""
     if not use_rows:
         return n
     if rows.ndim != 1:
         raise ValueError("rows must be 1-D")
-    if rows.size and (int(rows.min()) < 0 or int(rows.max()) >= n):
-        raise ValueError(f"rows must be in [0, {n})")
     return rows.shape[0]
 
 
@@ -232,7 +230,7 @@ class Kernel:
             _ptr(val, _F64, "val"), K, _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), bool(offsets),
             _ptr(out, _F64, "out", True), _ptr(out32, _F32, "out32", True), bool(use32),
             _counter(counter))
-        return _done(done)
+        return _done(done, n_points)
 
     def motion_params(self, table: Arr, idx: Arr, val: Arr, rows: Arr, use_rows: bool,
                       out: Arr, out32: Arr, use32: bool, counter: Arr) -> int:
@@ -245,7 +243,7 @@ class Kernel:
             _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"), _ptr(val, _F64, "val"), N, K,
             _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), _ptr(out, _F64, "out", True),
             _ptr(out32, _F32, "out32", True), bool(use32), _counter(counter))
-        return _done(done)
+        return _done(done, N)
 
     def _chain_shapes(self, table: Arr, idx: Arr, val: Arr, prefix: Arr,
                       mats: Arr) -> tuple[int, int, int, int, int]:
@@ -274,7 +272,7 @@ class Kernel:
             _ptr(val, _F64, "val"), n_pass, K, _ptr(prefix, _I32, "prefix"), _ptr(mats, _F64, "mats"), n_mats,
             _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), bool(offsets), _ptr(out, _F64, "out", True),
             _ptr(out32, _F32, "out32", True), bool(use32), _counter(counter))
-        return _done(done)
+        return _done(done, N)
 
     def chain_motion_entry(self, table: Arr, idx: Arr, val: Arr, prefix: Arr,
                            mats: Arr, rows: Arr, use_rows: bool, out: Arr, out32: Arr,
@@ -289,7 +287,7 @@ class Kernel:
             _ptr(prefix, _I32, "prefix"), _ptr(mats, _F64, "mats"), n_mats, _ptr(rows, _I64, "rows"), n_rows,
             bool(use_rows), _ptr(out, _F64, "out", True), _ptr(out32, _F32, "out32", True), bool(use32),
             _counter(counter))
-        return _done(done)
+        return _done(done, N)
 
     def polar_log(self, M: Arr, R: Arr, Yh: Arr) -> int:
         """R[i] = U Vᵀ, Yh[i] = V diag(log σ) Vᵀ for the SVD of each M[i] (n, 3, 3); returns n."""
@@ -403,7 +401,10 @@ def _counter(counter: Arr) -> int:
     return _ptr(counter, _I64, "counter", True)
 
 
-def _done(count: int) -> int:
+def _done(count: int, n: int) -> int:
+    """An entry's return value: the chunks done, or the refusal it reports."""
+    if count == -2:
+        raise ValueError(f"rows must be in [0, {n})")
     if count < 0:
         raise MemoryError("the compiled kernel could not allocate its scratch memory")
     return int(count)
