@@ -157,13 +157,22 @@ class AffineDeformer(bpy.types.PropertyGroup):
                     "of a cage, or a weak probe, is otherwise all blue)")
 
 
+def _kind_property(name: str):
+    """The bpy.props definition of the kind property `name`, made anew whenever Blender evaluates its
+    annotation (at each registration) and not kept, like this module's own annotations (strings, by
+    `from __future__ import annotations`): a definition with an update callback still alive when the
+    interpreter exits crashes bpy 4.2 (as a module) there."""
+    return kinds.properties()[name].prop
+
+
 def _add_kind_properties() -> None:
-    """Merge every kind's own properties into AffineDeformer's annotations (before registration)."""
+    """Add every kind's own properties to AffineDeformer's annotations (before registration), as
+    expressions evaluated in this module like the others."""
     annotations = AffineDeformer.__annotations__
-    for name, prop in kinds.properties().items():
+    for name in kinds.properties():
         if name in annotations:
             raise ValueError(f"Kind property '{name}' would replace a common deformer property")
-        annotations[name] = prop.prop
+        annotations[name] = f"_kind_property({name!r})"
 
 
 _add_kind_properties()
