@@ -9,10 +9,26 @@ import traceback
 
 import bpy
 
-from . import armature_convert, bake, handlers, operators, panels, prefs, props, relations, weight_operators
+from . import (
+    bake,
+    handlers,
+    kind_services,  # hands the kinds binding, the update and the preview (kinds/services.py)
+    kinds,
+    operators,
+    panels,
+    prefs,
+    props,
+    relations,
+    weight_groups,  # the weight tools' hooks around the update (hooks.py)
+    weight_operators,
+)
 
-CLASSES = (*prefs.CLASSES, *props.CLASSES, *operators.CLASSES, *bake.CLASSES, *armature_convert.CLASSES,
+#: Every class to register, in order: the kinds' (their control item groups before the deformer's
+#: property group, which refers to them), then the deformer's, the shared operators and the interface.
+CLASSES = (*prefs.CLASSES, *kinds.CLASSES, *props.CLASSES, *operators.CLASSES, *bake.CLASSES,
            *weight_operators.CLASSES, *panels.CLASSES)
+
+__all__ = ["CLASSES", "kind_services", "register", "unregister", "weight_groups"]
 
 
 def register() -> None:

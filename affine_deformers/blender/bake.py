@@ -34,8 +34,8 @@ import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
 from . import binding, evaluate, nodes, relations, storage
+from .addressing import DeformerIndexed, active_target
 from .bake_targets import TARGETS, BakeError, default_filepath, remove_artifacts, resolve_cache_path
-from .operators import DeformerIndexed, active_target
 from .pc2 import PC2Error
 
 __all__ = ["CLASSES", "MODES", "BakeError", "BakeJob", "bake_state", "default_filepath", "resolve_cache_path",

@@ -1,6 +1,7 @@
 """Deformer life cycle shared by operators, property updates and scripts: create, bind, re-weight,
-remove and apply, and the lookup of a deformer by stack position or id. Kind-specific work (rest
-data, weights, motions) is delegated to the deformer's kind (kinds/).
+remove and apply (the target checks and the lookup of a deformer by stack position or id are
+addressing.py's, re-exported here). Kind-specific work (rest data, weights, motions) is delegated to
+the deformer's kind (kinds/).
 """
 
 from __future__ import annotations
@@ -13,10 +14,12 @@ import bpy
 import numpy as np
 
 from . import caches, kinds, nodes, relations, storage, weight_preview
+from .addressing import deformer_at, deformer_index, find_uid, target_problem
 from .kinds import BindError
 
-__all__ = ["BindError", "apply", "bind", "create", "mask_weights", "rebind_probe_safely", "rebind_safely",
-           "remove", "reweight", "reweight_safely", "target_problem"]
+__all__ = ["BindError", "apply", "bind", "create", "deformer_at", "deformer_index", "find_uid",
+           "mask_weights", "rebind_probe_safely", "rebind_safely", "remove", "reweight", "reweight_safely",
+           "target_problem"]
 
 
 _quiet = 0
@@ -36,21 +39,6 @@ def quiet():
 
 def updates_suspended() -> bool:
     return _quiet > 0
-
-
-def target_problem(obj: bpy.types.Object | None) -> str:
-    """Why `obj` cannot carry a deformer, or '' when it can."""
-    if obj is None:
-        return "No active object: make the mesh to deform the active object"
-    if obj.type != "MESH":
-        kind = obj.type.replace("_", " ").lower()
-        article = "an" if kind[:1] in "aeiou" else "a"
-        return f"'{obj.name}' is {article} {kind}, not a mesh: the target must be a mesh"
-    if obj.library is not None or obj.data.library is not None:
-        return f"'{obj.name}' is linked from a library and cannot be edited"
-    if obj.mode == "EDIT":
-        return f"'{obj.name}' is in Edit Mode: switch to Object Mode first"
-    return ""
 
 
 def _kind(deformer):
@@ -82,29 +70,6 @@ def create(obj: bpy.types.Object, kind: str, name: str):
     deformer.name = name
     obj.affine_deformers_active_index = len(obj.affine_deformers) - 1
     return deformer
-
-
-def deformer_at(obj: bpy.types.Object, index: int):
-    """Deformer `index` of `obj`; LookupError with a message for the artist when there is none (the
-    one lookup by index: operators, bake and scripts address deformers by their stack position)."""
-    count = len(obj.affine_deformers)
-    if not 0 <= index < count:
-        raise LookupError(f"'{obj.name}' has no affine deformer #{index} (it has {count})")
-    return obj.affine_deformers[index]
-
-
-def find_uid(obj: bpy.types.Object, uid: str):
-    """(index, deformer) of the deformer with id `uid` on `obj` (positions change when others are
-    removed); LookupError when it is gone."""
-    for i, item in enumerate(obj.affine_deformers):
-        if item.uid == uid:
-            return i, item
-    raise LookupError(f"The deformer was removed from '{obj.name}'")
-
-
-def deformer_index(obj: bpy.types.Object, deformer) -> int:
-    """The stack position of `deformer` on `obj` (LookupError when it is not there)."""
-    return find_uid(obj, deformer.uid)[0]
 
 
 def bind(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,

@@ -15,7 +15,7 @@ import numpy as np
 
 from .. import accel
 from ..core import hierarchy
-from . import storage
+from . import caches, storage
 
 _bound: dict[tuple[int, str], BoundData] = {}
 _serial = itertools.count(1)
@@ -137,12 +137,10 @@ class BoundData:
         self.proven = False
 
 
-def forget(key: tuple[int, str] | None = None) -> None:
+@caches.register
+def forget(key: caches.Key | None = None) -> None:
     """Drop the cached bind data of one deformer ((object session uid, deformer uid)) or of all."""
-    if key is None:
-        _bound.clear()
-    else:
-        _bound.pop(key, None)
+    caches.drop(_bound, key)
 
 
 def cached(obj: bpy.types.Object, deformer) -> BoundData | None:

@@ -1,38 +1,59 @@
-"""What the update remembers between calls, and how to forget it.
+"""What the Blender layer remembers between updates, and the one way to forget it.
 
-Every entry is a cache of values recomputable from the .blend (nothing here is bind data): the last
-snapshot signature and error of each deformer (evaluate.py), the bind data and last result
-(bound.py), the modifier found last (outputs.py), the parameter memo (params.py), the node groups'
-input identifiers (nodes.py) and the kinds' own memos. Undo, redo, file load and unregistering drop
-them all.
+Every module-level memo of the Blender layer registers the function that clears it, next to the memo
+(`register`, used as a decorator): `clear(key)` drops what it holds for one deformer (key = (object
+session uid, deformer uid)) or, with None, everything. `forget` calls them all: undo, redo, file load
+and unregistering forget everything; removing a deformer or giving it a new id forgets that deformer.
+Every entry is a cache of values recomputable from the .blend (nothing here is bind data), so
+forgetting only costs a recomputation. tests/blender/test_caches.py finds every module-level container
+of blender/ from the source and checks that `forget()` empties it.
+
+This module imports nothing of the add-on (every layer registers into it). It holds the update's own
+memo: the signature and the error of each deformer's last update (evaluate.py).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import bpy
 
-from . import bound, kinds, nodes, outputs, params
+Key = tuple[int, str]
+Clear = Callable[[Key | None], None]
 
-#: (object session uid, deformer uid) → signature of the snapshot last written (snapshot.Snapshot).
-signatures: dict[tuple[int, str], tuple] = {}
-#: (object session uid, deformer uid) → the error of the last update ('' when it deformed).
-errors: dict[tuple[int, str], str] = {}
+#: The registered clear functions by qualified name (a reloaded module replaces its own).
+_clears: dict[str, Clear] = {}
+
+
+def register(clear: Clear) -> Clear:
+    """Register `clear(key)`, which drops a memo's entries of one deformer (or all, with None);
+    returns it, so it can decorate the function."""
+    _clears[f"{clear.__module__}.{clear.__qualname__}"] = clear
+    return clear
+
+
+def drop(memo: dict, key: Key | None) -> None:
+    """The usual clear of a memo keyed by deformer: its entry for `key`, or everything for None."""
+    if key is None:
+        memo.clear()
+    else:
+        memo.pop(key, None)
 
 
 def forget(obj: bpy.types.Object | None = None, uid: str | None = None) -> None:
     """Drop cached state (all, or that of deformer `uid` on `obj`) so the next update recomputes."""
-    if obj is None:
-        signatures.clear()
-        errors.clear()
-        bound.forget()
-        outputs.forget()
-        params.forget()
-        kinds.forget()
-        nodes.forget()
-        return
-    key = (obj.session_uid, uid)
-    signatures.pop(key, None)
-    errors.pop(key, None)
-    bound.forget(key)
-    outputs.forget(key)
-    kinds.forget(key)
+    key = None if obj is None else (obj.session_uid, uid)
+    for clear in list(_clears.values()):
+        clear(key)
+
+
+#: (object session uid, deformer uid) → signature of the snapshot last written (snapshot.Snapshot).
+signatures: dict[Key, tuple] = {}
+#: (object session uid, deformer uid) → the error of the last update ('' when it deformed).
+errors: dict[Key, str] = {}
+
+
+@register
+def _forget_updates(key: Key | None) -> None:
+    drop(signatures, key)
+    drop(errors, key)

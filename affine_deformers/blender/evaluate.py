@@ -10,6 +10,10 @@ the rotation-log branch from params.py, the one place for that; per vertex
 holds values recomputable from them.
 
 Bad input becomes the deformer's `status`, and the modifier passes its input through unchanged.
+
+Nothing here knows the interface: what other parts of the add-on do beside an update (the weight
+tools' bookkeeping) runs through the explicit hooks of hooks.py, before an object's deformers are
+evaluated and once a deformer's inputs are read.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import traceback
 import bpy
 import numpy as np
 
-from . import binding, blend, caches, outputs, snapshot, storage, weight_groups
+from . import binding, blend, caches, hooks, outputs, snapshot, storage
 from . import bound as bound_data
 from .caches import forget
 from .params import motions_to_params
@@ -43,7 +47,7 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         set_status(deformer, error)
         return error
     snap = snapshot.take(obj, deformer, depsgraph)
-    weight_groups.record_states(obj, deformer, snap.motions, snap.error, depsgraph)
+    hooks.run_inputs_read(obj, deformer, snap, depsgraph)  # e.g. the controls' states (weight_groups.py)
     key = (obj.session_uid, deformer.uid)
     signature = snap.signature()
     if caches.signatures.get(key) == signature:
@@ -122,7 +126,7 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
         binding.separate_shared_ids(obj)  # linked duplicates must not share output attributes
     except Exception:  # never let it stop the evaluation; the ids stay shared and the next update retries
         traceback.print_exc()
-    weight_groups.before_evaluate(obj)  # renamed probes' groups, Weight Paint mode, the weight preview
+    hooks.run_before_object(obj)  # e.g. renamed controls' groups, the weight preview (weight_groups.py)
     statuses = []
     for deformer in obj.affine_deformers:
         try:

@@ -31,6 +31,8 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from . import caches
+
 GROUP_NAME = "AffineDeformer"
 GROUP_MARK = "affine_deformers_group"  # custom property identifying our group (value = version)
 GROUP_VERSION = 3
@@ -102,9 +104,12 @@ def _input_identifiers(ng: bpy.types.NodeTree) -> dict[tuple[str, str], str]:
     return found
 
 
-def forget() -> None:
-    """Drop the interface memo (`_input_identifiers`)."""
-    _identifier_memo.clear()
+@caches.register
+def forget(key: caches.Key | None = None) -> None:
+    """Drop the interface memo (`_input_identifiers`) at a full forget (it is per node group, not per
+    deformer)."""
+    if key is None:
+        _identifier_memo.clear()
 
 
 def _input_identifier(ng: bpy.types.NodeTree, name: str, socket_type: str) -> str | None:

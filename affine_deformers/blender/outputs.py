@@ -12,16 +12,14 @@ import bpy
 import numpy as np
 
 from .. import accel
-from . import nodes, storage
+from . import caches, nodes, storage
 from .bound import BoundData
 
 
-def forget(key: tuple[int, str] | None = None) -> None:
+@caches.register
+def forget(key: caches.Key | None = None) -> None:
     """Drop the remembered modifier names (all, or of one (object session uid, deformer uid))."""
-    if key is None:
-        _modifiers.clear()
-    else:
-        _modifiers.pop(key, None)
+    caches.drop(_modifiers, key)
 
 
 #: (object session uid, deformer uid) → name of the modifier `nodes.find_modifier` found last time.

@@ -1,10 +1,14 @@
-"""User interface: Properties ▸ Object ▸ Affine Deformers, and Object ▸ Affine Deformers in the 3D view."""
+"""User interface: Properties ▸ Object ▸ Affine Deformers, and Object ▸ Affine Deformers in the 3D view.
+
+The panel draws what every deformer shares; each kind draws its own part (DeformerKind.draw_object,
+draw_actions, draw_settings, draw_controls, draw_preview_options: its lists are kinds' classes too).
+"""
 
 from __future__ import annotations
 
 import bpy
 
-from . import armature_convert, kinds, weight_operators, weight_preview
+from . import kinds, weight_operators, weight_preview
 from .bake import AFFINE_OT_deformer_bake, AFFINE_OT_deformer_unbake, bake_state
 
 
@@ -24,28 +28,6 @@ class AFFINE_UL_deformers(bpy.types.UIList):
                  icon="RESTRICT_VIEW_OFF" if item.show_viewport else "RESTRICT_VIEW_ON")
         row.prop(item, "show_render", text="", emboss=False,
                  icon="RESTRICT_RENDER_OFF" if item.show_render else "RESTRICT_RENDER_ON")
-
-
-class AFFINE_UL_probes(bpy.types.UIList):
-    """The probes of a deformer: object, state (at rest / moving / invalid / no group), weight scale
-    and a select button."""
-
-    def draw_item(self, _context, layout, _data, item, _icon, _active_data, _active_prop, _index=0):
-        weight_operators.draw_probe_item(layout, item, _index)
-
-
-class AFFINE_UL_bones(bpy.types.UIList):
-    """The bones of a bone deformer: name (a missing bone is flagged) and weight scale."""
-
-    def draw_item(self, _context, layout, data, item, _icon, _active_data, _active_prop, _index=0):
-        row = layout.row(align=True)
-        armature = data.armature
-        found = armature is not None and armature.data.bones.get(item.name) is not None
-        if found:
-            row.label(text=item.name, icon="BONE_DATA")
-        else:
-            row.label(text=f"{item.name} (missing)", icon="ERROR")
-        row.prop(item, "weight_scale", text="")
 
 
 class AFFINE_PT_deformers(bpy.types.Panel):
@@ -69,7 +51,8 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         col = row.column(align=True)
         for kind in kinds.KINDS.values():
             col.operator(kinds.add_operator_id(kind.id), icon=kind.icon, text="")
-        armature_convert.draw_convert(layout, obj)
+        for kind in kinds.KINDS.values():
+            kind.draw_object(layout, obj)
         index = obj.affine_deformers_active_index
         if not 0 <= index < len(obj.affine_deformers):
             return
@@ -94,7 +77,7 @@ class AFFINE_PT_deformers(bpy.types.Panel):
             return
         weight_preview.draw(layout, context, deformer)
         weight_operators.draw(layout, deformer, index)
-        armature_convert.draw_restore(layout, deformer, index)
+        kind.draw_actions(layout, deformer, index)
         col = layout.column()
         col.use_property_split = True
         kind.draw_settings(col, deformer)
@@ -105,7 +88,6 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         sub.active = kind.branch_rule_active(deformer)
         sub.prop(deformer, "branch_rule")
         kind.draw_controls(layout, deformer, index)
-        weight_operators.draw_probe_details(layout, obj, deformer)
 
 
 def draw_bake(layout: bpy.types.UILayout, deformer, index: int) -> None:
@@ -159,4 +141,4 @@ def draw_object_menu(self, _context: bpy.types.Context) -> None:
     self.layout.menu(AFFINE_MT_object.bl_idname)
 
 
-CLASSES = (AFFINE_UL_deformers, AFFINE_UL_probes, AFFINE_UL_bones, AFFINE_PT_deformers, AFFINE_MT_object)
+CLASSES = (AFFINE_UL_deformers, AFFINE_PT_deformers, AFFINE_MT_object)

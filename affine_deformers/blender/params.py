@@ -16,6 +16,7 @@ import numpy as np
 
 from .. import accel
 from ..core import aff3, unwrap
+from . import caches
 from .kinds import ChannelTurns, Motions
 from .kinds.transforms import reference_rotvecs
 
@@ -34,9 +35,12 @@ PARAM_MEMO_SIZE = 4096
 _param_rows: dict[tuple, np.ndarray] = {}
 
 
-def forget() -> None:
-    """Drop the parameter memo (it only holds recomputable rows)."""
-    _param_rows.clear()
+@caches.register
+def forget(key: caches.Key | None = None) -> None:
+    """Drop the parameter memo at a full forget (its rows are keyed on their inputs, right for every
+    deformer, so forgetting one deformer keeps them)."""
+    if key is None:
+        _param_rows.clear()
 
 
 def lifted_params(matrices: np.ndarray, reference: np.ndarray | None,

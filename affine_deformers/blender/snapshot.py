@@ -24,36 +24,29 @@ from . import bound as bound_data
 from . import kinds, outputs, storage
 from .bound import BoundData
 from .kinds import Motions
+from .kinds.base import PREVIEW, REWEIGHTS
 
 #: Deformer properties the update reads itself: their values are in `Snapshot.settings`.
 SETTINGS = ("strength", "blend_mode", "branch_rule", "bind_generation")
 
-#: Deformer properties an update does not read directly, and why that is safe.
+#: Deformer properties an update does not read directly, and why that is safe: the common ones here,
+#: each kind's own with its properties (kinds.base.KindProperty).
 DECLARED = {
     # Re-weighting (binding.reweight) runs when one of these changes and bumps bind_generation.
-    "weight_mode": "re-weights: bind_generation", "radius": "re-weights: bind_generation",
-    "exponent": "re-weights: bind_generation", "normalize": "re-weights: bind_generation",
-    "mask_group": "re-weights: bind_generation", "max_influences": "re-weights: bind_generation",
-    "half_space": "re-weights: bind_generation", "cage_weights": "re-weights: bind_generation",
+    "weight_mode": REWEIGHTS, "radius": REWEIGHTS, "exponent": REWEIGHTS, "normalize": REWEIGHTS,
+    "mask_group": REWEIGHTS, "max_influences": REWEIGHTS,
     "bind_warning": "written by re-weighting: bind_generation",
-    # Read by the kind: their effect is in Snapshot.motions.
-    "probes": "read by the kind: motions", "cage": "read by the kind: motions",
-    "armature": "read by the kind: motions", "bones": "read by the kind: motions",
-    "cage_rest_matrix": "read by the kind: motions", "cage_rest_rotation_mode": "read by the kind: motions",
-    "cage_rest_rotation": "read by the kind: motions",
     # Read by the pre-checks: their effect is in Snapshot.error.
     "kind": "pre-check: error", "is_bound": "pre-check: error", "bound_flag": "pre-check: error",
     "bound_vertex_count": "pre-check: error", "bound_topology": "checked with the bind data: error",
     # Not inputs of the deformation.
     "name": "a label", "uid": "names the attributes: part of the cache key itself",
-    "active_probe_index": "interface only", "active_bone_index": "interface only",
     "status": "the update's output",
     "show_weights": "the viewport preview (weight_preview.py): no input of the deformation",
-    "weight_preview": "the viewport preview: no input of the deformation",
-    "weight_preview_face": "the viewport preview: no input of the deformation",
-    "weight_preview_fit": "the viewport preview: no input of the deformation",
+    "weight_preview": PREVIEW, "weight_preview_fit": PREVIEW,
     "show_viewport": "the modifier's own toggle (Blender skips a disabled modifier)",
     "show_render": "the modifier's own toggle (Blender skips a disabled modifier)",
+    **kinds.declared(),
 }
 
 

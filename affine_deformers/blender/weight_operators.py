@@ -1,31 +1,16 @@
-"""The operators and panel parts of painted weights (weight_groups.py holds what they do): Weights →
-Vertex Groups, Update Painted Weights, the probe list's select button and its rows."""
+"""The operators and panel part of painted weights (weight_groups.py holds what they do): Weights →
+Vertex Groups and Update Painted Weights, for the kinds that paint groups. (A kind's own list and its
+buttons, e.g. the probe list's select button, are the kind's: kinds/.)"""
 
 from __future__ import annotations
 
 import bpy
-from bpy.props import BoolProperty, IntProperty
+from bpy.props import BoolProperty
 
-from . import binding, evaluate, storage
-from .kinds import BindError, KindId
-from .kinds.probe import group_name, probe_label
-from .operators import DeformerIndexed, active_target, addressed_deformer
-from .weight_groups import (
-    STATE_ICONS,
-    STATE_TEXT,
-    conversion_problem,
-    group_targets,
-    reads_groups,
-    weights_to_groups,
-)
-
-
-def _active_deformer(context: bpy.types.Context):
-    obj = active_target(context)
-    if obj is None or not len(getattr(obj, "affine_deformers", ())):
-        return obj, None
-    index = obj.affine_deformers_active_index
-    return obj, (obj.affine_deformers[index] if 0 <= index < len(obj.affine_deformers) else None)
+from . import binding, evaluate, kinds, storage
+from .addressing import DeformerIndexed, active_deformer, addressed_deformer
+from .kinds import BindError
+from .weight_groups import conversion_problem, group_targets, reads_groups, weights_to_groups
 
 
 class AFFINE_OT_deformer_weights_to_groups(DeformerIndexed, bpy.types.Operator):
@@ -44,7 +29,7 @@ class AFFINE_OT_deformer_weights_to_groups(DeformerIndexed, bpy.types.Operator):
     def poll(cls, context: bpy.types.Context) -> bool:
         if not super().poll(context):
             return False
-        obj, deformer = _active_deformer(context)
+        obj, deformer = active_deformer(context)
         problem = conversion_problem(obj, deformer) if deformer is not None else "No active deformer"
         if problem:
             cls.poll_message_set(problem)
@@ -91,7 +76,7 @@ class AFFINE_OT_deformer_weights_update(DeformerIndexed, bpy.types.Operator):
     def poll(cls, context: bpy.types.Context) -> bool:
         if not super().poll(context):
             return False
-        obj, deformer = _active_deformer(context)
+        obj, deformer = active_deformer(context)
         problem = binding.target_problem(obj)
         if not problem and (deformer is None or not reads_groups(deformer)):
             problem = "The deformer reads no vertex groups (painted weights or a mask)"
@@ -113,73 +98,17 @@ class AFFINE_OT_deformer_weights_update(DeformerIndexed, bpy.types.Operator):
         return {"FINISHED"}
 
 
-def _selectable_problem(context: bpy.types.Context, probe: bpy.types.Object | None) -> str:
-    if probe is None:
-        return "The probe has no object"
-    view_layer = getattr(context, "view_layer", None)
-    if view_layer is None or view_layer.objects.get(probe.name) != probe:
-        return f"'{probe.name}' is not in the current view layer"
-    if probe.hide_select or not probe.visible_get(view_layer=view_layer):
-        return f"'{probe.name}' is hidden or not selectable"
-    return ""
-
-
-class AFFINE_OT_deformer_probe_select(DeformerIndexed, bpy.types.Operator):
-    """Select the probe's object alone (the mesh stays active, so this panel stays; move it with G, R,
-    S in the 3D view). Shift: make the probe the active object too"""
-
-    bl_idname = "object.affine_deformer_probe_select"
-    bl_label = "Select Probe"
-
-    probe_index: IntProperty(name="Probe", default=0, soft_min=0, description="Probe index in the deformer")
-    make_active: BoolProperty(name="Make Active", default=False,
-                              description="Also make the probe the active object")
-
-    @classmethod
-    def poll(cls, context: bpy.types.Context) -> bool:
-        if not super().poll(context):
-            return False
-        _obj, deformer = _active_deformer(context)
-        if deformer is None or deformer.kind != KindId.PROBE:
-            cls.poll_message_set("The active deformer has no probes")
-            return False
-        return True
-
-    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        self.make_active = event.shift
-        return self.execute(context)
-
-    def execute(self, context: bpy.types.Context) -> set[str]:
-        obj, deformer = addressed_deformer(self, context)
-        if obj is None:
-            return {"CANCELLED"}
-        if deformer.kind != KindId.PROBE or not 0 <= self.probe_index < len(deformer.probes):
-            self.report({"ERROR"}, f"'{deformer.name}' has no probe #{self.probe_index}")
-            return {"CANCELLED"}
-        probe = deformer.probes[self.probe_index].object
-        problem = _selectable_problem(context, probe)
-        if problem:
-            self.report({"ERROR"}, problem)
-            return {"CANCELLED"}
-        for other in list(context.selected_objects):
-            other.select_set(False)
-        probe.select_set(True)
-        if self.make_active:
-            context.view_layer.objects.active = probe
-        deformer.active_probe_index = self.probe_index
-        return {"FINISHED"}
-
-
-CLASSES = (AFFINE_OT_deformer_weights_to_groups, AFFINE_OT_deformer_weights_update,
-           AFFINE_OT_deformer_probe_select)
+CLASSES = (AFFINE_OT_deformer_weights_to_groups, AFFINE_OT_deformer_weights_update)
 
 
 # -------------------------------------------------------------------------------------------- UI
 
 
 def draw(layout: bpy.types.UILayout, deformer, index: int) -> None:
-    """The weights row of a probe or bone deformer: Weights → Groups (or, when painted, Update)."""
-    if deformer.kind not in (KindId.PROBE, KindId.BONE):
+    """The weights row of a deformer whose kind paints groups: Weights → Groups (or, when painted,
+    Update)."""
+    kind = kinds.get(deformer.kind)
+    if kind is None or not kind.paints_groups:
         return
     row = layout.row(align=True)
     if deformer.weight_mode == "VERTEX_GROUPS":
@@ -188,32 +117,3 @@ def draw(layout: bpy.types.UILayout, deformer, index: int) -> None:
         return
     row.operator(AFFINE_OT_deformer_weights_to_groups.bl_idname, text="Weights to Vertex Groups",
                  icon="GROUP_VERTEX").index = index
-
-
-def draw_probe_item(layout: bpy.types.UILayout, item, index: int) -> None:
-    """One row of the probe list: object, state, weight scale, select button."""
-    row = layout.row(align=True)
-    if item.object is None:
-        row.label(text=f"{item.name or '?'} (missing)", icon="ERROR")
-    else:
-        row.prop(item, "object", text="", emboss=False, icon="EMPTY_AXIS")
-    row.label(text=STATE_TEXT.get(item.state, ""), icon=STATE_ICONS.get(item.state, "NONE"))
-    row.prop(item, "weight_scale", text="")
-    path = item.path_from_id()  # 'affine_deformers[i].probes[j]'
-    deformer_index = int(path[path.index("[") + 1 : path.index("]")])
-    sub = row.row(align=True)
-    sub.enabled = item.object is not None
-    op = sub.operator(AFFINE_OT_deformer_probe_select.bl_idname, text="", icon="RESTRICT_SELECT_OFF",
-                      emboss=False)
-    op.index, op.probe_index = deformer_index, index
-
-
-def draw_probe_details(layout: bpy.types.UILayout, obj: bpy.types.Object, deformer) -> None:
-    """Below the probe list, painted weights: the active probe's vertex group (searchable)."""
-    if deformer.kind != KindId.PROBE or deformer.weight_mode != "VERTEX_GROUPS" or not len(deformer.probes):
-        return
-    item = deformer.probes[min(deformer.active_probe_index, len(deformer.probes) - 1)]
-    col = layout.column()
-    col.prop(item, "vertex_group", icon="GROUP_VERTEX", text=f"Group of '{probe_label(item)}'")
-    if not item.vertex_group:
-        col.label(text=f"Empty: reads '{group_name(obj, item)}'", icon="BLANK1")

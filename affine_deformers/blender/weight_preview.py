@@ -22,10 +22,11 @@ How, without touching renders or the saved deformation:
 * turning the preview off removes the modifier, the attribute, the node group once unused, and puts
   the active colour name back (kept on the deformer item, RESTORE_KEY, so it survives save / load).
 
-One deformer per object previews at a time (the viewport shows one active colour). `refresh` is
-called by the evaluation handler before the deformers are evaluated and by the preview options'
-update callbacks; it recomputes the colours only when what they show changed (bind generation,
-mode, control), and never raises.
+One deformer per object previews at a time (the viewport shows one active colour). `refresh` runs
+before an object's deformers are evaluated (weight_groups.py's hook, hooks.before_object) and from
+the preview options' update callbacks; it recomputes the colours only when what they show changed
+(bind generation, mode, control), and never raises. What it shows of each kind (its control count,
+active control, stored weights) comes from the kind (DeformerKind).
 """
 
 from __future__ import annotations
@@ -36,10 +37,8 @@ import traceback
 import bpy
 import numpy as np
 
-from . import storage
-from .kinds import BindError, KindId
-from .kinds.cage import LOOP_TOTAL, bound_with_nodes, node_data
-from .kinds.probe import pool_coefficients
+from . import caches, kinds, storage
+from .kinds import BindError
 
 PREVIEW_MODIFIER = "Affine Weight Preview"
 GROUP_NAME = ".AffineDeformer Weight Preview"
@@ -62,6 +61,13 @@ REST_COLOR = np.array([0.05, 0.05, 0.05])
 #: a missing or different entry only means the colours are recomputed and compared once; session
 #: uids are never reused, and undo restores colours together with the options they were made from).
 _written: dict[int, tuple] = {}
+
+
+@caches.register
+def _forget(key: caches.Key | None) -> None:
+    """Everything at a full forget (entries are per object, not per deformer)."""
+    if key is None:
+        _written.clear()
 
 
 def colors_name(uid: str) -> str:
@@ -104,68 +110,42 @@ def mix_colors(indices: np.ndarray, values: np.ndarray, palette: np.ndarray) -> 
 # ------------------------------------------------------------------------------------------ weights
 
 
-def _cage_faces(deformer) -> int:
-    return len(deformer[LOOP_TOTAL]) if LOOP_TOTAL in deformer else 0
-
-
 def control_count(deformer) -> int:
-    """The number of controls the preview can show: probes, bones, or the bound cage's faces."""
-    if deformer.kind == KindId.PROBE:
-        return len(deformer.probes)
-    if deformer.kind == KindId.BONE:
-        return len(deformer.bones)
-    return _cage_faces(deformer)
+    """The number of controls the preview can show (DeformerKind.control_count: probes, bones, the
+    bound cage's faces; 0 for a kind this version does not have)."""
+    kind = kinds.get(deformer.kind)
+    return kind.control_count(deformer) if kind is not None else 0
 
 
 def preview_control(deformer) -> int:
-    """The control 'ACTIVE' shows: the active probe or bone, or the cage face `weight_preview_face`
-    (-1: the cage mesh's active face), clamped to the controls there are (-1 when there are none)."""
+    """The control 'ACTIVE' shows (DeformerKind.active_control: the active probe or bone, or the cage
+    face `weight_preview_face`, -1 meaning the cage mesh's active face), clamped to the controls
+    there are (-1 when there are none)."""
     m = control_count(deformer)
     if m == 0:
         return -1
-    if deformer.kind == KindId.PROBE:
-        index = deformer.active_probe_index
-    elif deformer.kind == KindId.BONE:
-        index = deformer.active_bone_index
-    else:
-        index = deformer.weight_preview_face
-        cage = deformer.cage
-        if index < 0:
-            index = cage.data.polygons.active if cage is not None and cage.type == "MESH" else 0
+    index = kinds.get(deformer.kind).active_control(deformer)
     return int(min(max(index, 0), m - 1))
 
 
-def _stored(obj: bpy.types.Object,
-            deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """(indices (N, K), values (N, K) float64, node → face weights (G, F) or None, pool (m,) or None):
-    the deformer's stored weights; for a 'HARMONIC' cage the indices are grid nodes, each with face
-    weights. `pool`: the coefficients of the truncation's pooled control when the weights point at it
-    (index m, MATH.md §12), the mix of controls that share of a vertex follows. Raises
-    storage.StorageError / BindError when the bind data is missing or damaged."""
-    if deformer.kind == KindId.CAGE and bound_with_nodes(deformer):
-        node_weights = node_data(obj, deformer, _cage_faces(deformer)).weights
-        indices, values = storage.read_weights(obj.data, deformer.uid, len(node_weights))
-        return indices, values, node_weights, None
-    m = control_count(deformer)
-    pooled_ok = deformer.kind != KindId.BONE  # bones give pooled weight to their roots at bind
-    indices, values = storage.read_weights(obj.data, deformer.uid, m + pooled_ok)
-    pool = None
-    if pooled_ok and indices.size and int(indices.max()) == m:
-        pool = pool_coefficients(deformer) if deformer.kind == KindId.PROBE else np.full(m, 1.0 / m)
-    return indices, values, None, pool
+def _stored(obj: bpy.types.Object, deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(indices (N, K), values (N, K) float64, node → control weights (G, m) or None): the deformer's
+    stored weights (DeformerKind.stored_weights; for a 'HARMONIC' cage the indices are grid nodes,
+    each with face weights). Raises storage.StorageError / BindError when the bind data is missing or
+    damaged."""
+    kind = kinds.get(deformer.kind)
+    if kind is None:
+        raise BindError(f"{deformer.kind.title()} deformers are not available in this version")
+    return kind.stored_weights(obj, deformer)
 
 
 def control_weights(obj: bpy.types.Object, deformer, control: int) -> np.ndarray:
     """The stored weight (N,) float64 of one control (probe index, or cage face) at every vertex —
-    exactly the value the deformation uses (the mask included, the strength not; a pooled share
-    counted by the control's part in the pooled mix)."""
-    indices, values, node_weights, pool = _stored(obj, deformer)
+    exactly the value the deformation uses (the mask included, the strength not)."""
+    indices, values, node_weights = _stored(obj, deformer)
     if node_weights is not None:  # a vertex blends 8 grid nodes, each node blends the faces
         return np.einsum("nk,nk->n", values, node_weights[:, control][indices])
-    own = np.where(indices == control, values, 0.0).sum(axis=1)
-    if pool is not None:
-        own += values[:, -1] * pool[control]
-    return own
+    return np.where(indices == control, values, 0.0).sum(axis=1)
 
 
 def preview_colors(obj: bpy.types.Object, deformer) -> np.ndarray:
@@ -177,12 +157,10 @@ def preview_colors(obj: bpy.types.Object, deformer) -> np.ndarray:
         if deformer.weight_preview_fit and top > 0.0:
             weights = weights / top
         return ramp_colors(weights)
-    indices, values, node_weights, pool = _stored(obj, deformer)
+    indices, values, node_weights = _stored(obj, deformer)
     palette = control_palette(control_count(deformer))
     if node_weights is not None:
         palette = node_weights @ palette  # each node's colour: its faces' colours by their weights
-    if pool is not None:
-        palette = np.vstack([palette, pool @ palette])  # the pooled share: its controls' colours mixed
     return mix_colors(indices, values, palette)
 
 
@@ -457,8 +435,9 @@ def draw(layout: bpy.types.UILayout, context, deformer) -> None:
     sub.active = deformer.show_weights
     sub.prop(deformer, "weight_preview", text="")
     if deformer.weight_preview == "ACTIVE":
-        if deformer.kind == KindId.CAGE:
-            sub.prop(deformer, "weight_preview_face", text="Face")
+        kind = kinds.get(deformer.kind)
+        if kind is not None:
+            kind.draw_preview_options(sub, deformer)
         sub.prop(deformer, "weight_preview_fit", text="", icon="FULLSCREEN_ENTER")
     if not deformer.show_weights:
         return

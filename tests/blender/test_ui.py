@@ -107,7 +107,7 @@ def test_panel_draws_in_every_state(bl, panels):
     for item in target.affine_deformers:
         panels.AFFINE_UL_deformers.draw_item(None, None, RecordingLayout([]), None, item, 0, None, "")
         for probe in item.probes:
-            panels.AFFINE_UL_probes.draw_item(None, None, RecordingLayout([]), None, probe, 0, None, "")
+            bpy.types.AFFINE_UL_probes.draw_item(None, None, RecordingLayout([]), None, probe, 0, None, "")
 
 
 def test_turns_rule_is_shown_for_both_kinds_and_greyed_out_where_it_cannot_matter(bl, panels):
@@ -165,7 +165,7 @@ def test_bone_deformer_panel_and_convert_buttons(bl, panels):
     assert ("operator", "object.affine_armature_convert") not in log  # the modifier is disabled now
     deformer = target.affine_deformers[0]
     for item in deformer.bones:
-        panels.AFFINE_UL_bones.draw_item(None, None, RecordingLayout([]), deformer, item, 0, None, "")
+        bpy.types.AFFINE_UL_bones.draw_item(None, None, RecordingLayout([]), deformer, item, 0, None, "")
     panels.AFFINE_UL_deformers.draw_item(None, None, RecordingLayout([]), None, deformer, 0, None, "")
 
 

@@ -543,6 +543,6 @@ def test_panel_draws_the_weight_tools(bl, installed):
     assert ("prop", "vertex_group") in log
     for probe in deformer.probes:
         row: list = []
-        panels.AFFINE_UL_probes.draw_item(None, None, ui.RecordingLayout(row), None, probe, 0, None, "", 1)
+        bpy.types.AFFINE_UL_probes.draw_item(None, None, ui.RecordingLayout(row), None, probe, 0, None, "", 1)
         assert ("operator", "object.affine_deformer_probe_select") in row
         assert ("label", "rest") in row

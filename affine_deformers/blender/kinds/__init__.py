@@ -1,23 +1,26 @@
 """The deformer kinds, registered in one place.
 
-A kind is one module in this package with a class implementing `base.DeformerKind` (rest data,
-weights, current motions, controls, panel part, caches). Adding a kind = its file plus its class in
-`REGISTERED`; `AffineDeformer.kind`'s items, `KindId`, the panel, relations, binding and the update
-pipeline then know it. Kinds never import the update pipeline, binding, properties or panels (the
-package has no import cycle: tests/blender/test_structure.py walks the imports).
+A kind is a class implementing `base.DeformerKind` (rest data, weights, current motions, controls,
+its own properties, classes and panel part, what the weight tools need of it), in its own module of
+this package. Adding a kind = its file plus the class in `REGISTERED` (imported above it):
+`AffineDeformer.kind`'s items and the kind's properties on it, `KindId`, registration, the add
+operator, the panel, relations, binding, the weight tools and the update pipeline then know it. Kinds
+never import the update pipeline, binding, properties or panels; what they need of those comes
+through `services` (the package has no import cycle: tests/core/test_package_structure.py walks the
+imports).
 """
 
 from __future__ import annotations
 
 import enum
 
-from .base import BindError, Chain, ChannelTurns, DeformerKind, Motions
+from .base import BindError, Chain, ChannelTurns, DeformerKind, KindProperty, Motions
 from .bone import BoneKind
 from .cage import CageKind
 from .probe import ProbeKind
 
-__all__ = ["KINDS", "REGISTERED", "BindError", "Chain", "ChannelTurns", "DeformerKind", "KindId", "Motions",
-           "add_operator_id", "enum_items", "forget", "get"]
+__all__ = ["CLASSES", "KINDS", "REGISTERED", "BindError", "Chain", "ChannelTurns", "DeformerKind", "KindId",
+           "KindProperty", "Motions", "add_operator_id", "declared", "enum_items", "get", "properties"]
 
 #: Every kind, in the order the interface lists them (the first is the default). Append new kinds at
 #: the end: a .blend stores a deformer's kind as its position here.
@@ -27,6 +30,10 @@ KINDS: dict[str, DeformerKind] = {cls.id: cls() for cls in REGISTERED}
 
 #: The kind ids as an enum (KindId.PROBE == "PROBE"): what `AffineDeformer.kind` holds.
 KindId = enum.StrEnum("KindId", {cls.id: cls.id for cls in REGISTERED})
+
+#: The bpy classes of every kind, registered before the deformer's property group (props.py), which
+#: refers to the kinds' control item groups.
+CLASSES: tuple[type, ...] = tuple(c for cls in REGISTERED for c in cls.classes)
 
 
 def get(kind_id: str) -> DeformerKind | None:
@@ -44,7 +51,17 @@ def add_operator_id(kind_id: str) -> str:
     return f"object.affine_{kind_id.lower()}_deformer_add"
 
 
-def forget(key: tuple[int, str] | None = None) -> None:
-    """Drop every kind's caches for one deformer ((target session_uid, uid)) or for all."""
-    for kind in KINDS.values():
-        kind.forget(key)
+def properties() -> dict[str, KindProperty]:
+    """Every kind's own properties of the deformer, by name (ValueError when two kinds claim one)."""
+    found: dict[str, KindProperty] = {}
+    for cls in REGISTERED:
+        for name, prop in cls.properties().items():
+            if name in found:
+                raise ValueError(f"Deformer property '{name}' is claimed by two kinds")
+            found[name] = prop
+    return found
+
+
+def declared() -> dict[str, str]:
+    """Why the update need not read each kind's property itself (part of snapshot.DECLARED)."""
+    return {name: prop.declared for name, prop in properties().items()}

@@ -3,8 +3,11 @@
 A kind is one kind of control (probe objects, the faces of a cage, …). The rest of the Blender layer
 knows kinds only through `DeformerKind`: binding asks it for the rest data and the weights, the
 update pipeline for the controls' current motions A_i = C_i · C_rest,i⁻¹ (`Motions`), relations for
-the objects to evaluate with the target, and the panel for its part of the interface. The update
-turns motions into blend parameters ψ(A_i) in one place (params.py); a kind never does.
+the objects to evaluate with the target, the deformer's property group for the kind's own properties
+(`properties`), registration for its classes (control items, operators, lists), the panel for its
+part of the interface, and the weight tools for its control items, active control, painted groups
+and stored weights. The update turns motions into blend parameters ψ(A_i) in one place (params.py);
+a kind never does.
 
 Matrices are expressed in the target's local space, C = target_world⁻¹ · control_world, and rounded
 to float32 exactly like stored rest matrices, so a control whose current matrix is bitwise equal to
@@ -13,11 +16,47 @@ its rest matrix is recognised as "at rest" and contributes exactly the identity.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, NamedTuple
 
 import bpy
 import numpy as np
+
+from .. import storage
+
+IDENTITY16 = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+#: Items of the rest rotation mode properties (a control's rotation mode at bind).
+ROTATION_MODES = [
+    ("QUATERNION", "Quaternion", ""),
+    ("XYZ", "XYZ Euler", ""),
+    ("XZY", "XZY Euler", ""),
+    ("YXZ", "YXZ Euler", ""),
+    ("YZX", "YZX Euler", ""),
+    ("ZXY", "ZXY Euler", ""),
+    ("ZYX", "ZYX Euler", ""),
+    ("AXIS_ANGLE", "Axis Angle", ""),
+]
+
+# Why the update need not read a deformer property itself (snapshot.DECLARED; tests/blender/
+# test_structure.py changes each property and checks the reason holds).
+#: Changing it re-weights the deformer (binding.reweight), which bumps bind_generation.
+REWEIGHTS = "re-weights: bind_generation"
+#: The kind reads it for the controls' motions, which are part of the snapshot.
+READ_BY_KIND = "read by the kind: motions"
+#: Interface state (e.g. the active item of a list).
+INTERFACE = "interface only"
+#: An option of the viewport weight preview (weight_preview.py).
+PREVIEW = "the viewport preview: no input of the deformation"
+
+
+class KindProperty(NamedTuple):
+    """A property a kind adds to the deformer (`AffineDeformer`): its bpy.props definition, and why the
+    update need not read it (one of the reasons above)."""
+
+    prop: Any
+    declared: str
 
 
 class BindError(Exception):
@@ -131,18 +170,6 @@ class Adopted:
     warning: str = ""
 
 
-def draw_weight_options(layout: bpy.types.UILayout, deformer) -> None:
-    """The weight options of kinds weighted by distance, surface or painted groups (probes, bones):
-    radius only where it is a length scale, exponent where it sharpens."""
-    layout.prop(deformer, "weight_mode")
-    if deformer.weight_mode in ("INVERSE_DISTANCE", "FALLOFF"):
-        layout.prop(deformer, "radius")
-    if deformer.weight_mode in ("INVERSE_DISTANCE", "SURFACE"):
-        layout.prop(deformer, "exponent")
-    layout.prop(deformer, "normalize")
-    layout.prop(deformer, "max_influences")
-
-
 def single_selected(context: bpy.types.Context, target: bpy.types.Object, kind: str,
                     what: str) -> tuple[bpy.types.Object, list]:
     """(the one selected object of type `kind` other than `target`, the other selected objects);
@@ -161,13 +188,23 @@ def ignored_note(what: str, objects: list) -> str:
     return f"Ignored selected {what} objects: " + ", ".join(o.name for o in objects) if objects else ""
 
 
-class DeformerKind(Protocol):
+
+
+class DeformerKind(ABC):
     """The interface of a deformer kind (see kinds/__init__.py for how one is registered).
 
     id: the value of `AffineDeformer.kind` (and of kinds.KindId); label, description, icon and
     add_description (the add operator's tooltip): how the interface names it; single_control: the
     kind's controls are one object (named on the modifier's Object input; otherwise they go in its
-    probe collection, relations.py). Every method receives the target object and its deformer item."""
+    probe collection, relations.py). Every method receives the target object and its deformer item.
+
+    A kind owns its properties, operators and panel part: `properties` (merged into the deformer's
+    property group before it is registered: the names are RNA paths saved in .blend files and used by
+    scripts, never rename one), `classes` (registered before the deformer's property group: its
+    control items' PropertyGroup classes first, then its operators and lists), the draw methods. Its
+    property updates and operators reach binding and the update through `kinds.services`.
+
+    The methods below `draw_controls` have defaults for kinds without such parts."""
 
     id: ClassVar[str]
     label: ClassVar[str]
@@ -175,44 +212,133 @@ class DeformerKind(Protocol):
     icon: ClassVar[str]
     add_description: ClassVar[str]
     single_control: ClassVar[bool]
+    #: The bpy classes the kind registers (control item PropertyGroups first).
+    classes: ClassVar[tuple[type, ...]] = ()
+    #: Whether its controls' weights can be painted vertex groups ('VERTEX_GROUPS', Weights → Vertex
+    #: Groups, Update Painted Weights).
+    paints_groups: ClassVar[bool] = False
+    #: For a kind that does not paint groups: why not (ends the refusal of Weights → Vertex Groups).
+    groups_note: ClassVar[str] = ""
 
+    @classmethod
+    def properties(cls) -> dict[str, KindProperty]:
+        """The kind's own properties of the deformer, by name (see the class docstring)."""
+        return {}
+
+    # ------------------------------------------------------------------------------- adding one
+
+    @abstractmethod
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
         """The controls a new deformer of this kind on `target` gets from the selection (objects may
         be created, e.g. a probe when none is selected); BindError when the selection cannot make one,
         with nothing created."""
 
+    @abstractmethod
     def set_up(self, deformer, adopted: Adopted) -> None:
         """Give a new, unbound deformer item its controls and the kind's defaults."""
 
+    @abstractmethod
     def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
         """The report after a new deformer of this kind was added and bound."""
 
+    # ---------------------------------------------------------------------- bind and update
+
+    @abstractmethod
     def store_rest(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
                    only: list[int] | None = None) -> None:
         """Record the controls' current poses (all, or those at indices `only`) as their rest, on the
         deformer item (saved in the .blend). BindError, with nothing stored, when they cannot be."""
 
+    @abstractmethod
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
         """(indices (N, K) int32, values (N, K) float64, warning) for the rest vertices, from the
         stored rest data only (re-weighting never needs the current poses)."""
 
+    @abstractmethod
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
         """The controls' motions now, read from the evaluated `depsgraph`; never raises for bad input
         (an invalid control is `Motions.invalid` with a message)."""
 
+    @abstractmethod
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
         """The objects the target must be evaluated with (never `obj` itself)."""
 
+    # ----------------------------------------------------------------------------------- panel
+
+    @abstractmethod
     def draw_settings(self, layout: bpy.types.UILayout, deformer) -> None:
         """The kind's options in the deformer panel (between the header and the common options)."""
 
+    @abstractmethod
     def branch_rule_active(self, deformer) -> bool:
         """Whether the branch rule changes anything with the deformer's current settings (the panel
         greys it out otherwise)."""
 
+    @abstractmethod
     def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
         """The kind's control list, below the common options (nothing for a single-object kind)."""
 
-    def forget(self, key: tuple[int, str] | None = None) -> None:
-        """Drop the kind's caches for one deformer ((target session_uid, uid)) or for all."""
+    def draw_object(self, layout: bpy.types.UILayout, obj: bpy.types.Object) -> None:  # noqa: B027 (optional)
+        """The kind's buttons for the object as a whole, below the deformer list (e.g. converting an
+        Armature modifier)."""
+
+    def draw_actions(self, layout: bpy.types.UILayout, deformer, index: int) -> None:  # noqa: B027 (optional)
+        """The kind's buttons above its settings (e.g. back to the Armature modifier it replaced)."""
+
+    def draw_preview_options(self, layout: bpy.types.UILayout, deformer) -> None:  # noqa: B027 (optional)
+        """The kind's options of the weight preview's 'ACTIVE' mode (e.g. which cage face)."""
+
+    # ---------------------------------------------------------------------- the weight tools
+
+    @abstractmethod
+    def control_count(self, deformer) -> int:
+        """The number of controls the stored weights are about (probes, bones, a cage's faces)."""
+
+    @abstractmethod
+    def active_control(self, deformer) -> int:
+        """The control the weight tools show (the active item of the kind's list, a chosen face), not
+        clamped to the controls there are."""
+
+    def control_items(self, deformer) -> tuple | bpy.types.bpy_prop_collection:
+        """The deformer's items of its controls (each with a `weight_scale`), or () for a kind whose
+        controls are not items (a cage's faces)."""
+        return ()
+
+    def control_groups(self, deformer, complete: bool = False) -> list[str]:
+        """The vertex group each control's weights go into under Weights → Vertex Groups, in control
+        order. A control that names none now (a probe without an object) is left out, or, with
+        `complete`, refused (BindError naming it)."""
+        return []
+
+    def groups_written(self, deformer, names: list[str]) -> None:  # noqa: B027 (optional)
+        """After Weights → Vertex Groups wrote the groups `names` (one per control): point the
+        controls at them where the kind records that (a probe's `vertex_group`)."""
+
+    def pool_mix(self, deformer) -> np.ndarray | None:
+        """The mix (m,) of controls the truncation's pooled column (index m, MATH.md §12) blends, or
+        None for a kind whose stored weights never index it. Default: all controls alike."""
+        m = self.control_count(deformer)
+        return np.full(m, 1.0 / m) if m else None
+
+    def stored_weights(self, obj: bpy.types.Object,
+                       deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(indices (N, K), values (N, K) float64, node weights (G, m) or None): the stored bind
+        weights; when they index intermediate nodes (a 'HARMONIC' cage's grid nodes, or the pooled
+        column: G = m + 1, the controls themselves then `pool_mix`), each node's weights on the
+        controls. storage.StorageError / BindError when the bind data is damaged."""
+        m = self.control_count(deformer)
+        pool = self.pool_mix(deformer)
+        indices, values = storage.read_weights(obj.data, deformer.uid, m + (pool is not None))
+        if pool is not None and indices.size and int(indices.max()) == m:
+            return indices, values, np.vstack([np.eye(m), pool[None, :]])
+        return indices, values, None
+
+    def follow_renames(self, obj: bpy.types.Object, deformer) -> None:  # noqa: B027 (optional)
+        """Before an update: keep names the deformer stores in step with renamed controls (a renamed
+        probe's painted group). Never raises."""
+
+    def record_states(self, obj: bpy.types.Object, deformer, motions: Motions | None, error: str,  # noqa: B027 (optional)
+                      depsgraph: bpy.types.Depsgraph) -> None:
+        """After a deformer's inputs were read: show each control's state on its item (only changes
+        are written). Never raises."""

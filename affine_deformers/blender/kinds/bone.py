@@ -36,19 +36,25 @@ from dataclasses import dataclass
 
 import bpy
 import numpy as np
+from bpy.props import CollectionProperty, IntProperty, PointerProperty
 
-from ...core import hierarchy, unwrap, weights
-from .. import nodes
+from ...core import hierarchy, unwrap
+from .. import caches
+from . import armature_convert, bone_tools
 from .base import (
+    INTERFACE,
+    READ_BY_KIND,
     Adopted,
     BindError,
     Chain,
+    DeformerKind,
+    KindProperty,
     Motions,
-    draw_weight_options,
     ignored_note,
     single_selected,
 )
-from .probe import harmonic_surface_weights, surface_warning
+from .bone_tools import DEFAULT_INFLUENCES, deform_bones
+from .services import control_picker, on_preview_option
 from .transforms import (
     MAX_COORDINATE,
     finite_transform,
@@ -59,11 +65,9 @@ from .transforms import (
     ordered_matmul,
     rotation_channels,
 )
+from .weighting import control_weights, draw_weight_options
 
 REST_SEGMENTS = "bone_rest_segments"  # ID property: (m, 2, 3) float64 heads and tails, target space
-#: Max Influences of a new bone deformer (painted weights keep their K largest: as many bones as a
-#: vertex of a typical skin is painted with).
-DEFAULT_INFLUENCES = 8
 #: A bone whose pose matrix differs from its rest by at most this (relative to the bone's scale of
 #: motion: entries of B·R⁻¹ − I) counts as at rest, so a rest pose gives the mesh exactly back.
 AT_REST_TOL = 1e-6
@@ -76,9 +80,8 @@ def identity_channels(mode: str) -> tuple[float, float, float, float]:
     return _IDENTITY_CHANNELS.get(mode, (0.0, 0.0, 0.0, 0.0))
 
 
-def deform_bones(armature: bpy.types.Object) -> list[str]:
-    """The names of the armature's deform bones, in its bone order."""
-    return [bone.name for bone in armature.data.bones if bone.use_deform]
+def _poll_armature(_deformer, candidate: bpy.types.Object) -> bool:
+    return candidate.type == "ARMATURE"
 
 
 def bone_parents(armature: bpy.types.Object, names: list[str]) -> np.ndarray:
@@ -261,10 +264,10 @@ def _rest_inverse(rest: np.ndarray) -> tuple[np.ndarray, bool]:
     return found
 
 
-class BoneKind:
+class BoneKind(DeformerKind):
     """An Armature object's pose bones (all deform bones, or a chosen set) drive the mesh."""
 
-    id = "BONE"
+    id = bone_tools.BONE
     label = "Bone"
     description = "Driven by the pose bones of an armature (an affine skin)"
     icon = "BONE_DATA"
@@ -272,6 +275,21 @@ class BoneKind:
     add_description = ("Add a bone deformer to the active mesh; the selected armature's deform bones drive "
                        "it, weighted by the vertex groups named after them (as the Armature modifier reads "
                        "them), or by distance to the bones when the mesh has none of those groups")
+    classes = (*bone_tools.CLASSES, *armature_convert.CLASSES)
+    paints_groups = True
+
+    @classmethod
+    def properties(cls) -> dict[str, KindProperty]:
+        return {
+            "armature": KindProperty(PointerProperty(
+                name="Armature", type=bpy.types.Object, poll=_poll_armature,
+                update=control_picker(cls.id, "armature", "the new armature"),
+                description="Armature whose pose bones drive the target (its deform bones, at their rest "
+                            "pose in Edit Mode, are the rest)"), READ_BY_KIND),
+            "bones": KindProperty(CollectionProperty(type=bone_tools.AffineDeformerBone), READ_BY_KIND),
+            "active_bone_index": KindProperty(
+                IntProperty(name="Active Bone", default=0, min=0, update=on_preview_option), INTERFACE),
+        }
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
         """The one selected armature."""
@@ -341,23 +359,13 @@ class BoneKind:
         segments = stored.reshape(-1, 2, 3)
         heads, tails = segments[:, 0], segments[:, 1]
         scales = np.array([item.weight_scale for item in deformer.bones], dtype=np.float64)
-        warning = ""
-        dense = solved = None
-        mode = deformer.weight_mode
-        if mode == "VERTEX_GROUPS":
+        indices, values, warning = control_weights(obj, deformer, rest_points, heads, scales, names, names,
+                                                   anchors=0.5 * (heads + tails), tails=tails)
+        if deformer.weight_mode == "VERTEX_GROUPS":
             missing = [n for n in names if obj.vertex_groups.get(n) is None]
             if len(missing) == len(names):
                 warning = ("No vertex group is named after a bone: paint groups named after the bones, "
                            "or choose distance weights")
-            dense = nodes.vertex_group_weights(obj, names)
-        elif mode == "SURFACE":
-            result = harmonic_surface_weights(obj.data, rest_points, 0.5 * (heads + tails))
-            dense, solved = result.weights, result.solved
-            warning = surface_warning(result, names)
-        indices, values = weights.probe_weights(
-            rest_points, heads, mode=mode, radius=deformer.radius, exponent=deformer.exponent,
-            normalize=deformer.normalize, k=deformer.max_influences, scales=scales, dense=dense,
-            solved=solved, tails=tails if mode in ("INVERSE_DISTANCE", "FALLOFF") else None)
         if indices.size and int(indices.max()) == len(names):
             # Weight the truncation pools (near ties of more bones than Max Influences) follows the
             # root bones, so a motion of the whole skeleton stays exact there (MATH.md §12, §14).
@@ -433,19 +441,38 @@ class BoneKind:
         return deformer.blend_mode == "AFFINE_LOG"
 
     def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
-        layout.label(text=f"Bones ({len(deformer.bones)})")
-        row = layout.row()
-        row.template_list("AFFINE_UL_bones", "", deformer, "bones", deformer, "active_bone_index", rows=3)
-        col = row.column(align=True)
-        col.operator("object.affine_deformer_bone_add", icon="ADD", text="").index = index
-        op = col.operator("object.affine_deformer_bone_remove", icon="REMOVE", text="")
-        op.index, op.bone_index = index, deformer.active_bone_index
+        bone_tools.draw_controls(layout, deformer, index)
 
-    def forget(self, key: tuple[int, str] | None = None) -> None:
-        """Drop the per-bone memo (keyed on its inputs: shared by all deformers, `key` is ignored)."""
-        _rows.clear()
-        _rest_frames.clear()
-        _rest_inverses.clear()
+    def draw_object(self, layout: bpy.types.UILayout, obj: bpy.types.Object) -> None:
+        armature_convert.draw_convert(layout, obj)
+
+    def draw_actions(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
+        armature_convert.draw_restore(layout, deformer, index)
+
+    def control_count(self, deformer) -> int:
+        return len(deformer.bones)
+
+    def pool_mix(self, deformer) -> np.ndarray | None:
+        """None: weight the truncation pools goes to the root bones at bind (`sparse_weights`)."""
+        return None
+
+    def active_control(self, deformer) -> int:
+        return deformer.active_bone_index
+
+    def control_items(self, deformer) -> bpy.types.bpy_prop_collection:
+        return deformer.bones
+
+    def control_groups(self, deformer, complete: bool = False) -> list[str]:
+        """Each bone's name: the Armature modifier's convention, a group per bone name."""
+        return [item.name for item in deformer.bones]
+
+
+@caches.register
+def _forget(_key: caches.Key | None) -> None:
+    """The per-bone memos are keyed on their inputs, so shared by all deformers: any forget drops them."""
+    _rows.clear()
+    _rest_frames.clear()
+    _rest_inverses.clear()
 
 
 def _frame_matrix(obj: bpy.types.Object, armature: bpy.types.Object,

@@ -57,6 +57,7 @@ from typing import NamedTuple
 
 import bpy
 import numpy as np
+from bpy.props import BoolProperty, EnumProperty, FloatVectorProperty, IntProperty, PointerProperty
 
 from ... import accel
 from ...core import aff3
@@ -70,8 +71,22 @@ from ...core.cage import (
     signed_volume,
 )
 from ...core.cage.harmonic import harmonic_weights, node_matrices_linear
-from .. import nodes, storage
-from .base import Adopted, BindError, Motions, ignored_note, single_selected
+from .. import caches, nodes, storage
+from .base import (
+    IDENTITY16,
+    PREVIEW,
+    READ_BY_KIND,
+    REWEIGHTS,
+    ROTATION_MODES,
+    Adopted,
+    BindError,
+    DeformerKind,
+    KindProperty,
+    Motions,
+    ignored_note,
+    single_selected,
+)
+from .services import control_picker, on_preview_option, on_weight_option
 from .transforms import (
     channel_frame,
     control_evaluated,
@@ -84,6 +99,7 @@ from .transforms import (
     world_matrix,
 )
 
+CAGE = "CAGE"  # the kind's id
 REST_POINTS = "cage_rest_points"
 LOOP_VERTICES = "cage_loop_vertices"
 LOOP_START = "cage_loop_start"
@@ -116,6 +132,32 @@ _TOTALS_KEPT = 2
 # (vertex count, loop arrays' bytes) -> the validated CageTopology (`rest_cage`), oldest first.
 _topologies: dict[tuple, CageTopology] = {}
 _TOPOLOGIES_KEPT = 8
+
+
+@caches.register
+def _forget(key: caches.Key | None) -> None:
+    """The motions and node data per deformer; the topologies, keyed on their content, at a full forget."""
+    caches.drop(_last_motions, key)
+    caches.drop(_node_data, key)
+    if key is None:
+        _topologies.clear()
+
+
+def _get_cage_weights(self) -> int:
+    # Unset: 'HARMONIC' (0), except for a deformer bound before the option existed, whose stored
+    # weights are inverse-distance ones (no grid nodes): it keeps them until switched or rebound.
+    value = self.get("cage_weights_mode")
+    if value is None:
+        return 1 if self.bound_flag and self.kind == CAGE and NODE_POINTS not in self else 0
+    return int(value)
+
+
+def _set_cage_weights(self, value: int) -> None:
+    self["cage_weights_mode"] = int(value)
+
+
+def _poll_cage(self, candidate: bpy.types.Object) -> bool:
+    return candidate.type == "MESH" and candidate != self.id_data
 
 
 def weight_mode(deformer) -> str:
@@ -262,16 +304,57 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
     return points, topology, loops, start, total
 
 
-class CageKind:
+class CageKind(DeformerKind):
     """A closed mesh with outward normals; each face is a control."""
 
-    id = "CAGE"
+    id = CAGE
     label = "Cage"
     description = "Driven by the faces of a cage mesh"
     icon = "MESH_CUBE"
     single_control = True
     add_description = ("Add a cage deformer to the active mesh; the other selected mesh is the cage (closed, "
                        "normals outward). Its current shape becomes the rest shape")
+    groups_note = "their controls are cage faces (hundreds of groups); Show Weights shows them"
+
+    @classmethod
+    def properties(cls) -> dict[str, KindProperty]:
+        return {
+            "cage": KindProperty(PointerProperty(
+                name="Cage", type=bpy.types.Object, poll=_poll_cage,
+                update=control_picker(cls.id, "cage", "the new cage"),
+                description="Closed mesh with outward normals whose faces drive the target (a new pick is "
+                            "bound at its current shape)"), READ_BY_KIND),
+            "cage_rest_matrix": KindProperty(FloatVectorProperty(
+                name="Cage Rest Matrix", size=16, default=IDENTITY16,
+                description="Cage object matrix at bind, in the target's local space (row-major 4x4)"),
+                READ_BY_KIND),
+            "cage_rest_rotation_mode": KindProperty(EnumProperty(
+                name="Cage Rest Rotation Mode", items=ROTATION_MODES, default="XYZ",
+                description="Rotation mode of the cage object at bind"), READ_BY_KIND),
+            "cage_rest_rotation": KindProperty(FloatVectorProperty(
+                name="Cage Rest Rotation", size=4, default=(0.0, 0.0, 0.0, 0.0),
+                description="Rotation channels of the cage object at bind: quaternion WXYZ, axis-angle "
+                            "(angle, X, Y, Z) or Euler XYZ (unset in files bound before they were stored: "
+                            "the cage's turns then take the shortest way)"), READ_BY_KIND),
+            "half_space": KindProperty(BoolProperty(
+                name="Half-Space Rule", default=True, update=on_weight_option,
+                description="A cage face has no influence on vertices outside it (in its outer "
+                            "half-space): keeps opposite sides of a thin part apart"), REWEIGHTS),
+            "cage_weights": KindProperty(EnumProperty(
+                name="Cage Weights", get=_get_cage_weights, set=_set_cage_weights, update=on_weight_option,
+                items=[("HARMONIC", "Harmonic",
+                        "Smooth, local weights solved inside the cage on a grid (like Mesh Deform): a "
+                        "local edit of the cage moves the mesh near it smoothly", 0),
+                       ("INVERSE_DISTANCE", "Inverse Distance",
+                        "Inverse distance to each face with the half-space rule, Exponent and Max "
+                        "Influences (the weights of version 0.1)", 1)],
+                description="How the cage's faces are weighted on the target (changing it re-weights)"),
+                REWEIGHTS),
+            "weight_preview_face": KindProperty(IntProperty(
+                name="Preview Face", default=-1, min=-1, update=on_preview_option,
+                description="Cage face whose weights the preview shows (-1: the cage mesh's active face, "
+                            "picked in its Edit Mode)"), PREVIEW),
+        }
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
         """The one other selected mesh (the cage)."""
@@ -307,15 +390,29 @@ class CageKind:
     def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
         """A cage is one object, picked in the settings."""
 
-    def forget(self, key: tuple[int, str] | None = None) -> None:
-        """Drop the cached motions and node data of one deformer ((target session_uid, uid)) or of all."""
-        if key is None:
-            _last_motions.clear()
-            _node_data.clear()
-            _topologies.clear()
-        else:
-            _last_motions.pop(key, None)
-            _node_data.pop(key, None)
+    def draw_preview_options(self, layout: bpy.types.UILayout, deformer) -> None:
+        layout.prop(deformer, "weight_preview_face", text="Face")
+
+    def control_count(self, deformer) -> int:
+        """The bound cage's faces (0 before a bind)."""
+        return len(deformer[LOOP_TOTAL]) if LOOP_TOTAL in deformer else 0
+
+    def active_control(self, deformer) -> int:
+        """The face `weight_preview_face`, or with -1 the cage mesh's active face."""
+        index = deformer.weight_preview_face
+        cage = deformer.cage
+        if index < 0:
+            index = cage.data.polygons.active if cage is not None and cage.type == "MESH" else 0
+        return index
+
+    def stored_weights(self, obj: bpy.types.Object,
+                       deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """'HARMONIC' weights index grid nodes, each with its face weights (`node_data`)."""
+        if not bound_with_nodes(deformer):
+            return super().stored_weights(obj, deformer)
+        node_weights = node_data(obj, deformer, self.control_count(deformer)).weights
+        indices, values = storage.read_weights(obj.data, deformer.uid, len(node_weights))
+        return indices, values, node_weights
 
     def store_rest(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
                    only: list[int] | None = None) -> None:

@@ -4,22 +4,35 @@ Bind stores each probe's rest matrix C_rest (target space, float32) and its rota
 probe item; per update each probe's A = C · C_rest⁻¹ comes from the evaluated depsgraph, memoised per
 probe on the exact bits of its inputs (`_rows`), with its channels for the rotation-log branch.
 Weights: inverse distance, falloff, painted vertex groups or harmonic surface weights
-(core.weights.probe_weights, core.surface).
+(kinds/weighting.py). The probe items, their operators, list and states: kinds/probe_tools.py.
 """
 
 from __future__ import annotations
 
-import hashlib
 import struct
 from dataclasses import dataclass
 
 import bpy
 import numpy as np
+from bpy.props import CollectionProperty, IntProperty
 
 from ... import accel
-from ...core import surface, weights
-from .. import nodes, storage
-from .base import Adopted, BindError, ChannelTurns, Motions, draw_weight_options, ignored_note
+from ...core import weights
+from .. import caches, nodes, storage
+from . import probe_tools
+from .base import (
+    INTERFACE,
+    READ_BY_KIND,
+    Adopted,
+    BindError,
+    ChannelTurns,
+    DeformerKind,
+    KindProperty,
+    Motions,
+    ignored_note,
+)
+from .probe_tools import group_names, new_probe, probe_label, selected_probes
+from .services import on_preview_option
 from .transforms import (
     MAX_COORDINATE,
     finite_transform,
@@ -38,6 +51,7 @@ from .transforms import (
     want_resync,
     world_matrix,
 )
+from .weighting import control_weights, draw_weight_options
 
 #: Max Influences of a new probe deformer (core.weights.PROBE_INFLUENCES; the property's default, 4,
 #: stays for files of 0.1.0).
@@ -55,25 +69,6 @@ def pool_coefficients(deformer) -> np.ndarray:
     return np.zeros(0)
 
 
-def selected_probes(context: bpy.types.Context, target: bpy.types.Object) -> tuple[list, list]:
-    """Selected Empties (the probes) and the other selected non-target objects (ignored)."""
-    selected = list(getattr(context, "selected_objects", None) or [])
-    probes = [o for o in selected if o != target and o.type == "EMPTY"]
-    ignored = [o for o in selected if o != target and o.type != "EMPTY"]
-    return probes, ignored
-
-
-def new_probe(context: bpy.types.Context, target: bpy.types.Object) -> bpy.types.Object:
-    """An Empty at the target's origin, sized to the target, in the target's first collection."""
-    probe = bpy.data.objects.new(f"{target.name}.Probe", None)
-    probe.empty_display_type = "SPHERE"
-    probe.empty_display_size = max(0.1, 0.25 * max(target.dimensions))
-    probe.location = target.matrix_world.translation  # unparented: location is the world position
-    collections = target.users_collection
-    (collections[0] if collections else context.scene.collection).objects.link(probe)
-    return probe
-
-
 def rest_matrices(deformer) -> np.ndarray:
     """Stored rest matrices (m, 4, 4) float32 (row-major, as written by store_rest)."""
     flat = np.empty(len(deformer.probes) * 16, dtype=np.float32)
@@ -82,33 +77,10 @@ def rest_matrices(deformer) -> np.ndarray:
     return flat.reshape(-1, 4, 4)
 
 
-def probe_label(item) -> str:
-    obj = item.object
-    return obj.name if obj is not None else (item.name or "?")
-
-
-def group_name(obj: bpy.types.Object, item) -> str:
-    """The vertex group holding the painted weights of probe `item`: its `vertex_group`, else the
-    group named after the probe — or after its former name (`item.name`) while only that exists,
-    i.e. the probe was renamed and weight_groups.follow_renames has not renamed the group yet."""
-    if item.vertex_group:
-        return item.vertex_group
-    label = probe_label(item)
-    groups = obj.vertex_groups
-    if groups.get(label) is None and item.name and item.name != label and groups.get(item.name) is not None:
-        return item.name
-    return label
-
-
-def group_names(obj: bpy.types.Object, deformer) -> list[str]:
-    """The painted-weight group of every probe of `deformer` (what 'VERTEX_GROUPS' reads)."""
-    return [group_name(obj, item) for item in deformer.probes]
-
-
-class ProbeKind:
+class ProbeKind(DeformerKind):
     """Probes: any objects (normally Empties) whose motion drives the mesh."""
 
-    id = "PROBE"
+    id = probe_tools.PROBE
     label = "Probe"
     description = "Driven by the motion of probe objects"
     icon = "EMPTY_AXIS"
@@ -116,6 +88,16 @@ class ProbeKind:
     add_description = ("Add a probe deformer to the active mesh; the selected Empties become its probes "
                        "(none selected: one new Empty at the mesh's origin). Their current poses become the "
                        "rest pose")
+    classes = probe_tools.CLASSES
+    paints_groups = True
+
+    @classmethod
+    def properties(cls) -> dict[str, KindProperty]:
+        return {
+            "probes": KindProperty(CollectionProperty(type=probe_tools.AffineDeformerProbe), READ_BY_KIND),
+            "active_probe_index": KindProperty(
+                IntProperty(name="Active Probe", default=0, min=0, update=on_preview_option), INTERFACE),
+        }
 
     def store_rest(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
                    only: list[int] | None = None) -> None:
@@ -152,23 +134,15 @@ class ProbeKind:
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
         rests = rest_matrices(deformer).astype(np.float64)
         scales = np.array([item.weight_scale for item in deformer.probes], dtype=np.float64)
-        warning = ""
-        dense = solved = None
+        names = group_names(obj, deformer)  # a renamed probe keeps its painted group
+        labels = [probe_label(item) for item in deformer.probes]
+        indices, values, warning = control_weights(obj, deformer, rest_points, rests[:, :3, 3], scales,
+                                                   names, labels)
         if deformer.weight_mode == "VERTEX_GROUPS":
-            names = group_names(obj, deformer)  # a renamed probe keeps its painted group
             missing = [n for n in names if obj.vertex_groups.get(n) is None]
             if missing:
                 warning = ("No vertex group named " + ", ".join(f"'{n}'" for n in missing)
                            + ": paint one per probe, named after it (those probes have no influence)")
-            dense = nodes.vertex_group_weights(obj, names)
-        elif deformer.weight_mode == "SURFACE":
-            result = harmonic_surface_weights(obj.data, rest_points, rests[:, :3, 3])
-            dense, solved = result.weights, result.solved
-            warning = surface_warning(result, [probe_label(item) for item in deformer.probes])
-        indices, values = weights.probe_weights(
-            rest_points, rests[:, :3, 3], mode=deformer.weight_mode, radius=deformer.radius,
-            exponent=deformer.exponent, normalize=deformer.normalize, k=deformer.max_influences,
-            scales=scales, dense=dense, solved=solved)
         return indices, values, warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
@@ -282,74 +256,49 @@ class ProbeKind:
         return deformer.blend_mode == "AFFINE_LOG"
 
     def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
-        layout.label(text="Probes")
-        row = layout.row()
-        row.template_list("AFFINE_UL_probes", "", deformer, "probes", deformer, "active_probe_index", rows=2)
-        col = row.column(align=True)
-        col.operator("object.affine_deformer_probe_add", icon="ADD", text="").index = index
-        op = col.operator("object.affine_deformer_probe_remove", icon="REMOVE", text="")
-        op.index, op.probe_index = index, deformer.active_probe_index
+        probe_tools.draw_controls(layout, deformer, index)
 
-    def forget(self, key: tuple[int, str] | None = None) -> None:
-        """Drop the per-probe and surface-weight memos (keyed on their inputs, so shared by all
-        deformers: `key` is ignored; they only hold recomputable values)."""
-        _rows.clear()
-        _rest_inverses.clear()
-        _surface_memo.clear()
+    def control_count(self, deformer) -> int:
+        return len(deformer.probes)
 
+    def pool_mix(self, deformer) -> np.ndarray | None:
+        """The pooled column blends the probes by their weight scales (`pool_coefficients`)."""
+        return pool_coefficients(deformer) if len(deformer.probes) else None
 
-def mesh_triangles(mesh: bpy.types.Mesh) -> np.ndarray:
-    """The mesh's tessellation (T, 3) int32 vertex indices (Blender's loop triangles: every face,
-    n-gons included), read with one foreach_get."""
-    if hasattr(mesh, "calc_loop_triangles"):
-        mesh.calc_loop_triangles()
-    triangles = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int32)
-    if triangles.size:
-        mesh.loop_triangles.foreach_get("vertices", triangles)
-    return triangles.reshape(-1, 3)
+    def active_control(self, deformer) -> int:
+        return deformer.active_probe_index
 
+    def control_items(self, deformer) -> bpy.types.bpy_prop_collection:
+        return deformer.probes
 
-#: Recent harmonic solves keyed on their exact inputs (rest positions, triangles, probe rest
-#: positions): re-weighting with another exponent, normalisation, influence count or weight scale
-#: reuses the solve instead of repeating it. Bounded; recomputable.
-SURFACE_MEMO_SIZE = 4
-_surface_memo: dict[bytes, surface.HarmonicWeights] = {}
+    def control_groups(self, deformer, complete: bool = False) -> list[str]:
+        """Each probe's object's name (the group Weights → Vertex Groups writes is named after it)."""
+        if complete:
+            for i, item in enumerate(deformer.probes):
+                if item.object is None:
+                    raise BindError(f"Probe {i + 1} ('{item.name or '?'}') has no object: pick one or "
+                                    "remove it")
+        return [item.object.name for item in deformer.probes if item.object is not None]
 
+    def groups_written(self, deformer, names: list[str]) -> None:
+        """Each probe reads its new group by name (and is named after it)."""
+        for item, name in zip(deformer.probes, names, strict=True):
+            item.vertex_group = name
+            item.name = name
 
-def harmonic_surface_weights(mesh: bpy.types.Mesh, rest_points: np.ndarray,
-                             centers: np.ndarray) -> surface.HarmonicWeights:
-    """core.surface.harmonic_weights of probes at `centers` (m, 3) on the mesh's rest shape
-    `rest_points` (N, 3) and its loop triangles (memoised on the exact inputs)."""
-    triangles = mesh_triangles(mesh)
-    points = np.ascontiguousarray(rest_points, dtype=np.float64)
-    centers = np.ascontiguousarray(centers, dtype=np.float64)
-    digest = hashlib.blake2b(digest_size=16)
-    for array in (points, triangles, centers):
-        digest.update(str(array.shape).encode())
-        digest.update(array.tobytes())
-    key = digest.digest()
-    result = _surface_memo.get(key)
-    if result is None:
-        result = surface.harmonic_weights(points, triangles, centers)
-        if len(_surface_memo) >= SURFACE_MEMO_SIZE:
-            _surface_memo.pop(next(iter(_surface_memo)))
-        _surface_memo[key] = result
-    return result
+    def follow_renames(self, obj: bpy.types.Object, deformer) -> None:
+        probe_tools.follow_renames(obj, deformer)
+
+    def record_states(self, obj: bpy.types.Object, deformer, motions: Motions | None, error: str,
+                      depsgraph: bpy.types.Depsgraph) -> None:
+        probe_tools.record_states(obj, deformer, motions, error, depsgraph)
 
 
-def surface_warning(result: surface.HarmonicWeights, names: list[str]) -> str:
-    """The status note of a 'SURFACE' weighting: loose parts that fell back to inverse distance, and
-    probes that own no surface ('' when neither)."""
-    notes = []
-    if result.loose_parts:
-        parts = "1 loose part" if result.loose_parts == 1 else f"{result.loose_parts} loose parts"
-        notes.append(f"Surface weights: {parts} ({result.loose_vertices} vertices) without a probe near "
-                     "them use inverse-distance weights")
-    if result.unanchored:
-        listed = ", ".join(f"'{names[i]}'" for i in result.unanchored)
-        notes.append(f"Surface weights: {listed} share the nearest surface with another probe and have "
-                     "no surface influence")
-    return "; ".join(notes)
+@caches.register
+def _forget(_key: caches.Key | None) -> None:
+    """The per-probe memos are keyed on their inputs, so shared by all deformers: any forget drops them."""
+    _rows.clear()
+    _rest_inverses.clear()
 
 
 @dataclass(frozen=True)

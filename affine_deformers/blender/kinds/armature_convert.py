@@ -1,4 +1,4 @@
-"""Upgrade an Armature modifier to a bone deformer (kinds/bone.py), and back.
+"""Upgrade an Armature modifier to a bone deformer (kinds/bone.py), and back: the bone kind's.
 
 Convert: a bone deformer with the modifier's armature, its deform bones and the vertex groups named
 after them (as the Armature modifier reads them: weights normalised per vertex), its mask group, in
@@ -12,10 +12,11 @@ from __future__ import annotations
 import bpy
 from bpy.props import StringProperty
 
-from . import binding, evaluate, nodes, storage
-from .kinds import BindError, KindId
-from .kinds.bone import DEFAULT_INFLUENCES, deform_bones
-from .operators import UNDOABLE, DeformerIndexed, active_target
+from .. import nodes, storage
+from ..addressing import UNDOABLE, DeformerIndexed, active_target, deformer_at, deformer_index, target_problem
+from .base import BindError
+from .bone_tools import BONE, DEFAULT_INFLUENCES, deform_bones
+from .services import services
 
 CONVERTED_KEY = "affdef_converted_from"  # ID property on the deformer item: the modifier and its toggles
 
@@ -30,7 +31,7 @@ def armature_modifiers(obj: bpy.types.Object | None) -> list[bpy.types.Modifier]
 def convert(obj: bpy.types.Object, modifier: bpy.types.Modifier, depsgraph: bpy.types.Depsgraph):
     """Add the bone deformer replacing `modifier` (see the module docstring); returns (deformer,
     warnings). BindError, with nothing changed, when it cannot be made."""
-    problem = binding.target_problem(obj)
+    problem = target_problem(obj)
     if problem:
         raise BindError(problem)
     armature = modifier.object
@@ -48,8 +49,9 @@ def convert(obj: bpy.types.Object, modifier: bpy.types.Modifier, depsgraph: bpy.
     if modifier.vertex_group and modifier.invert_vertex_group:
         warnings.append(f"'{modifier.name}' inverts its mask group: the bone deformer masks without "
                         "inverting")
-    deformer = binding.create(obj, KindId.BONE, f"{modifier.name} (Affine)")
-    with binding.quiet():  # bound below in one go
+    provided = services()
+    deformer = provided.create(obj, BONE, f"{modifier.name} (Affine)")
+    with provided.quiet():  # bound below in one go
         deformer.armature = armature
         for name in deform_bones(armature):
             deformer.bones.add().name = name
@@ -58,9 +60,9 @@ def convert(obj: bpy.types.Object, modifier: bpy.types.Modifier, depsgraph: bpy.
         deformer.max_influences = DEFAULT_INFLUENCES
         deformer.mask_group = modifier.vertex_group
     try:
-        binding.bind(obj, deformer, depsgraph)
+        provided.bind(obj, deformer, depsgraph)
     except (BindError, ValueError):
-        binding.remove(obj, binding.deformer_index(obj, deformer))
+        provided.remove(obj, deformer_index(obj, deformer))
         raise
     ours = nodes.find_modifier(obj, storage.offset_name(deformer.uid))
     stack = list(obj.modifiers)
@@ -74,7 +76,7 @@ def convert(obj: bpy.types.Object, modifier: bpy.types.Modifier, depsgraph: bpy.
 def restore(obj: bpy.types.Object, index: int) -> str:
     """Give the Armature modifier a converted deformer replaced its toggles back and remove the
     deformer; returns a summary. BindError when the deformer was not converted or its modifier is gone."""
-    deformer = binding.deformer_at(obj, index)
+    deformer = deformer_at(obj, index)
     state = deformer.get(CONVERTED_KEY)
     if state is None:
         raise BindError(f"'{deformer.name}' was not converted from an Armature modifier")
@@ -84,7 +86,7 @@ def restore(obj: bpy.types.Object, index: int) -> str:
     modifier.show_viewport = bool(state["show_viewport"])
     modifier.show_render = bool(state["show_render"])
     name = deformer.name
-    binding.remove(obj, index)
+    services().remove(obj, index)
     return f"Removed '{name}' and turned '{modifier.name}' back on"
 
 
@@ -102,7 +104,7 @@ class AFFINE_OT_armature_convert(bpy.types.Operator):
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
         obj = active_target(context)
-        problem = binding.target_problem(obj)
+        problem = target_problem(obj)
         if not problem and not armature_modifiers(obj):
             problem = f"'{obj.name}' has no Armature modifier with an armature"
         if problem:
@@ -111,7 +113,7 @@ class AFFINE_OT_armature_convert(bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         obj = active_target(context)
-        problem = binding.target_problem(obj)
+        problem = target_problem(obj)
         if problem:
             self.report({"ERROR"}, problem)
             return {"CANCELLED"}
@@ -127,7 +129,7 @@ class AFFINE_OT_armature_convert(bpy.types.Operator):
         except (BindError, ValueError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        evaluate.evaluate_object(obj, context.evaluated_depsgraph_get())
+        services().evaluate(obj, context.evaluated_depsgraph_get())
         for warning in warnings:
             self.report({"WARNING"}, warning)
         self.report({"INFO"}, f"Converted '{modifier.name}' to '{deformer.name}' ({len(deformer.bones)} "
