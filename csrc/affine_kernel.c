@@ -527,49 +527,73 @@ int32_t ak_abi_version(void) { return AK_ABI_VERSION; }
 
 int64_t ak_chunk(void) { return CHUNK; }
 
-int64_t ak_deform_points(const double *points, int64_t n_points, const double *table, int64_t m, const int32_t *idx,
-                         const double *val, int64_t K, const int64_t *rows, int64_t n_rows, int32_t use_rows,
-                         int32_t offsets, double *out, float *out32, int32_t use32, int64_t *counter) {
-    int64_t n = use_rows ? n_rows : n_points;
+/* The work list's chunks on the calling thread: claim the next chunk from the shared counter until
+ * none is left, running `chunk` on a scratch of `rows` rows (and, with `with_q`, CHUNK offsets).
+ * Returns the chunks done, -1 when no scratch could be had. */
+typedef void (*chunk_fn)(const void *args, double *W, uint64_t *Q, int64_t a, int64_t len);
+
+static int64_t run_chunks(const void *args, chunk_fn chunk, int64_t n, int n_scratch_rows, int with_q,
+                          int64_t *counter) {
     int64_t n_chunks = (n + CHUNK - 1) / CHUNK;
-    if (use_rows && !rows_in_range(rows, n_rows, n_points)) return ROWS_OUT_OF_RANGE;
+    size_t wbytes = sizeof(double) * (size_t)n_scratch_rows * STRIDE;
     int slot;
-    double *W = scratch_get(sizeof(double) * N_POINT_ROWS * STRIDE, &slot);
-    if (!W) return -1;
+    char *buf = scratch_get(wbytes + (with_q ? sizeof(uint64_t) * CHUNK : 0), &slot);
+    if (!buf) return -1;
     int64_t done = 0;
     for (;;) {
         int64_t c = claim(counter);
         if (c >= n_chunks) break;
         int64_t a = c * CHUNK;
-        int64_t len = n - a < CHUNK ? n - a : CHUNK;
-        chunk_points(W, points, table, (uint64_t)(m - 1), idx, val, K, rows, a, len, use_rows, offsets, out, out32,
-                     use32);
+        chunk(args, (double *)buf, with_q ? (uint64_t *)(buf + wbytes) : NULL, a, n - a < CHUNK ? n - a : CHUNK);
         done++;
     }
-    scratch_put(W, slot);
+    scratch_put(buf, slot);
     return done;
+}
+
+/* One entry's arguments, as the chunk functions read them. */
+typedef struct {
+    const double *points, *table, *val, *mats;
+    const int32_t *idx, *prefix;
+    const int64_t *rows;
+    int64_t N, K, n_pass;
+    uint64_t last, last_mat;
+    int32_t use_rows, offsets, use32;
+    double *out;
+    float *out32;
+} entry_args;
+
+static void points_chunk(const void *p, double *W, uint64_t *Q, int64_t a, int64_t len) {
+    const entry_args *e = p;
+    (void)Q;
+    chunk_points(W, e->points, e->table, e->last, e->idx, e->val, e->K, e->rows, a, len, e->use_rows, e->offsets,
+                 e->out, e->out32, e->use32);
+}
+
+static void motions_chunk(const void *p, double *W, uint64_t *Q, int64_t a, int64_t len) {
+    const entry_args *e = p;
+    (void)Q;
+    chunk_motions(W, e->table, e->last, e->idx, e->val, e->K, e->rows, a, len, e->use_rows, e->N, e->out, e->out32,
+                  e->use32);
+}
+
+int64_t ak_deform_points(const double *points, int64_t n_points, const double *table, int64_t m, const int32_t *idx,
+                         const double *val, int64_t K, const int64_t *rows, int64_t n_rows, int32_t use_rows,
+                         int32_t offsets, double *out, float *out32, int32_t use32, int64_t *counter) {
+    if (use_rows && !rows_in_range(rows, n_rows, n_points)) return ROWS_OUT_OF_RANGE;
+    entry_args e = {.points = points, .table = table, .val = val, .idx = idx, .rows = rows, .N = n_points, .K = K,
+                    .last = (uint64_t)(m - 1), .use_rows = use_rows, .offsets = offsets, .use32 = use32,
+                    .out = out, .out32 = out32};
+    return run_chunks(&e, points_chunk, use_rows ? n_rows : n_points, N_POINT_ROWS, 0, counter);
 }
 
 int64_t ak_motion_params(const double *table, int64_t m, const int32_t *idx, const double *val, int64_t N, int64_t K,
                          const int64_t *rows, int64_t n_rows, int32_t use_rows, double *out, float *out32,
                          int32_t use32, int64_t *counter) {
-    int64_t n = use_rows ? n_rows : N;
-    int64_t n_chunks = (n + CHUNK - 1) / CHUNK;
     if (use_rows && !rows_in_range(rows, n_rows, N)) return ROWS_OUT_OF_RANGE;
-    int slot;
-    double *W = scratch_get(sizeof(double) * N_MOTION_ROWS * STRIDE, &slot);
-    if (!W) return -1;
-    int64_t done = 0;
-    for (;;) {
-        int64_t c = claim(counter);
-        if (c >= n_chunks) break;
-        int64_t a = c * CHUNK;
-        int64_t len = n - a < CHUNK ? n - a : CHUNK;
-        chunk_motions(W, table, (uint64_t)(m - 1), idx, val, K, rows, a, len, use_rows, N, out, out32, use32);
-        done++;
-    }
-    scratch_put(W, slot);
-    return done;
+    entry_args e = {.table = table, .val = val, .idx = idx, .rows = rows, .N = N, .K = K, .last = (uint64_t)(m - 1),
+                    .use_rows = use_rows, .use32 = use32, .out = out, .out32 = out32};
+    return run_chunks(&e, motions_chunk, use_rows ? n_rows : N, N_MOTION_ROWS, 0, counter);
 }
 
 /* ------------------------------------------------------------------------------------------------
@@ -676,58 +700,39 @@ static void chain_motion_chunk(double *restrict W, uint64_t *Q, const double *T,
     store_motion_columns(W, 24, rows, use_rows, a, n, N, out, out32, use32);
 }
 
+static void chain_points_run(const void *p, double *W, uint64_t *Q, int64_t a, int64_t len) {
+    const entry_args *e = p;
+    chain_points_chunk(W, Q, e->points, e->table, e->last, e->idx, e->val, e->n_pass, e->N, e->K, e->prefix, e->mats,
+                       e->last_mat, e->rows, a, len, e->use_rows, e->offsets, e->out, e->out32, e->use32);
+}
+
+static void chain_motion_run(const void *p, double *W, uint64_t *Q, int64_t a, int64_t len) {
+    const entry_args *e = p;
+    chain_motion_chunk(W, Q, e->table, e->last, e->idx, e->val, e->n_pass, e->N, e->K, e->prefix, e->mats,
+                       e->last_mat, e->rows, a, len, e->use_rows, e->out, e->out32, e->use32);
+}
+
 int64_t ak_chain_points(const double *points, int64_t N, const double *table, int64_t m, const int32_t *idx,
                         const double *val, int64_t n_pass, int64_t K, const int32_t *prefix, const double *mats,
                         int64_t n_mats, const int64_t *rows, int64_t n_rows, int32_t use_rows, int32_t offsets,
                         double *out, float *out32, int32_t use32, int64_t *counter) {
-    int64_t n = use_rows ? n_rows : N;
-    int64_t n_chunks = (n + CHUNK - 1) / CHUNK;
     if (use_rows && !rows_in_range(rows, n_rows, N)) return ROWS_OUT_OF_RANGE;
-    int slot;
-    size_t wbytes = sizeof(double) * N_CHAIN_ROWS * STRIDE;
-    char *buf = scratch_get(wbytes + sizeof(uint64_t) * CHUNK, &slot);
-    if (!buf) return -1;
-    double *W = (double *)buf;
-    uint64_t *Q = (uint64_t *)(buf + wbytes);
-    int64_t done = 0;
-    for (;;) {
-        int64_t c = claim(counter);
-        if (c >= n_chunks) break;
-        int64_t a = c * CHUNK;
-        int64_t len = n - a < CHUNK ? n - a : CHUNK;
-        chain_points_chunk(W, Q, points, table, (uint64_t)(m - 1), idx, val, n_pass, N, K, prefix, mats,
-                           (uint64_t)(n_mats - 1), rows, a, len, use_rows, offsets, out, out32, use32);
-        done++;
-    }
-    scratch_put(buf, slot);
-    return done;
+    entry_args e = {.points = points, .table = table, .val = val, .mats = mats, .idx = idx, .prefix = prefix,
+                    .rows = rows, .N = N, .K = K, .n_pass = n_pass, .last = (uint64_t)(m - 1),
+                    .last_mat = (uint64_t)(n_mats - 1), .use_rows = use_rows, .offsets = offsets, .use32 = use32,
+                    .out = out, .out32 = out32};
+    return run_chunks(&e, chain_points_run, use_rows ? n_rows : N, N_CHAIN_ROWS, 1, counter);
 }
 
 int64_t ak_chain_motion(const double *table, int64_t m, const int32_t *idx, const double *val, int64_t n_pass,
                         int64_t N, int64_t K, const int32_t *prefix, const double *mats, int64_t n_mats,
                         const int64_t *rows, int64_t n_rows, int32_t use_rows, double *out, float *out32,
                         int32_t use32, int64_t *counter) {
-    int64_t n = use_rows ? n_rows : N;
-    int64_t n_chunks = (n + CHUNK - 1) / CHUNK;
     if (use_rows && !rows_in_range(rows, n_rows, N)) return ROWS_OUT_OF_RANGE;
-    int slot;
-    size_t wbytes = sizeof(double) * N_CHAIN_MOTION_ROWS * STRIDE;
-    char *buf = scratch_get(wbytes + sizeof(uint64_t) * CHUNK, &slot);
-    if (!buf) return -1;
-    double *W = (double *)buf;
-    uint64_t *Q = (uint64_t *)(buf + wbytes);
-    int64_t done = 0;
-    for (;;) {
-        int64_t c = claim(counter);
-        if (c >= n_chunks) break;
-        int64_t a = c * CHUNK;
-        int64_t len = n - a < CHUNK ? n - a : CHUNK;
-        chain_motion_chunk(W, Q, table, (uint64_t)(m - 1), idx, val, n_pass, N, K, prefix, mats,
-                           (uint64_t)(n_mats - 1), rows, a, len, use_rows, out, out32, use32);
-        done++;
-    }
-    scratch_put(buf, slot);
-    return done;
+    entry_args e = {.table = table, .val = val, .mats = mats, .idx = idx, .prefix = prefix, .rows = rows, .N = N,
+                    .K = K, .n_pass = n_pass, .last = (uint64_t)(m - 1), .last_mat = (uint64_t)(n_mats - 1),
+                    .use_rows = use_rows, .use32 = use32, .out = out, .out32 = out32};
+    return run_chunks(&e, chain_motion_run, use_rows ? n_rows : N, N_CHAIN_MOTION_ROWS, 1, counter);
 }
 
 /* ------------------------------------------------------------------------------------------------

@@ -5,7 +5,8 @@ platform serves every Blender and Python from 4.2 on. It is cross-compiled here 
 `ziglang` wheel in the dev venv, `python -m ziglang cc`), which carries the C libraries and SDK stubs of
 every target: glibc 2.17 for Linux (loads on every distribution Blender supports), mingw-w64 with the
 UCRT for Windows (the DLL needs only system DLLs), macOS 11 on arm64 (Apple M1) and 10.15 on x86-64.
-x86-64 platforms get a second, AVX2/FMA build (x86-64-v3) the loader picks from the CPU's features.
+x86-64 platforms also get AVX2 (x86-64-v3) and AVX-512 (x86-64-v4) builds the loader picks from the
+CPU's features.
 One set of IEEE-strict flags for every build (no -ffast-math, no FP contraction: results must not
 depend on the build), symbols hidden except the AK_EXPORT ones (native.EXPORTS), stripped.
 
@@ -50,7 +51,11 @@ WHEEL_NAME = "affine_deformers_kernel"
 #: only AK_EXPORT symbols visible, stripped (no symbol table or debug info with build paths).
 CFLAGS = ("-std=c11", "-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno",
           "-fvisibility=hidden", "-Wall", "-Wextra", "-s")
-AVX2_FLAGS = ("-mcpu=x86_64_v3",)  # AVX2, FMA, BMI2 (Haswell, Zen 1 and newer)
+#: Each library's own flags, by its position in native.LIBRARY_NAMES: the baseline, then on x86-64
+#: AVX2 (x86-64-v3: Haswell, Zen 1 and newer) and AVX-512 (x86-64-v4: Skylake-SP, Zen 4 and newer;
+#: 512-bit vectors, which clang does not prefer by default). No FMA contraction in any of them, so
+#: every build gives the same bits.
+VARIANT_FLAGS = ((), ("-mcpu=x86_64_v3",), ("-mcpu=x86_64_v4", "-mprefer-vector-width=512"))
 #: zip entries' time: 1980-01-01, the earliest a zip can hold (reproducible wheels).
 ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
@@ -59,7 +64,7 @@ ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 class Target:
     zig: str  # zig's -target
     wheel_tag: str  # the wheel's platform tag (compound tags joined by ".")
-    avx2: bool  # also build the AVX2/FMA variant
+    x86: bool  # also build the AVX2 and AVX-512 variants
     libs: tuple[str, ...] = ()
 
 
@@ -104,23 +109,23 @@ def host_platform() -> str:
 
 
 def library_files(platform: str, constants: dict | None = None) -> list[str]:
-    """The library file names of `platform`, baseline first."""
+    """The library file names of `platform`, baseline first (then the x86-64 variants)."""
     constants = constants or native_constants()
     names = constants["LIBRARY_NAMES"]
     suffix = constants["PLATFORMS"][platform]
-    return [names[0] + suffix] + ([names[1] + suffix] if TARGETS[platform].avx2 else [])
+    return [name + suffix for name in (names if TARGETS[platform].x86 else names[:1])]
 
 
 def wheel_filename(platform: str, ver: str | None = None) -> str:
     return f"{WHEEL_NAME}-{ver or version()}-py3-none-{TARGETS[platform].wheel_tag}.whl"
 
 
-def zig_command(platform: str, avx2: bool, output: Path) -> list[str]:
+def zig_command(platform: str, variant: int, output: Path) -> list[str]:
     target = TARGETS[platform]
     # a dylib records its install name, by default the output path: use a fixed one (reproducible)
     link = [f"-Wl,-install_name,@rpath/{output.name}"] if "-macos" in target.zig else []
     return [sys.executable, "-m", "ziglang", "cc", *CFLAGS, "-target", target.zig,
-            *(AVX2_FLAGS if avx2 else ()), "-o", str(output), str(SOURCE), *link, *target.libs]
+            *VARIANT_FLAGS[variant], "-o", str(output), str(SOURCE), *link, *target.libs]
 
 
 def zig_env() -> dict[str, str]:
@@ -130,7 +135,7 @@ def zig_env() -> dict[str, str]:
     return env
 
 
-def compile_one(platform: str, name: str, avx2: bool, dest: Path) -> float:
+def compile_one(platform: str, name: str, variant: int, dest: Path) -> float:
     """Compile one library into `dest`/name; returns the seconds it took. zig also writes an import
     library (.lib) next to a DLL: compile in a scratch directory and keep the library only, moved into
     place in one step (a process that has the old file loaded keeps its copy)."""
@@ -138,7 +143,7 @@ def compile_one(platform: str, name: str, avx2: bool, dest: Path) -> float:
     dest.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=".affdef_native_", dir=dest) as tmp:
         out = Path(tmp) / name
-        proc = subprocess.run(zig_command(platform, avx2, out), cwd=ROOT, env=zig_env(),
+        proc = subprocess.run(zig_command(platform, variant, out), cwd=ROOT, env=zig_env(),
                               capture_output=True, text=True)
         if proc.returncode != 0 or not out.exists():
             raise SystemExit(f"building {platform}/{name} failed:\n{proc.stdout}{proc.stderr}")
@@ -225,7 +230,7 @@ def build(platforms: list[str], output: Path, jobs: int) -> dict[str, Path]:
     output/<platform>/ and write one wheel each into output/wheels/; returns platform → wheel."""
     constants = native_constants()
     ver = version()
-    work = [(p, name, i == 1) for p in platforms for i, name in enumerate(library_files(p, constants))]
+    work = [(p, name, i) for p in platforms for i, name in enumerate(library_files(p, constants))]
     for platform in platforms:  # only this build's files in a platform's directory
         for stale in (output / platform).glob("*"):
             if stale.is_file() and (platform, stale.name) not in {(p, n) for p, n, _a in work}:
@@ -233,7 +238,7 @@ def build(platforms: list[str], output: Path, jobs: int) -> dict[str, Path]:
     start = time.perf_counter()
     with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
         times = list(pool.map(lambda w: compile_one(w[0], w[1], w[2], output / w[0]), work))
-    for (platform, name, _avx2), seconds in zip(work, times, strict=True):
+    for (platform, name, _variant), seconds in zip(work, times, strict=True):
         size = (output / platform / name).stat().st_size
         print(f"  {platform}/{name}: {size / 1024:.0f} KiB, {seconds:.1f} s")
     wheels = {}

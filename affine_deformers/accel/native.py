@@ -14,10 +14,11 @@ Where the library is looked for, first match wins:
    Blender installs into the extension's site-packages): its LIBRARY_DIR;
 3. the source tree's build/native/<platform>/ (`make native`).
 
-On x86-64 there are two builds, the baseline and one for AVX2/FMA CPUs (`affine_kernel_avx2`, more
-and wider vector registers, no FMA contraction: the same bits). The AVX2 one is taken when numpy
-reports AVX2 and FMA3 and the file is there; $AFFINE_DEFORMERS_KERNEL_VARIANT = 'baseline' or
-'avx2' picks one (the benchmarks compare them).
+On x86-64 there are three builds: the baseline, one for AVX2 CPUs (`affine_kernel_avx2`) and one for
+AVX-512 CPUs (`affine_kernel_avx512`): wider vectors, no FMA contraction, so all three give the same
+bits. The widest one numpy reports the CPU features of (AVX-512: AVX512_SKX; AVX2: AVX2 and FMA3) is
+taken where its file is there; $AFFINE_DEFORMERS_KERNEL_VARIANT = 'baseline', 'avx2' or 'avx512'
+picks one (the benchmarks and tests compare them).
 
 The wrappers check what the C code relies on for memory safety — dtypes, C-contiguity, shapes that
 agree — and raise TypeError/ValueError otherwise; values (indices into tables) are clamped in C.
@@ -54,8 +55,10 @@ PLATFORMS: dict[str, str] = {
     "macos_arm64": ".dylib",
     "macos_x64": ".dylib",
 }
-#: The baseline build and the x86-64 AVX2/FMA build.
-LIBRARY_NAMES: tuple[str, ...] = ("affine_kernel", "affine_kernel_avx2")
+#: The baseline build and the x86-64 AVX2 and AVX-512 builds (tools/build_native.py's VARIANT_FLAGS).
+LIBRARY_NAMES: tuple[str, ...] = ("affine_kernel", "affine_kernel_avx2", "affine_kernel_avx512")
+#: Variant names, in LIBRARY_NAMES' order.
+VARIANTS: tuple[str, ...] = ("baseline", "avx2", "avx512")
 #: csrc/affine_kernel.h's AK_ABI_VERSION this module is written for.
 ABI_VERSION = 1
 
@@ -94,8 +97,8 @@ def host_platform() -> str | None:
     return None
 
 
-def _cpu_has_avx2() -> bool:
-    """AVX2 and FMA3 as numpy's runtime dispatch saw them (False when numpy does not say)."""
+def _cpu_features() -> dict:
+    """The CPU features numpy's runtime dispatch saw ({} when numpy does not say)."""
     for name in ("numpy._core._multiarray_umath", "numpy.core._multiarray_umath"):
         try:
             module = importlib.import_module(name)
@@ -103,8 +106,20 @@ def _cpu_has_avx2() -> bool:
             continue
         features = getattr(module, "__cpu_features__", None)
         if isinstance(features, dict):
-            return bool(features.get("AVX2")) and bool(features.get("FMA3"))
-    return False
+            return features
+    return {}
+
+
+def _cpu_variants() -> list[str]:
+    """The variants this CPU runs, widest first: AVX-512 needs x86-64-v4's AVX512F/CD/BW/DQ/VL (numpy's
+    AVX512_SKX group), AVX2 x86-64-v3's AVX2 and FMA3 (and the BMI and F16C that come with them)."""
+    features = _cpu_features()
+    usable = []
+    if features.get("AVX512_SKX") and features.get("AVX512F"):
+        usable.append("avx512")
+    if features.get("AVX2") and features.get("FMA3"):
+        usable.append("avx2")
+    return [*usable, "baseline"]
 
 
 def _candidate_dirs(plat: str) -> list[Path]:
@@ -123,18 +138,22 @@ def library_path() -> tuple[Path, str]:
         path = Path(explicit)
         if not path.is_file():
             raise KernelUnavailableError(f"{LIBRARY_ENV}={explicit} is not a file")
-        return path, "avx2" if path.stem.endswith("_avx2") else "baseline"
+        stem = path.stem
+        return path, next((v for v in VARIANTS[1:] if stem.endswith("_" + v)), "baseline")
     plat = host_platform()
     if plat is None:
         raise KernelUnavailableError(f"no compiled kernel for {sys.platform} {platform.machine()}")
     suffix = PLATFORMS[plat]
     wanted = os.environ.get(VARIANT_ENV, "").strip().lower()
-    if wanted not in ("", "baseline", "avx2"):
-        raise KernelUnavailableError(f"{VARIANT_ENV} must be 'baseline' or 'avx2', got {wanted!r}")
-    if wanted == "avx2" or (not wanted and plat.endswith("x64") and _cpu_has_avx2()):
-        order = [("avx2", LIBRARY_NAMES[1]), ("baseline", LIBRARY_NAMES[0])]
+    if wanted and wanted not in VARIANTS:
+        raise KernelUnavailableError(f"{VARIANT_ENV} must be one of {', '.join(VARIANTS)}, got {wanted!r}")
+    names = dict(zip(VARIANTS, LIBRARY_NAMES, strict=True))
+    if wanted:  # that one, else the baseline
+        order = [(v, names[v]) for v in dict.fromkeys((wanted, "baseline"))]
+    elif plat.endswith("x64"):
+        order = [(v, names[v]) for v in _cpu_variants()]
     else:
-        order = [("baseline", LIBRARY_NAMES[0])]
+        order = [("baseline", names["baseline"])]
     searched = _candidate_dirs(plat)
     for directory in searched:
         for variant, name in order:

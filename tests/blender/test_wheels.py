@@ -261,7 +261,7 @@ def test_a_library_that_does_not_load_falls_back_to_numpy_with_the_reason(bl, tm
     fake.mkdir(parents=True)
     (fake / "__init__.py").write_text(FAKE_KERNEL)
     for suffix in (".so", ".dll", ".dylib"):
-        for name in ("affine_kernel", "affine_kernel_avx2"):
+        for name in ("affine_kernel", "affine_kernel_avx2", "affine_kernel_avx512"):
             (fake / (name + suffix)).write_bytes(b"\0not a shared library\n" * 200)
     path = os.pathsep.join(p for p in (str(fake.parent), os.environ.get("PYTHONPATH", "")) if p)
     # AFFINE_DEFORMERS_ACCEL=1: the compiled kernel is wanted (an outer "0" would hide the failure);

@@ -86,12 +86,14 @@ LIBRARIES = [(platform, name) for platform in build_native.TARGETS
 
 def test_the_platforms_and_names_are_the_loaders():
     assert set(native.PLATFORMS) == set(build_native.TARGETS) == set(EXPECTED)
-    assert native.LIBRARY_NAMES == ("affine_kernel", "affine_kernel_avx2")
+    assert native.LIBRARY_NAMES == ("affine_kernel", "affine_kernel_avx2", "affine_kernel_avx512")
+    assert len(native.VARIANTS) == len(native.LIBRARY_NAMES) == len(build_native.VARIANT_FLAGS)
     assert len(set(native.EXPORTS)) == len(native.EXPORTS)
     assert all(n.startswith("ak_") for n in native.EXPORTS)
-    # the baseline for every platform, the AVX2/FMA build on x86-64 only
+    # the baseline for every platform, the AVX2 and AVX-512 builds on x86-64 only
     assert build_native.library_files("macos_arm64") == ["affine_kernel.dylib"]
-    assert build_native.library_files("windows_x64") == ["affine_kernel.dll", "affine_kernel_avx2.dll"]
+    assert build_native.library_files("windows_x64") == ["affine_kernel.dll", "affine_kernel_avx2.dll",
+                                                         "affine_kernel_avx512.dll"]
 
 
 @pytest.mark.parametrize(("platform", "name"), LIBRARIES, ids=[f"{p}/{n}" for p, n in LIBRARIES])
@@ -132,11 +134,12 @@ def test_library_format_exports_and_dependencies(built, platform, name):
             assert info.extra.get("signature", "valid") == "valid", info.extra["signature"]
 
 
-@pytest.mark.parametrize("platform", [p for p in build_native.TARGETS if build_native.TARGETS[p].avx2])
-def test_the_avx2_build_is_another_build(built, platform):
-    """-mcpu=x86_64_v3 reached the compiler: the AVX2/FMA library is not the baseline's bytes."""
-    baseline, avx2 = (built.library(platform, n) for n in build_native.library_files(platform))
-    assert baseline.read_bytes() != avx2.read_bytes()
+@pytest.mark.parametrize("platform", [p for p in build_native.TARGETS if build_native.TARGETS[p].x86])
+def test_the_x86_variants_are_other_builds(built, platform):
+    """-mcpu=x86_64_v3 / _v4 reached the compiler: the AVX2 and AVX-512 libraries are not the
+    baseline's bytes, nor each other's."""
+    contents = [built.library(platform, n).read_bytes() for n in build_native.library_files(platform)]
+    assert len(contents) == 3 and len(set(contents)) == 3
 
 
 @pytest.mark.skipif(build_native.host_platform() != "linux_x64",

@@ -1,6 +1,6 @@
-"""The compiled kernel's builds on this machine: every x86-64 build gives the same bits (no FMA
-contraction, IEEE operations only), and a fresh process loads and checks it in well under a second
-(nothing is compiled at run time)."""
+"""The compiled kernel's builds on this machine: every x86-64 build (baseline, AVX2, AVX-512) gives
+the same bits (no FMA contraction, IEEE operations only), and a fresh process loads and checks it in
+well under a second (nothing is compiled at run time)."""
 
 from __future__ import annotations
 
@@ -72,21 +72,23 @@ def test_a_fresh_process_loads_the_kernel_in_well_under_a_second() -> None:
     assert result["loaded"] < 1.0, result
 
 
-@pytest.mark.skipif(not (_built("affine_kernel") and _built("affine_kernel_avx2")),
-                    reason="needs both x86-64 builds")
-def test_the_baseline_and_avx2_builds_give_the_same_bits() -> None:
-    if not native._cpu_has_avx2():
-        pytest.skip("this CPU has no AVX2/FMA3: the AVX2 build cannot run here")
-    baseline, avx2 = _run("baseline"), _run("avx2")
-    assert "affine_kernel.so" in baseline["backend"] or "affine_kernel." in baseline["backend"]
-    assert "_avx2" in avx2["backend"]
-    assert baseline["hash"] == avx2["hash"]
+@pytest.mark.parametrize("variant", ["avx2", "avx512"])
+def test_every_x86_build_gives_the_baseline_bits(variant: str) -> None:
+    name = dict(zip(native.VARIANTS, native.LIBRARY_NAMES, strict=True))[variant]
+    if not (_built("affine_kernel") and _built(name)):
+        pytest.skip(f"needs the baseline and the {variant} build (make native)")
+    if variant not in native._cpu_variants():
+        pytest.skip(f"this CPU cannot run the {variant} build")
+    baseline, other = _run("baseline"), _run(variant)
+    assert "affine_kernel." in baseline["backend"]
+    assert f"_{variant}." in other["backend"]
+    assert baseline["hash"] == other["hash"]
 
 
 def test_the_variant_follows_the_cpu_and_the_override(monkeypatch: pytest.MonkeyPatch,
                                                       tmp_path: Path) -> None:
-    """The AVX2 build is picked only where numpy reports AVX2 and FMA3 (or when asked for), and the
-    baseline is used when the AVX2 file is absent."""
+    """The widest build the CPU runs is picked (or the one asked for), falling back to the baseline
+    when that file is absent."""
     plat = native.host_platform()
     if plat is None or not plat.endswith("x64"):
         pytest.skip("x86-64 only")
@@ -96,16 +98,19 @@ def test_the_variant_follows_the_cpu_and_the_override(monkeypatch: pytest.Monkey
     monkeypatch.setattr(native, "_candidate_dirs", lambda _plat: [tmp_path])
     monkeypatch.delenv(native.LIBRARY_ENV, raising=False)
     monkeypatch.delenv(native.VARIANT_ENV, raising=False)
-    monkeypatch.setattr(native, "_cpu_has_avx2", lambda: True)
+    skx = {"AVX512F": True, "AVX512_SKX": True, "AVX2": True, "FMA3": True}
+    monkeypatch.setattr(native, "_cpu_features", lambda: skx)
+    assert native.library_path() == (tmp_path / ("affine_kernel_avx512" + suffix), "avx512")
+    (tmp_path / ("affine_kernel_avx512" + suffix)).unlink()
     assert native.library_path() == (tmp_path / ("affine_kernel_avx2" + suffix), "avx2")
-    monkeypatch.setattr(native, "_cpu_has_avx2", lambda: False)
+    monkeypatch.setattr(native, "_cpu_features", lambda: {"AVX2": True, "FMA3": False})
     assert native.library_path() == (tmp_path / ("affine_kernel" + suffix), "baseline")
     monkeypatch.setenv(native.VARIANT_ENV, "avx2")
     assert native.library_path()[1] == "avx2"
     (tmp_path / ("affine_kernel_avx2" + suffix)).unlink()
     assert native.library_path()[1] == "baseline"
     monkeypatch.setenv(native.VARIANT_ENV, "sse9")
-    with pytest.raises(native.KernelUnavailableError, match="baseline' or 'avx2"):
+    with pytest.raises(native.KernelUnavailableError, match="must be one of baseline, avx2, avx512"):
         native.library_path()
 
 
