@@ -1138,8 +1138,7 @@ int64_t ak_cage_nodes(const double *Wt, int64_t F, int64_t G, const int64_t *rea
     for (int64_t c = 0; c < G; c++) touched[c] = 0;
     for (int64_t i = 0; i < n_reached; i++) {
         const double *row = Wt + reached[i] * G;
-        for (int64_t c = 0; c < G; c++)
-            if (row[c] > 0.0) touched[c] = 1;
+        for (int64_t c = 0; c < G; c++) touched[c] |= row[c] > 0.0; /* a select, so it vectorises */
     }
     for (int64_t i = 0; i < n; i++) {
         const double *p = face_params + 12 * i;
