@@ -67,7 +67,10 @@ def bake_state(deformer) -> dict | None:
 
 def _deformer_at(obj: bpy.types.Object | None, index: int):
     """Deformer `index` of `obj`, which must be an editable mesh (BakeError saying why not)."""
-    problem = binding.target_problem(obj)
+    # A library override's mesh is linked: shape keys cannot be added to it, and the bake's record
+    # (an ID property of the deformer) would not be saved with the override.
+    problem = (binding.linked_mesh_problem(obj, "bake it") if obj is not None and obj.type == "MESH"
+               else "") or binding.target_problem(obj)
     if problem:
         raise BakeError(problem)
     try:

@@ -24,6 +24,7 @@ from bpy.props import (
 )
 
 from . import kinds, nodes, storage, weight_preview
+from .kinds.base import OVERRIDABLE
 from .kinds.services import on_preview_option, on_weight_option, search_vertex_groups
 
 
@@ -100,7 +101,7 @@ class AffineDeformer(bpy.types.PropertyGroup):
         description="Vertex group scaling each vertex's weights (empty: no mask). Repainting needs a "
                     "re-weight: change an option or rebind")
     strength: FloatProperty(
-        name="Strength", default=1.0, min=0.0, soft_max=1.0, max=10.0, subtype="FACTOR",
+        name="Strength", override=OVERRIDABLE, default=1.0, min=0.0, soft_max=1.0, max=10.0, subtype="FACTOR",
         update=_on_evaluation_option,
         description="Scales every weight (0 = rest shape)")
     max_influences: IntProperty(
@@ -181,7 +182,9 @@ CLASSES = (AffineDeformer,)
 
 
 def register_properties() -> None:
-    bpy.types.Object.affine_deformers = CollectionProperty(type=AffineDeformer)
+    # Overridable, as is every control pointer below it (the kinds' properties): a library override
+    # of the rig then keeps its deformers' controls pointed at the overridden controls (carrier.py).
+    bpy.types.Object.affine_deformers = CollectionProperty(type=AffineDeformer, override=OVERRIDABLE)
     bpy.types.Object.affine_deformers_active_index = IntProperty(name="Active Deformer", default=0, min=0)
 
 
