@@ -168,7 +168,8 @@ def link_and_override(asset):
     with bpy.data.libraries.load(asset, link=True) as (src, dst):
         dst.collections = ["Rig", "Stage"]
     rig, stage = dst.collections
-    scene.collection.children.link(stage)
+    if scene.collection.children.get(stage.name) is None:  # a second override links it once only
+        scene.collection.children.link(stage)
     scene.camera = stage.objects["Camera"]
     instance = bpy.data.objects.new("RigInstance", None)
     instance.instance_type, instance.instance_collection = "COLLECTION", rig
@@ -436,3 +437,69 @@ def test_an_asset_saved_by_an_older_version_says_to_resave_it(asset, tmp_path, b
     assert len(printed) == 1, proc.stdout  # the console says it once, not at every update
     after = next(line for line in proc.stdout.splitlines() if line.startswith("AFTER")).split()
     assert float(after[1]) <= TOLERANCE and after[2] == "''", after
+
+
+_TWO = _COMMON + _LINK + """
+bpy.ops.wm.read_homefile(use_empty=True)
+scene = bpy.context.scene
+link_and_override({asset!r})
+link_and_override({asset!r})
+reference = dict(np.load({reference!r}))
+second = lambda name: override(name + ".001")
+scene.frame_set(12)
+pose(second)
+errors = {{}}
+for frame in (1, 12, 24):
+    scene.frame_set(frame)
+    for name in BODIES:
+        expected = reference[f"{{name}}_{{frame}}"]
+        errors[f"A/{{name}}/{{frame}}"] = float(np.abs(positions(override(name)) - expected).max())
+        expected = reference[f"posed_{{name}}_{{frame}}"]
+        errors[f"B/{{name}}/{{frame}}"] = float(np.abs(positions(second(name)) - expected).max())
+print("ERRORS", json.dumps(errors))
+"""
+
+_WITHOUT_ADDON = _COMMON.replace("enable_addon()", "") + _LINK + """
+import addon_utils
+addon_utils.disable({addon!r}, default_set=True)
+assert not hasattr(bpy.types.Object, "affine_deformers")
+bpy.ops.wm.read_homefile(use_empty=True)
+link_and_override({asset!r})
+bpy.ops.wm.save_as_mainfile(filepath={shot!r})
+"""
+
+_REOPEN_PLAIN = _COMMON + _LINK + """
+bpy.ops.wm.open_mainfile(filepath={shot!r}, load_ui=False)
+reference = dict(np.load({reference!r}))
+errors, statuses = {{}}, []
+for frame in (1, 12, 24):
+    bpy.context.scene.frame_set(frame)
+    for name in BODIES:
+        obj = override(name)
+        expected = reference[f"{{name}}_{{frame}}"]
+        errors[f"{{name}}/{{frame}}"] = float(np.abs(positions(obj) - expected).max())
+        statuses.append(obj.affine_deformers[0].status)
+print("ERRORS", json.dumps(errors))
+print("STATUSES", json.dumps(statuses))
+"""
+
+
+def _printed(proc, tag: str):
+    return json.loads(next(line for line in proc.stdout.splitlines() if line.startswith(tag))[len(tag) + 1:])
+
+
+def test_two_overrides_of_one_rig_deform_independently(asset, bl):
+    proc = bl.run_blender(_TWO.format(asset=asset["asset"], reference=asset["reference"]))
+    errors = _printed(proc, "ERRORS")
+    print("two overrides, shot vs asset:", errors)
+    assert max(errors.values()) <= TOLERANCE, errors
+
+
+def test_a_shot_overridden_without_the_addon_plays_once_it_is_enabled(asset, tmp_path, bl, installed):
+    shot = str(tmp_path / "shot.blend")
+    bl.run_blender(_WITHOUT_ADDON.format(asset=asset["asset"], shot=shot, addon=installed.addon))
+    proc = bl.run_blender(_REOPEN_PLAIN.format(shot=shot, reference=asset["reference"]))
+    errors = _printed(proc, "ERRORS")
+    print("overridden without the add-on, reopened with it:", errors)
+    assert set(_printed(proc, "STATUSES")) == {""}, proc.stdout
+    assert max(errors.values()) <= TOLERANCE, errors
