@@ -503,3 +503,57 @@ def test_a_shot_overridden_without_the_addon_plays_once_it_is_enabled(asset, tmp
     print("overridden without the add-on, reopened with it:", errors)
     assert set(_printed(proc, "STATUSES")) == {""}, proc.stdout
     assert max(errors.values()) <= TOLERANCE, errors
+
+
+_UI_OPERATOR = _COMMON + _LINK + """
+bpy.ops.wm.read_homefile(use_empty=True)
+scene = bpy.context.scene
+with bpy.data.libraries.load({asset!r}, link=True) as (src, dst):
+    dst.collections = ["Rig"]
+instance = bpy.data.objects.new("RigInstance", None)
+instance.instance_type, instance.instance_collection = "COLLECTION", dst.collections[0]
+scene.collection.objects.link(instance)
+bpy.context.view_layer.objects.active = instance
+instance.select_set(True)
+with bpy.context.temp_override(active_object=instance, object=instance, selected_objects=[instance]):
+    assert bpy.ops.object.make_override_library() == {{"FINISHED"}}
+reference = dict(np.load({reference!r}))
+errors = {{}}
+for frame in (1, 12, 24):
+    scene.frame_set(frame)
+    for name in BODIES:
+        expected = reference[f"{{name}}_{{frame}}"]
+        errors[f"{{name}}/{{frame}}"] = float(np.abs(positions(override(name)) - expected).max())
+print("ERRORS", json.dumps(errors))
+"""
+
+
+def test_object_library_override_make_plays_as_the_asset(asset, bl):
+    proc = bl.run_blender(_UI_OPERATOR.format(asset=asset["asset"], reference=asset["reference"]))
+    errors = _printed(proc, "ERRORS")
+    print("Object > Library Override > Make, shot vs asset:", errors)
+    assert max(errors.values()) <= TOLERANCE, errors
+
+
+@pytest.mark.parametrize("motion_path", [False, True])
+def test_a_local_deformer_gives_the_version_3_result_bit_for_bit(bl, motion_path):
+    """The version-4 group's branch for targets without a carrier is the version-3 chain: bypassing
+    the carrier switch changes no bit (offset path, and motion path behind another modifier)."""
+    target = bl.grid_cube(cuts=6)
+    if motion_path:
+        target.modifiers.new("Displace", "DISPLACE").strength = 0.2
+    probes = [bl.empty("P", (1.5, 0.0, 0.0)), bl.empty("Q", (-1.5, 0.0, 0.0))]
+    bl.add_probe_deformer(target, probes)
+    probes[0].location, probes[0].rotation_euler = (1.8, 0.3, 0.4), (0.2, 0.5, 0.9)
+    bpy.context.scene.frame_set(1)
+    version_4 = bl.evaluated_positions(target).copy()
+    assert np.abs(version_4 - bl.rest_positions(target)).max() > 0.1
+    mod = target.modifiers[-1]
+    plain = mod.node_group.copy()
+    switch = next(node for node in plain.nodes if node.bl_idname == "GeometryNodeSwitch")
+    own = switch.inputs["False"].links[0].from_socket
+    output = next(node for node in plain.nodes if node.bl_idname == "NodeGroupOutput")
+    plain.links.new(own, output.inputs[0])
+    plain.nodes.remove(switch)
+    mod.node_group = plain
+    assert np.array_equal(bl.evaluated_positions(target), version_4)
