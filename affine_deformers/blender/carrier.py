@@ -76,6 +76,8 @@ def ensure(obj: bpy.types.Object, create: bool = True) -> bpy.types.Object | Non
     if not mods:
         return None
     found = next((c for c in map(nodes.carrier_of, mods) if c is not None), None)
+    if found is not None and _shared(found, obj, mods):
+        found = None  # a copy of the object (Shift+D of an override) names its original's carrier
     if found is None or found.library is not None or found.type != "MESH" or not found.get(MARK):
         if not create:
             return None
@@ -95,6 +97,15 @@ def ensure(obj: bpy.types.Object, create: bool = True) -> bpy.types.Object | Non
     for mod in mods:
         nodes.set_carrier(mod, found)
     return found
+
+
+def _shared(found: bpy.types.Object, obj: bpy.types.Object, mods: list) -> bool:
+    """Whether another object's modifier names `found` too. Its users are the modifiers naming it, so
+    the scan runs only when it has more users than `obj` has naming modifiers."""
+    if found.users <= sum(nodes.carrier_of(mod) == found for mod in mods):
+        return False
+    return any(nodes.carrier_of(mod) == found for other in bpy.data.objects if other != obj
+               for mod in other.modifiers if mod.type == "NODES")
 
 
 def output_mesh(obj: bpy.types.Object, create: bool = True) -> bpy.types.Mesh | None:

@@ -557,3 +557,31 @@ def test_a_local_deformer_gives_the_version_3_result_bit_for_bit(bl, motion_path
     plain.nodes.remove(switch)
     mod.node_group = plain
     assert np.array_equal(bl.evaluated_positions(target), version_4)
+
+
+_DUPLICATE = _COMMON + _LINK + """
+bpy.ops.wm.read_homefile(use_empty=True)
+scene = bpy.context.scene
+link_and_override({asset!r})
+scene.frame_set(12)
+body = override("ProbeBody")
+copy = body.copy()  # Shift+D of an override: an override too, its modifier naming the same carrier
+scene.collection.objects.link(copy)
+copy.location.x += 10.0
+scene.frame_set(24)
+reference = dict(np.load({reference!r}))
+carriers = [o.name for o in bpy.data.objects if o.get("affine_deformers_carrier")]
+print("CARRIERS", json.dumps(sorted(carriers)))
+# Moved 10 along x away from its controls, the copy sees them 10 nearer the origin (weights summing to 1).
+expected = {{"body": reference["ProbeBody_24"], "copy": reference["ProbeBody_24"] - np.array([10.0, 0, 0])}}
+errors = {{name: float(np.abs(positions(obj) - expected[name]).max())
+          for name, obj in (("body", body), ("copy", copy))}}
+print("ERRORS", json.dumps(errors))
+"""
+
+
+def test_a_copy_of_an_overridden_target_gets_a_carrier_of_its_own(asset, bl):
+    proc = bl.run_blender(_DUPLICATE.format(asset=asset["asset"], reference=asset["reference"]))
+    assert len([n for n in _printed(proc, "CARRIERS") if "ProbeBody" in n]) == 2, proc.stdout
+    errors = _printed(proc, "ERRORS")
+    assert errors["body"] <= TOLERANCE and errors["copy"] <= 1e-4, errors  # the copy: float32 rounding
