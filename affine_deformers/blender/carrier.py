@@ -100,11 +100,13 @@ def ensure(obj: bpy.types.Object, create: bool = True) -> bpy.types.Object | Non
 
 
 def _shared(found: bpy.types.Object, obj: bpy.types.Object, mods: list) -> bool:
-    """Whether another object's modifier names `found` too. Its users are the modifiers naming it, so
-    the scan runs only when it has more users than `obj` has naming modifiers."""
+    """Whether another object with deformers names `found` on a modifier too (a copy of `obj`; the
+    bake's stand-in, which has no deformers, reads it on purpose). Its users are the modifiers naming
+    it, so the scan runs only when it has more users than `obj` has naming modifiers."""
     if found.users <= sum(nodes.carrier_of(mod) == found for mod in mods):
         return False
-    return any(nodes.carrier_of(mod) == found for other in bpy.data.objects if other != obj
+    return any(nodes.carrier_of(mod) == found for other in bpy.data.objects
+               if other != obj and len(other.affine_deformers)
                for mod in other.modifiers if mod.type == "NODES")
 
 

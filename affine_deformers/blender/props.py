@@ -128,6 +128,10 @@ class AffineDeformer(bpy.types.PropertyGroup):
     show_render: BoolProperty(
         name="Render", get=_mirrored_getter("show_render"), set=_mirrored_setter("show_render"),
         description="Use the deformer in renders (mirrors the modifier's toggle)")
+    bake_record: StringProperty(
+        options={"HIDDEN"}, override=OVERRIDABLE,
+        description="What the last bake created, as JSON, on library overrides (whose ID properties "
+                    "on library items are not saved): read by Un-bake")
     bound_flag: BoolProperty(options={"HIDDEN"}, default=False)
     is_bound: BoolProperty(
         name="Bound", get=lambda self: self.bound_flag, description="Rest data and weights are stored")

@@ -301,7 +301,6 @@ attempt("rebind", bpy.ops.object.affine_deformer_bind, index=0)
 attempt("apply", bpy.ops.object.affine_deformer_apply, index=0)
 attempt("remove", bpy.ops.object.affine_deformer_remove, index=0)
 attempt("shape keys", bpy.ops.object.affine_deformer_bake, index=0, mode="SHAPE_KEYS")
-attempt("pc2", bpy.ops.object.affine_deformer_bake, index=0, mode="PC2", filepath={pc2!r})
 attempt("weights to groups", bpy.ops.object.affine_deformer_weights_to_groups, index=0)
 body.affine_deformers[0].show_weights = True
 results["show weights"] = [body.affine_deformers[0].status, state() == before]
@@ -326,11 +325,11 @@ with bpy.context.temp_override(object=bpy.data.objects["RigInstance"]):
 
 def test_refusals_on_an_override_name_the_linked_mesh_and_change_nothing(asset, tmp_path, bl):
     out = tmp_path / "refusals.json"
-    bl.run_blender(_REFUSALS.format(asset=asset["asset"], out=str(out), pc2=str(tmp_path / "body.pc2")))
+    bl.run_blender(_REFUSALS.format(asset=asset["asset"], out=str(out)))
     with open(out) as file:
         results = json.load(file)
     print(json.dumps(results, indent=1))
-    for label in ("rebind", "apply", "shape keys", "pc2", "weights to groups"):
+    for label in ("rebind", "apply", "shape keys", "weights to groups"):
         outcome = results[label]
         assert outcome[0] == "refused", (label, outcome)
         assert "mesh 'ProbeBody'" in outcome[1] and "asset.blend" in outcome[1], (label, outcome)
@@ -585,3 +584,59 @@ def test_a_copy_of_an_overridden_target_gets_a_carrier_of_its_own(asset, bl):
     assert len([n for n in _printed(proc, "CARRIERS") if "ProbeBody" in n]) == 2, proc.stdout
     errors = _printed(proc, "ERRORS")
     assert errors["body"] <= TOLERANCE and errors["copy"] <= 1e-4, errors  # the copy: float32 rounding
+
+
+_BAKE_SHOT = _COMMON + _LINK + """
+bpy.ops.wm.read_homefile(use_empty=True)
+scene = bpy.context.scene
+scene.frame_start, scene.frame_end = 1, 24
+link_and_override({asset!r})
+for name in ("ProbeBody", "BoneBody"):
+    body = override(name)
+    with bpy.context.temp_override(active_object=body, object=body, selected_objects=[body]):
+        path = {folder!r} + f"/{{name}}.pc2"
+        assert bpy.ops.object.affine_deformer_bake(index=0, mode="PC2", filepath=path) == {{"FINISHED"}}
+    print("STACK", name, [(m.type, m.show_viewport) for m in body.modifiers])
+bpy.ops.wm.save_as_mainfile(filepath={shot!r})
+"""
+
+_BAKED_PLAY = _COMMON.replace("enable_addon()", "{enable}") + _LINK + """
+import addon_utils
+if not hasattr(bpy.types.Object, "affine_deformers"):
+    addon_utils.disable({addon!r}, default_set=True)
+bpy.ops.wm.open_mainfile(filepath={shot!r}, load_ui=False)
+reference = dict(np.load({reference!r}))
+def errors():
+    found = {{}}
+    for frame in (1, 12, 24):
+        bpy.context.scene.frame_set(frame)
+        for name in ("ProbeBody", "BoneBody"):
+            expected = reference[f"{{name}}_{{frame}}"]
+            found[f"{{name}}/{{frame}}"] = float(np.abs(positions(override(name)) - expected).max())
+    return found
+print("BAKED", json.dumps(errors()))
+if hasattr(bpy.types.Object, "affine_deformers"):
+    for name in ("ProbeBody", "BoneBody"):
+        body = override(name)
+        with bpy.context.temp_override(active_object=body, object=body, selected_objects=[body]):
+            assert bpy.ops.object.affine_deformer_unbake(index=0) == {{"FINISHED"}}
+        assert [m.type for m in body.modifiers] == ["NODES"], body.modifiers[:]
+    print("UNBAKED", json.dumps(errors()))
+"""
+
+
+def test_pc2_bake_on_an_override_plays_without_the_addon_and_unbakes_after_reopen(asset, tmp_path, bl,
+                                                                                  installed):
+    shot = str(tmp_path / "shot.blend")
+    proc = bl.run_blender(_BAKE_SHOT.format(asset=asset["asset"], folder=str(tmp_path), shot=shot))
+    assert "STACK ProbeBody [('MESH_CACHE', True), ('NODES', False)]" in proc.stdout, proc.stdout
+    plain = bl.run_blender(_BAKED_PLAY.format(enable="", addon=installed.addon, shot=shot,
+                                              reference=asset["reference"]))
+    baked = _printed(plain, "BAKED")
+    print("PC2 bake on an override, reopened without the add-on:", baked)
+    assert max(baked.values()) <= TOLERANCE, baked
+    live = bl.run_blender(_BAKED_PLAY.format(enable="enable_addon()", addon=installed.addon, shot=shot,
+                                             reference=asset["reference"]))
+    assert max(_printed(live, "BAKED").values()) <= TOLERANCE
+    unbaked = _printed(live, "UNBAKED")
+    assert max(unbaked.values()) <= TOLERANCE, unbaked
