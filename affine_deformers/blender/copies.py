@@ -9,7 +9,7 @@ and finds there a modifier of ours reading the attributes of a deformer that liv
 the source's kind with its controls and settings and an id of its own, the modifier repointed at it,
 bound to its own mesh at the controls' current poses. The bind waits for a timer (`bind_adopted`):
 painted weights are read by evaluating a depsgraph, which a depsgraph handler must not do. Anywhere
-else (not a mesh, linked data, Edit Mode) the copy is removed, and the console says why.
+else (not a mesh, linked data) the copy is removed, and the console says why.
 """
 
 from __future__ import annotations
@@ -106,8 +106,8 @@ def handle(depsgraph: bpy.types.Depsgraph) -> list[str]:
     messages = []
     for update in depsgraph.updates:
         obj = update.id.original if isinstance(update.id, bpy.types.Object) else None
-        if obj is None or obj.library is not None:
-            continue
+        if obj is None or obj.library is not None or obj.mode == "EDIT":
+            continue  # in Edit Mode the copy waits: it is adopted once the object is back in Object Mode
         for mod, source, deformer in dead_copies(obj):
             problem = binding.target_problem(obj)
             if not problem and kinds.get(deformer.kind) is None:
