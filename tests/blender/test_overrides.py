@@ -640,3 +640,24 @@ def test_pc2_bake_on_an_override_plays_without_the_addon_and_unbakes_after_reope
     assert max(_printed(live, "BAKED").values()) <= TOLERANCE
     unbaked = _printed(live, "UNBAKED")
     assert max(unbaked.values()) <= TOLERANCE, unbaked
+
+
+_LINKED_IN_SCENE = _COMMON + """
+bpy.ops.wm.read_homefile(use_empty=True)
+scene = bpy.context.scene
+with bpy.data.libraries.load({asset!r}, link=True) as (src, dst):
+    dst.collections = ["Rig"]
+scene.collection.children.link(dst.collections[0])
+for frame in (1, 12, 13):
+    scene.frame_set(frame)
+print("STATUSES", json.dumps([bpy.data.objects[name].affine_deformers[0].status for name in BODIES]))
+"""
+
+
+def test_a_linked_object_in_the_scene_says_to_override_or_bake(asset, bl):
+    proc = bl.run_blender(_LINKED_IN_SCENE.format(asset=asset["asset"]))
+    for name, status in zip(BODIES, _printed(proc, "STATUSES"), strict=True):
+        assert status.startswith(f"'{name}' is linked from 'asset.blend' without a library override"), status
+        assert "Library Override" in status and "bake it" in status, status
+        printed = [line for line in proc.stdout.splitlines() if line.startswith(f"Affine Deformers: {name} ")]
+        assert len(printed) == 1, proc.stdout  # once, not at every frame
