@@ -11,6 +11,7 @@ import bpy
 
 from . import (
     bake,
+    carrier,
     handlers,
     kind_services,  # hands the kinds binding, the update and the preview (kinds/services.py)
     kinds,
@@ -48,6 +49,8 @@ def _upgrade_open_file() -> None:
         return
     try:
         relations.upgrade_all()
+        if carrier.remap_controls():  # library overrides made while the add-on was disabled
+            relations.upgrade_all()
     except Exception:  # odd data must not stop the add-on from registering
         traceback.print_exc()
 

@@ -12,16 +12,41 @@ from bpy.props import IntProperty
 UNDOABLE = {"REGISTER", "UNDO"}
 
 
+def library_name(id_data: bpy.types.ID) -> str:
+    """The file name of the library `id_data` comes from: its own, or its override reference's."""
+    library = id_data.library
+    override = id_data.override_library
+    if library is None and override is not None and override.reference is not None:
+        library = override.reference.library
+    return bpy.path.basename(library.filepath) if library is not None else "this file"
+
+
+def linked_mesh_problem(obj: bpy.types.Object, what: str = "rebind, re-weight or apply it") -> str:
+    """Why the bind data of `obj` cannot be rewritten here ('' when they can): its mesh is linked from
+    a library (or an override of one, whose mesh data Blender does not let a file change or save)."""
+    mesh = obj.data
+    if obj.type != "MESH" or (mesh.library is None and mesh.override_library is None):
+        return ""
+    return (f"The bind data of '{obj.name}' live on mesh '{mesh.name}' in library "
+            f"'{library_name(mesh)}', which this file cannot change: {what} in that file (open it, "
+            "then save it)" + ("" if "bake" in what else ", or bake it there"))
+
+
 def target_problem(obj: bpy.types.Object | None) -> str:
-    """Why `obj` cannot carry a deformer, or '' when it can."""
+    """Why `obj` cannot carry a deformer (or have its bind data rewritten), or '' when it can."""
     if obj is None:
         return "No active object: make the mesh to deform the active object"
     if obj.type != "MESH":
         kind = obj.type.replace("_", " ").lower()
         article = "an" if kind[:1] in "aeiou" else "a"
         return f"'{obj.name}' is {article} {kind}, not a mesh: the target must be a mesh"
-    if obj.library is not None or obj.data.library is not None:
-        return f"'{obj.name}' is linked from a library and cannot be edited"
+    if obj.library is not None:
+        return (f"'{obj.name}' is linked from library '{library_name(obj)}' and cannot be edited here: "
+                "make a library override (Object ▸ Library Override ▸ Make) to pose its controls, or "
+                "edit it in that file")
+    problem = linked_mesh_problem(obj)
+    if problem:
+        return problem
     if obj.mode == "EDIT":
         return f"'{obj.name}' is in Edit Mode: switch to Object Mode first"
     return ""

@@ -27,13 +27,14 @@ frame stay as they were.
 from __future__ import annotations
 
 import contextlib
+import json
 import traceback
 
 import bpy
 import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
-from . import binding, evaluate, nodes, relations, storage
+from . import binding, carrier, evaluate, nodes, relations, storage
 from .addressing import DeformerIndexed, active_target
 from .bake_targets import TARGETS, BakeError, default_filepath, remove_artifacts, resolve_cache_path
 from .pc2 import PC2Error
@@ -62,12 +63,27 @@ def bake_state(deformer) -> dict | None:
     """What the last bake of `deformer` created (None when it is not baked): mode, frame range, and
     the Mesh Cache modifier and file, or the shape keys, plus the live modifier's toggles before."""
     state = deformer.get(STATE_KEY)
-    return state.to_dict() if state is not None else None
+    if state is not None:
+        return state.to_dict()
+    # On a library override an ID property of a library item is not saved; the overridable copy is.
+    record = getattr(deformer, "bake_record", "")
+    try:
+        return json.loads(record) if record else None
+    except ValueError:
+        return None
 
 
-def _deformer_at(obj: bpy.types.Object | None, index: int):
-    """Deformer `index` of `obj`, which must be an editable mesh (BakeError saying why not)."""
-    problem = binding.target_problem(obj)
+def _deformer_at(obj: bpy.types.Object | None, index: int, pc2_on_override: bool = False):
+    """Deformer `index` of `obj`, which must be an editable mesh (BakeError saying why not). With
+    `pc2_on_override`, a library override whose mesh is linked may bake to (or un-bake) PC2: the
+    capture reads the live modifier's carrier, and the Mesh Cache modifier and the muted toggles are
+    kept in the override. Shape keys would have to be added to the linked mesh: refused."""
+    linked = binding.linked_mesh_problem(obj, "bake it") if obj is not None and obj.type == "MESH" else ""
+    if linked and pc2_on_override and obj.override_library is not None and obj.library is None:
+        problem = "" if binding.target_problem(obj) == binding.linked_mesh_problem(obj) else \
+            binding.target_problem(obj)
+    else:
+        problem = linked or binding.target_problem(obj)
     if problem:
         raise BakeError(problem)
     try:
@@ -119,6 +135,11 @@ class _Capture:
             # first: a visibility change since the last depsgraph update may need a relation now.
             relations.sync(obj, _find(obj, uid)[1])
             relations.copy_controls(nodes.find_modifier(obj, offset_attr), capture)
+            # A library override's output is on its carrier, not on the mesh: made now if no update
+            # has written it yet, so the capture reads the same carrier from the first frame.
+            found = carrier.ensure(obj) if carrier.needs_carrier(obj) else None
+            if found is not None:
+                nodes.set_carrier(capture, found)
             if with_input:
                 self.input = self._stand_in(scene, obj)
         except BaseException:
@@ -172,7 +193,7 @@ class BakeJob:
 
     def __init__(self, context: bpy.types.Context, obj: bpy.types.Object | None, index: int, mode: str,
                  frame_start: int, frame_end: int, filepath: str) -> None:
-        deformer = _deformer_at(obj, index)
+        deformer = _deformer_at(obj, index, pc2_on_override=mode.upper() == "PC2")
         if not deformer.is_bound:
             raise BakeError(f"'{deformer.name}' is not bound: bind it before baking")
         live = _live_modifier(obj, deformer)
@@ -266,10 +287,13 @@ class BakeJob:
         deformer.show_viewport = deformer.show_render = False
         if STATE_KEY in deformer:  # a re-bake: never assign over an ID property of another shape
             del deformer[STATE_KEY]
-        deformer[STATE_KEY] = {
+        record = {
             "mode": self.mode, "frame_start": self.frames[0], "frame_end": self.frames[-1], **state,
             "show_viewport": bool(live_flags[0]), "show_render": bool(live_flags[1]),
         }
+        deformer[STATE_KEY] = record
+        if obj.override_library is not None:  # the ID property is not saved with an override
+            deformer.bake_record = json.dumps(bake_state(deformer))
         return (f"Baked '{deformer.name}' on '{obj.name}', frames {self.frames[0]}..{self.frames[-1]}, "
                 f"to {self.target.describe(self.frames)}")
 
@@ -301,17 +325,22 @@ class BakeJob:
 def unbake(obj: bpy.types.Object, index: int) -> str:
     """Remove the bake of deformer `index` (Mesh Cache modifier or shape keys; the .pc2 file stays on
     disk) and give the live modifier back its toggles from before the bake. Returns a summary."""
-    deformer = _deformer_at(obj, index)
+    deformer = _deformer_at(obj, index, pc2_on_override=True)
     state = bake_state(deformer)
     if state is None:
         raise BakeError(f"'{deformer.name}' is not baked")
+    if state.get("mode") != "PC2":
+        _deformer_at(obj, index)  # shape keys live on the mesh: refused when it is linked
     if state.get("mode") == "SHAPE_KEYS" and obj.data.users > 1:
         raise BakeError(f"'{obj.data.name}' is used by {obj.data.users} objects: removing the baked "
                         "shape keys would change all of them; make it single-user first")
     remove_artifacts(obj, state)
     deformer.show_viewport = bool(state.get("show_viewport", True))
     deformer.show_render = bool(state.get("show_render", True))
-    del deformer[STATE_KEY]
+    if STATE_KEY in deformer:
+        del deformer[STATE_KEY]
+    if deformer.bake_record:
+        deformer.bake_record = ""
     evaluate.forget(obj, deformer.uid)
     return f"Un-baked '{deformer.name}' on '{obj.name}': the live deformer is back"
 

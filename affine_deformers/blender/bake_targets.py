@@ -9,6 +9,7 @@ removes a committed bake of either writer (a re-bake, Un-bake).
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import bpy
@@ -307,14 +308,20 @@ def _remove_keys(obj: bpy.types.Object, names: list[str], basis_created: bool, a
         obj.shape_key_clear()
 
 
+def _absolute(path: str) -> str:
+    return os.path.normpath(bpy.path.abspath(path)) if path else ""
+
+
 def remove_artifacts(obj: bpy.types.Object, state: dict) -> None:
     """Remove what a bake created (the Mesh Cache modifier, or the shape keys); the cache file stays
     on disk: it may be referenced elsewhere (farm jobs, other .blend files)."""
     if state.get("mode") == "PC2":
+        # Compared as absolute paths: saving may make the modifier's path relative ("//…").
+        path = _absolute(state.get("filepath", ""))
         mod = obj.modifiers.get(state.get("modifier", ""))
-        if mod is None or mod.type != "MESH_CACHE" or mod.filepath != state.get("filepath"):
+        if mod is None or mod.type != "MESH_CACHE" or _absolute(mod.filepath) != path:
             mod = next((m for m in obj.modifiers
-                        if m.type == "MESH_CACHE" and m.filepath == state.get("filepath")), None)
+                        if m.type == "MESH_CACHE" and _absolute(m.filepath) == path), None)
         if mod is not None:
             obj.modifiers.remove(mod)
     else:

@@ -14,12 +14,19 @@ import bpy
 import numpy as np
 
 from . import caches, kinds, nodes, relations, storage, weight_preview
-from .addressing import deformer_at, deformer_index, find_uid, target_problem
+from .addressing import (
+    deformer_at,
+    deformer_index,
+    find_uid,
+    library_name,
+    linked_mesh_problem,
+    target_problem,
+)
 from .kinds import BindError
 
 __all__ = ["BindError", "apply", "bind", "create", "deformer_at", "deformer_index", "find_uid",
-           "mask_weights", "rebind_probe_safely", "rebind_safely", "remove", "reweight", "reweight_safely",
-           "target_problem"]
+           "linked_mesh_problem", "mask_weights", "rebind_probe_safely", "rebind_safely", "remove",
+           "reweight", "reweight_safely", "target_problem"]
 
 
 _quiet = 0
@@ -161,8 +168,15 @@ def rebind_safely(obj: bpy.types.Object, deformer, what: str) -> None:
 
 
 def remove(obj: bpy.types.Object, index: int) -> None:
-    """Remove deformer `index`: its modifier, its mesh attributes and the item (rest shape back)."""
+    """Remove deformer `index`: its modifier, its mesh attributes and the item (rest shape back).
+    Refused (BindError) on a library override, before anything changes: the item and the modifier
+    come from the library, and an override cannot remove either."""
     deformer = deformer_at(obj, index)
+    if obj.override_library is not None and obj.library is None:
+        raise BindError(
+            f"'{obj.name}' is a library override: its deformer '{deformer.name}' comes from library "
+            f"'{library_name(obj)}' and cannot be removed here. Turn it off instead (its Viewport and "
+            "Render toggles are kept in the override), or remove it in that file")
     uid = deformer.uid
     weight_preview.release(obj, deformer)  # the deformer takes its weight preview with it
     relations.remove_modifier(obj, uid)

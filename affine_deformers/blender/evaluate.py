@@ -18,12 +18,13 @@ evaluated and once a deformer's inputs are read.
 
 from __future__ import annotations
 
+import contextlib
 import traceback
 
 import bpy
 import numpy as np
 
-from . import binding, blend, caches, hooks, outputs, snapshot, storage
+from . import binding, blend, caches, carrier, hooks, outputs, snapshot, storage
 from . import bound as bound_data
 from .caches import forget
 from .params import motions_to_params
@@ -34,10 +35,13 @@ __all__ = ["blocking_error", "evaluate_all", "evaluate_deformer", "evaluate_obje
 _busy = False
 
 
-def set_status(deformer, message: str) -> None:
-    """Set the deformer's status; only real changes are written (a write tags the object for update)."""
+def set_status(deformer, message: str) -> bool:
+    """Set the deformer's status; only real changes are written (a write tags the object for update).
+    True when it changed."""
     if deformer.status != message:
         deformer.status = message
+        return True
+    return False
 
 
 def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> str:
@@ -46,6 +50,17 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         error = snapshot.precheck(obj, deformer)
         set_status(deformer, error)
         return error
+    if obj.library is not None or carrier.needs_carrier(obj):
+        problem = carrier.problem(obj, deformer)
+        if problem:
+            key = (obj.session_uid, deformer.uid)
+            if caches.errors.get(key) != problem:  # the console says it once per load, not per update
+                print(f"Affine Deformers: {obj.name} / {deformer.name}: {problem}")
+                caches.errors[key] = problem
+                caches.signatures.pop(key, None)
+            with contextlib.suppress(AttributeError, TypeError, RuntimeError):  # a linked ID may refuse
+                set_status(deformer, problem)
+            return problem
     snap = snapshot.take(obj, deformer, depsgraph)
     hooks.run_inputs_read(obj, deformer, snap, depsgraph)  # e.g. the controls' states (weight_groups.py)
     key = (obj.session_uid, deformer.uid)
@@ -63,7 +78,8 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         cached = bound_data.cached(obj, deformer)
         if cached is not None:
             cached.written = cached.motions_written = None  # written below without them
-    _write(mesh, deformer.uid, path, output, rows, None if error else bound)
+    create = depsgraph.mode != "RENDER"  # no ID is made during a render frame (on_render_start makes them)
+    _write(carrier.output_mesh(obj, create), deformer.uid, path, output, rows, None if error else bound)
     warning = snap.motions.warning if snap.motions is not None else ""
     status = error or "; ".join(m for m in (warning, deformer.bind_warning) if m)
     set_status(deformer, status)
@@ -93,11 +109,12 @@ def _compute(deformer, snap: snapshot.Snapshot) -> tuple[np.ndarray | None, np.n
     return output, rows, error
 
 
-def _write(mesh: bpy.types.Mesh, uid: str, path: str, output: np.ndarray, rows: np.ndarray | None,
+def _write(mesh: bpy.types.Mesh | None, uid: str, path: str, output: np.ndarray, rows: np.ndarray | None,
            bound: bound_data.BoundData | None) -> None:
-    """Write the output of `path`, dropping the other path's attributes (a linked mesh is never
-    written: the modifier there shows what the library file holds)."""
-    if mesh.library is not None:
+    """Write the output of `path` to `mesh` (the target's, or its carrier's: carrier.output_mesh),
+    dropping the other path's attributes. Nothing is written to a linked mesh (Blender would drop it)
+    or when there is no mesh to write to: the modifier shows what the mesh or carrier holds."""
+    if mesh is None or mesh.library is not None or mesh.override_library is not None:
         if bound is not None:
             bound.written = bound.motions_written = None
         return
@@ -137,9 +154,10 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
                 traceback.print_exc()
             try:
                 bound_data.forget((obj.session_uid, deformer.uid))  # its copy of the attribute is stale
-                if obj.type == "MESH" and obj.data.library is None:
-                    storage.remove_output(obj.data, deformer.uid, keep="OFFSET")
-                    storage.write_offsets(obj.data, deformer.uid, np.zeros((len(obj.data.vertices), 3)))
+                mesh = carrier.output_mesh(obj, create=False) if obj.type == "MESH" else None
+                if mesh is not None and mesh.library is None and mesh.override_library is None:
+                    storage.remove_output(mesh, deformer.uid, keep="OFFSET")
+                    storage.write_offsets(mesh, deformer.uid, np.zeros((len(obj.data.vertices), 3)))
                 set_status(deformer, message)
             except Exception:
                 traceback.print_exc()
@@ -172,6 +190,11 @@ def run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None) -> None:
         traceback.print_exc()
     finally:
         _busy = False
+
+
+def running() -> bool:
+    """Whether an update is running (its writes trigger the depsgraph handler again)."""
+    return _busy
 
 
 def _shown_elsewhere(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph):

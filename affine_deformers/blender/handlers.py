@@ -12,7 +12,7 @@ import traceback
 import bpy
 from bpy.app.handlers import persistent
 
-from . import caches, evaluate, nodes, relations
+from . import caches, carrier, copies, evaluate, instances, nodes, relations
 from .kinds import transforms
 
 _syncing = False  # relations.sync_scene is running (its depsgraph.update() calls this handler again)
@@ -39,6 +39,8 @@ def on_depsgraph_update_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgr
                 nodes.forget()  # a group's interface may have changed in a way its item names do not show
         if scene_changed:
             _sync(scene, depsgraph)
+        if depsgraph is not None and not evaluate.running():
+            copies.handle(depsgraph)  # Copy to Selected / Copy Modifiers copy a modifier alone
     except Exception:
         traceback.print_exc()
     evaluate.run(scene, depsgraph)
@@ -72,6 +74,15 @@ def on_load_post(*_args) -> None:
     except Exception:
         traceback.print_exc()
     try:
+        # Library overrides: controls still naming linked objects (overridden without the add-on),
+        # and the output carriers of targets whose mesh is linked (carrier.py).
+        if carrier.remap_controls():
+            relations.upgrade_all()  # the modifiers name the overridden controls too
+        carrier.ensure_all()
+        instances.report(bpy.context.scene)  # linked instances without override cannot play: say so
+    except Exception:
+        traceback.print_exc()
+    try:
         if bpy.context.scene is not None:
             evaluate.run(bpy.context.scene, bpy.context.evaluated_depsgraph_get())
     except Exception:
@@ -90,6 +101,11 @@ def on_render_start(scene: bpy.types.Scene, *_args) -> None:
     try:
         if not scene.render.use_lock_interface:
             scene.render.use_lock_interface = True
+    except Exception:
+        traceback.print_exc()
+    try:
+        carrier.ensure_all(scene)  # no ID may be made during a render frame: make the carriers now
+        instances.report(scene)
     except Exception:
         traceback.print_exc()
     try:

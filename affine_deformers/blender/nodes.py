@@ -21,9 +21,16 @@ An attribute that is missing reads as no change, so a modifier with neither pass
 Version 2 added two inputs that no node reads, "Cage" (Object) and "Probes" (Collection), hidden in
 the modifier panel: Geometry Nodes adds a depsgraph relation for every ID set on a modifier's inputs,
 used or not, so the controls named there are evaluated whenever the modifier is (see relations.py).
-Version 3 added the motion inputs and nodes. Groups of older versions (files saved before) are
-upgraded in place by `upgrade_group`: the inputs are added and the nodes rebuilt; modifiers keep
-their values.
+Version 3 added the motion inputs and nodes. Version 4 added "Output Carrier" (Object, hidden): a
+target whose mesh is linked from a library (a library override in a shot file) cannot hold per-frame
+attributes, so the handler writes them to a local carrier object instead (carrier.py), one point
+per target vertex, and the group reads them from there by point index. A single-value Switch on the
+carrier's point count picks one of two copies of the chain, the version-3 chain on the geometry's
+own attributes or the same chain sampling the carrier, and only the chosen branch is evaluated: a
+local target (no carrier) gets exactly the version-3 result. Groups of older versions (files saved
+before) are upgraded in place by `upgrade_group`: the inputs are added and the nodes rebuilt;
+modifiers keep their values. A group linked from a library is read-only and is never upgraded: it
+is used as it is (see carrier.py for what a version-3 group linked into a shot means).
 """
 
 from __future__ import annotations
@@ -35,8 +42,9 @@ from . import caches
 
 GROUP_NAME = "AffineDeformer"
 GROUP_MARK = "affine_deformers_group"  # custom property identifying our group (value = version)
-GROUP_VERSION = 3
-KNOWN_VERSIONS = (1, 2, 3)  # 1: Geometry + Offset Attribute; 2: + Cage and Probes; 3: + Motion X/Y/Z/T
+GROUP_VERSION = 4
+#: 1: Geometry + Offset Attribute; 2: + Cage and Probes; 3: + Motion X/Y/Z/T; 4: + Output Carrier
+KNOWN_VERSIONS = (1, 2, 3, 4)
 OFFSET_SOCKET = "Offset Attribute"
 CAGE_SOCKET = "Cage"
 PROBES_SOCKET = "Probes"
@@ -53,8 +61,13 @@ _MOTION_INPUTS = tuple(
     for name, what in zip(MOTION_SOCKETS, ("image of the X axis", "image of the Y axis",
                                            "image of the Z axis", "translation"), strict=True)
 )
+CARRIER_SOCKET = "Output Carrier"
+_CARRIER_INPUTS = (
+    (CARRIER_SOCKET, "NodeSocketObject", "Local object holding this deformer's per-frame output when the "
+                                         "target's mesh is linked from a library (set by the add-on)"),
+)
 #: Inputs added after version 1, in interface order, all managed by the add-on (hidden in the panel).
-_MANAGED_INPUTS = CONTROL_SOCKETS + _MOTION_INPUTS
+_MANAGED_INPUTS = CONTROL_SOCKETS + _MOTION_INPUTS + _CARRIER_INPUTS
 _READER_NAME = ".AffineDeformer VertexGroupReader"
 #: (group session uid, names of its interface items in order) → `_input_identifiers` of it.
 _identifier_memo: dict[tuple[int, tuple[str, ...]], dict[tuple[str, str], str]] = {}
@@ -67,6 +80,13 @@ def _is_our_group(ng: bpy.types.NodeTree | None) -> bool:
     return _our_offset_identifier(ng) is not None
 
 
+def offset_attribute(mod: bpy.types.Modifier) -> str:
+    """The offset attribute our modifier reads ('' when `mod` is not ours)."""
+    identifier = _our_offset_identifier(mod.node_group) if mod.type == "NODES" else None
+    value = mod.get(identifier) if identifier else None
+    return value if isinstance(value, str) else ""
+
+
 def _our_offset_identifier(ng: bpy.types.NodeTree | None) -> str | None:
     """The offset input's identifier when `ng` is our group (`_is_our_group`), else None."""
     identifiers = _our_identifiers(ng)
@@ -74,8 +94,10 @@ def _our_offset_identifier(ng: bpy.types.NodeTree | None) -> str | None:
 
 
 def _our_identifiers(ng: bpy.types.NodeTree | None) -> dict[tuple[str, str], str] | None:
-    """`_input_identifiers(ng)` when `ng` is our group (marked, local, with the offset input), else None."""
-    if (ng is None or ng.bl_idname != "GeometryNodeTree" or ng.library is not None
+    """`_input_identifiers(ng)` when `ng` is our group (marked, with the offset input), else None. A
+    group linked from a library counts (the modifier of a library override uses the asset's group),
+    read-only: `upgrade_group` leaves it as it is."""
+    if (ng is None or ng.bl_idname != "GeometryNodeTree"
             or ng.get(GROUP_MARK) not in KNOWN_VERSIONS):
         return None
     identifiers = _input_identifiers(ng)
@@ -135,8 +157,9 @@ def _has_managed_inputs(ng: bpy.types.NodeTree, identifiers: dict[tuple[str, str
 def upgrade_group(ng: bpy.types.NodeTree) -> bool:
     """Bring our group of an older version up to GROUP_VERSION in place (versioning of saved files):
     add the missing inputs and rebuild the nodes. Modifiers keep the values of the inputs they had
-    (the motion names are set by `set_attribute_names`). True when it changed."""
-    if not _is_our_group(ng) or is_current(ng):
+    (the motion names are set by `set_attribute_names`). True when it changed. A linked (or overridden)
+    group is never changed: its data is the library's, and an edit would not be saved."""
+    if not _is_our_group(ng) or is_current(ng) or not is_editable(ng):
         return False
     for name, socket_type, description in _MANAGED_INPUTS:
         if _input_identifier(ng, name, socket_type) is None:
@@ -148,52 +171,107 @@ def upgrade_group(ng: bpy.types.NodeTree) -> bool:
     return True
 
 
+def is_editable(ng: bpy.types.NodeTree) -> bool:
+    """Whether the group belongs to this file (not linked from a library, nor a library override)."""
+    return ng.library is None and ng.override_library is None
+
+
 def _build_nodes(ng: bpy.types.NodeTree) -> None:
-    """(Re)create the group's nodes: position' = Σ_c x_c·(Motion c) + Motion T where the motion exists,
-    then + Offset (see the module doc)."""
+    """(Re)create the group's nodes: the chain on the geometry's own attributes, the same chain on the
+    carrier's attributes sampled by point index, and a single-value geometry Switch between them on
+    "the carrier has points" (lazy: only the chosen chain runs, see the module doc)."""
     nodes, links = ng.nodes, ng.links
     nodes.clear()
     group_in = nodes.new("NodeGroupInput")
     group_out = nodes.new("NodeGroupOutput")
-    group_in.location, group_out.location = (-900, 0), (500, 0)
+    group_in.location, group_out.location = (-1100, 0), (900, 0)
+    info = nodes.new("GeometryNodeObjectInfo")
+    info.transform_space = "ORIGINAL"  # positions of the carrier do not matter, only its attributes
+    info.location = (-900, -900)
+    links.new(group_in.outputs[CARRIER_SOCKET], info.inputs["Object"])
+    size = nodes.new("GeometryNodeAttributeDomainSize")
+    size.component = "MESH"
+    size.location = (-700, -1100)
+    links.new(info.outputs["Geometry"], size.inputs[0])
+    has_points = nodes.new("FunctionNodeCompare")
+    # FLOAT: its A and B are the node's first two inputs (each data type has sockets named "A" and
+    # "B"); a point count is exact in float32 far beyond any mesh.
+    has_points.data_type, has_points.operation = "FLOAT", "GREATER_THAN"
+    has_points.location = (-500, -1100)
+    links.new(size.outputs["Point Count"], has_points.inputs[0])
+    has_points.inputs[1].default_value = 0.5
+    index = nodes.new("GeometryNodeInputIndex")
+    index.location = (-900, -1200)
+    own = _build_chain(ng, group_in, None, None, 0)
+    sampled = _build_chain(ng, group_in, info.outputs["Geometry"], index.outputs[0], -1400)
+    switch = nodes.new("GeometryNodeSwitch")
+    switch.input_type = "GEOMETRY"
+    switch.location = (700, 0)
+    links.new(has_points.outputs[0], switch.inputs["Switch"])
+    links.new(own, switch.inputs["False"])
+    links.new(sampled, switch.inputs["True"])
+    links.new(switch.outputs[0], group_out.inputs[0])
+
+
+def _read_vector(ng: bpy.types.NodeTree, name: bpy.types.NodeSocket, carrier: bpy.types.NodeSocket | None,
+                 index: bpy.types.NodeSocket | None, location: tuple[float, float]):
+    """(value, exists) sockets of the vector attribute named by `name`: on the evaluated geometry
+    itself (carrier None), or on the carrier geometry at the same point index."""
+    nodes, links = ng.nodes, ng.links
+    named = nodes.new("GeometryNodeInputNamedAttribute")
+    named.data_type = "FLOAT_VECTOR"
+    named.location = location
+    links.new(name, named.inputs["Name"])
+    if carrier is None:
+        return named.outputs["Attribute"], named.outputs["Exists"]
+    sampled = []
+    for data_type, output, dy in (("FLOAT_VECTOR", "Attribute", 0), ("BOOLEAN", "Exists", -60)):
+        node = nodes.new("GeometryNodeSampleIndex")
+        node.data_type, node.domain = data_type, "POINT"
+        node.location = (location[0] + 150, location[1] + dy)
+        links.new(carrier, node.inputs["Geometry"])
+        links.new(named.outputs[output], node.inputs["Value"])
+        links.new(index, node.inputs["Index"])
+        sampled.append(node.outputs[0])
+    return sampled[0], sampled[1]
+
+
+def _build_chain(ng: bpy.types.NodeTree, group_in: bpy.types.Node, carrier: bpy.types.NodeSocket | None,
+                 index: bpy.types.NodeSocket | None, y: float) -> bpy.types.NodeSocket:
+    """position' = Σ_c x_c·(Motion c) + Motion T where the motion exists, then + Offset (see the module
+    doc), the attributes read by `_read_vector`; returns the resulting geometry socket. With no
+    carrier these are the nodes of version 3, so local targets get its results bit for bit."""
+    nodes, links = ng.nodes, ng.links
     position = nodes.new("GeometryNodeInputPosition")
-    position.location = (-700, 250)
+    position.location = (-700, y + 250)
     separate = nodes.new("ShaderNodeSeparateXYZ")
-    separate.location = (-500, 250)
+    separate.location = (-500, y + 250)
     links.new(position.outputs[0], separate.inputs[0])
-    columns = []
-    for i, name in enumerate(MOTION_SOCKETS):
-        named = nodes.new("GeometryNodeInputNamedAttribute")
-        named.data_type = "FLOAT_VECTOR"
-        named.location = (-500, -150 * i)
-        links.new(group_in.outputs[name], named.inputs["Name"])
-        columns.append(named)
+    columns = [_read_vector(ng, group_in.outputs[name], carrier, index, (-700, y - 150 * i))
+               for i, name in enumerate(MOTION_SOCKETS)]
     total = None
-    for i, (named, coordinate) in enumerate(zip(columns[:3], separate.outputs, strict=True)):
+    for i, ((value, _exists), coordinate) in enumerate(zip(columns[:3], separate.outputs, strict=True)):
         scale = nodes.new("ShaderNodeVectorMath")
         scale.operation = "SCALE"
-        scale.location = (-300, -150 * i)
-        links.new(named.outputs["Attribute"], scale.inputs[0])
+        scale.location = (-300, y - 150 * i)
+        links.new(value, scale.inputs[0])
         links.new(coordinate, scale.inputs["Scale"])
         if total is None:
             total = scale
         else:
-            total = _vector_add(ng, total.outputs[0], scale.outputs[0], (-100, -150 * i))
-    total = _vector_add(ng, total.outputs[0], columns[3].outputs["Attribute"], (100, -300))
+            total = _vector_add(ng, total.outputs[0], scale.outputs[0], (-100, y - 150 * i))
+    total = _vector_add(ng, total.outputs[0], columns[3][0], (100, y - 300))
     moved = nodes.new("GeometryNodeSetPosition")
-    moved.location = (100, 0)
+    moved.location = (300, y)
     links.new(group_in.outputs[0], moved.inputs["Geometry"])
-    links.new(columns[3].outputs["Exists"], moved.inputs["Selection"])
+    links.new(columns[3][1], moved.inputs["Selection"])
     links.new(total.outputs[0], moved.inputs["Position"])
-    offset = nodes.new("GeometryNodeInputNamedAttribute")
-    offset.data_type = "FLOAT_VECTOR"
-    offset.location = (100, 250)
-    links.new(group_in.outputs[OFFSET_SOCKET], offset.inputs["Name"])
+    offset, _exists = _read_vector(ng, group_in.outputs[OFFSET_SOCKET], carrier, index, (100, y + 250))
     shifted = nodes.new("GeometryNodeSetPosition")
-    shifted.location = (300, 0)
+    shifted.location = (500, y)
     links.new(moved.outputs["Geometry"], shifted.inputs["Geometry"])
-    links.new(offset.outputs["Attribute"], shifted.inputs["Offset"])
-    links.new(shifted.outputs["Geometry"], group_out.inputs[0])
+    links.new(offset, shifted.inputs["Offset"])
+    return shifted.outputs["Geometry"]
 
 
 def _vector_add(ng: bpy.types.NodeTree, a: bpy.types.NodeSocket, b: bpy.types.NodeSocket,
@@ -207,8 +285,9 @@ def _vector_add(ng: bpy.types.NodeTree, a: bpy.types.NodeSocket, b: bpy.types.No
 
 
 def find_group() -> bpy.types.NodeTree | None:
-    """Our group, preferring one at the current version."""
-    ours = [ng for ng in bpy.data.node_groups if _is_our_group(ng)]
+    """Our group in this file, preferring one at the current version (a linked one cannot be upgraded,
+    and a modifier added here must not depend on what a library holds)."""
+    ours = [ng for ng in bpy.data.node_groups if is_editable(ng) and _is_our_group(ng)]
     return next((ng for ng in ours if is_current(ng)), ours[0] if ours else None)
 
 
@@ -286,12 +365,12 @@ def set_offset_name(mod: bpy.types.NodesModifier, offset_attr: str) -> None:
 
 def controls(mod: bpy.types.NodesModifier) -> tuple[bpy.types.Object | None, bpy.types.Collection | None]:
     """(cage, probe collection) named on our modifier's control inputs (None, None before version 2)."""
-    ng = mod.node_group
-    identifiers = _our_identifiers(ng)
-    if identifiers is None or not _has_managed_inputs(ng, identifiers):
+    identifiers = _our_identifiers(mod.node_group)
+    keys = [(name, socket_type) for name, socket_type, _ in CONTROL_SOCKETS]
+    if identifiers is None or not all(key in identifiers for key in keys):  # a linked group may be old
         return None, None
-    cage = mod.get(identifiers[CAGE_SOCKET, "NodeSocketObject"])
-    probes = mod.get(identifiers[PROBES_SOCKET, "NodeSocketCollection"])
+    cage = mod.get(identifiers[keys[0]])
+    probes = mod.get(identifiers[keys[1]])
     return (cage if isinstance(cage, bpy.types.Object) else None,
             probes if isinstance(probes, bpy.types.Collection) else None)
 
@@ -313,6 +392,33 @@ def set_controls(mod: bpy.types.NodesModifier, cage: bpy.types.Object | None,
         # Assigning an ID property does not tag the depsgraph relations; re-assigning the group does.
         mod.node_group = ng
     return changed
+
+
+def has_carrier_input(mod: bpy.types.NodesModifier) -> bool:
+    """Whether our modifier's group has the carrier input (version 4 on; a group linked from an asset
+    saved by an older version has not, and cannot be upgraded here)."""
+    ng = mod.node_group
+    return ng is not None and _input_identifier(ng, CARRIER_SOCKET, "NodeSocketObject") is not None
+
+
+def carrier_of(mod: bpy.types.NodesModifier) -> bpy.types.Object | None:
+    """The object named on our modifier's carrier input (None: none, or no such input)."""
+    ng = mod.node_group
+    identifier = _input_identifier(ng, CARRIER_SOCKET, "NodeSocketObject") if ng is not None else None
+    value = mod.get(identifier) if identifier else None
+    return value if isinstance(value, bpy.types.Object) else None
+
+
+def set_carrier(mod: bpy.types.NodesModifier, carrier: bpy.types.Object | None) -> bool:
+    """Name `carrier` on our modifier's carrier input; False when its group has none."""
+    ng = mod.node_group
+    identifier = _input_identifier(ng, CARRIER_SOCKET, "NodeSocketObject") if ng is not None else None
+    if identifier is None:
+        return False
+    if mod.get(identifier) != carrier:
+        mod[identifier] = carrier
+        mod.node_group = ng  # assigning an ID property does not tag the relations; re-assigning does
+    return True
 
 
 def _reader_group(names: list[str]) -> bpy.types.NodeTree:

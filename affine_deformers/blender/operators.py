@@ -128,7 +128,11 @@ class AFFINE_OT_deformer_remove(DeformerIndexed, bpy.types.Operator):
         if obj.mode == "EDIT":
             self.report({"ERROR"}, f"'{obj.name}' is in Edit Mode: switch to Object Mode first")
             return {"CANCELLED"}
-        binding.remove(obj, self.index)
+        try:
+            binding.remove(obj, self.index)
+        except BindError as exc:  # a library override: refused before anything changed
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
         self.report({"INFO"}, f"Removed '{name}' from '{obj.name}'")
         return {"FINISHED"}
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import kinds, weight_operators, weight_preview
+from . import instances, kinds, weight_operators, weight_preview
 from .bake import AFFINE_OT_deformer_bake, AFFINE_OT_deformer_unbake, bake_state
 
 
@@ -28,6 +28,26 @@ class AFFINE_UL_deformers(bpy.types.UIList):
                  icon="RESTRICT_VIEW_OFF" if item.show_viewport else "RESTRICT_VIEW_ON")
         row.prop(item, "show_render", text="", emboss=False,
                  icon="RESTRICT_RENDER_OFF" if item.show_render else "RESTRICT_RENDER_ON")
+
+
+class AFFINE_PT_linked_instance(bpy.types.Panel):
+    """On an Empty instancing a linked rig with deformers: why it does not play, and what to do."""
+
+    bl_label = "Affine Deformers"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "object"
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        obj = context.object
+        return obj is not None and obj.type == "EMPTY" and bool(instances.instance_message(obj))
+
+    def draw(self, context: bpy.types.Context) -> None:
+        box = self.layout.box()
+        for i, line in enumerate(_wrap(instances.instance_message(context.object), 60)):
+            box.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
+        self.layout.operator("object.make_override_library", text="Make Library Override")
 
 
 class AFFINE_PT_deformers(bpy.types.Panel):
@@ -141,4 +161,4 @@ def draw_object_menu(self, _context: bpy.types.Context) -> None:
     self.layout.menu(AFFINE_MT_object.bl_idname)
 
 
-CLASSES = (AFFINE_UL_deformers, AFFINE_PT_deformers, AFFINE_MT_object)
+CLASSES = (AFFINE_UL_deformers, AFFINE_PT_deformers, AFFINE_PT_linked_instance, AFFINE_MT_object)

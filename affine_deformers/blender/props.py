@@ -24,6 +24,7 @@ from bpy.props import (
 )
 
 from . import kinds, nodes, storage, weight_preview
+from .kinds.base import OVERRIDABLE
 from .kinds.services import on_preview_option, on_weight_option, search_vertex_groups
 
 
@@ -100,7 +101,7 @@ class AffineDeformer(bpy.types.PropertyGroup):
         description="Vertex group scaling each vertex's weights (empty: no mask). Repainting needs a "
                     "re-weight: change an option or rebind")
     strength: FloatProperty(
-        name="Strength", default=1.0, min=0.0, soft_max=1.0, max=10.0, subtype="FACTOR",
+        name="Strength", override=OVERRIDABLE, default=1.0, min=0.0, soft_max=1.0, max=10.0, subtype="FACTOR",
         update=_on_evaluation_option,
         description="Scales every weight (0 = rest shape)")
     max_influences: IntProperty(
@@ -127,6 +128,10 @@ class AffineDeformer(bpy.types.PropertyGroup):
     show_render: BoolProperty(
         name="Render", get=_mirrored_getter("show_render"), set=_mirrored_setter("show_render"),
         description="Use the deformer in renders (mirrors the modifier's toggle)")
+    bake_record: StringProperty(
+        options={"HIDDEN"}, override=OVERRIDABLE,
+        description="What the last bake created, as JSON, on library overrides (whose ID properties "
+                    "on library items are not saved): read by Un-bake")
     bound_flag: BoolProperty(options={"HIDDEN"}, default=False)
     is_bound: BoolProperty(
         name="Bound", get=lambda self: self.bound_flag, description="Rest data and weights are stored")
@@ -181,7 +186,9 @@ CLASSES = (AffineDeformer,)
 
 
 def register_properties() -> None:
-    bpy.types.Object.affine_deformers = CollectionProperty(type=AffineDeformer)
+    # Overridable, as is every control pointer below it (the kinds' properties): a library override
+    # of the rig then keeps its deformers' controls pointed at the overridden controls (carrier.py).
+    bpy.types.Object.affine_deformers = CollectionProperty(type=AffineDeformer, override=OVERRIDABLE)
     bpy.types.Object.affine_deformers_active_index = IntProperty(name="Active Deformer", default=0, min=0)
 
 

@@ -119,7 +119,8 @@ def _probe_collection(current: bpy.types.Collection | None,
     return collection
 
 
-def _drop_if_unused(collection: bpy.types.Collection | None) -> None:
+def drop_if_unused(collection: bpy.types.Collection | None) -> None:
+    """Remove `collection` when it is one of our probe collections and nothing uses it any more."""
     if _is_ours(collection) and collection.users == 0:
         bpy.data.collections.remove(collection)
 
@@ -137,7 +138,7 @@ def sync(obj: bpy.types.Object, deformer) -> bool:
     changed = nodes.set_controls(mod, cage, collection)
     changed = nodes.set_motion_names(mod, storage.motion_names(deformer.uid)) or changed
     if old_collection is not None and old_collection != collection:
-        _drop_if_unused(old_collection)
+        drop_if_unused(old_collection)
     return changed or (collection is not None and set(collection.objects) != held)
 
 
@@ -148,7 +149,7 @@ def remove_modifier(obj: bpy.types.Object, uid: str) -> None:
         return
     _cage, collection = nodes.controls(mod)
     obj.modifiers.remove(mod)
-    _drop_if_unused(collection)
+    drop_if_unused(collection)
 
 
 def copy_controls(source: bpy.types.NodesModifier | None, target: bpy.types.NodesModifier) -> None:

@@ -42,6 +42,7 @@ DECLARED = {
     # Not inputs of the deformation.
     "name": "a label", "uid": "names the attributes: part of the cache key itself",
     "status": "the update's output",
+    "bake_record": "the bake's record for Un-bake (bake.py): no input of the deformation",
     "show_weights": "the viewport preview (weight_preview.py): no input of the deformation",
     "weight_preview": PREVIEW, "weight_preview_fit": PREVIEW,
     "show_viewport": "the modifier's own toggle (Blender skips a disabled modifier)",

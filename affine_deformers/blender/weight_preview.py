@@ -38,6 +38,7 @@ import bpy
 import numpy as np
 
 from . import caches, kinds, storage
+from .addressing import linked_mesh_problem
 from .kinds import BindError
 
 PREVIEW_MODIFIER = "Affine Weight Preview"
@@ -385,6 +386,13 @@ def on_show_weights(deformer) -> None:
     if not isinstance(obj, bpy.types.Object):
         return
     try:
+        if deformer.show_weights and obj.type == "MESH" and obj.library is None:
+            problem = linked_mesh_problem(obj, "show its weights")
+            if problem:  # the colours would have to be written to a mesh this file cannot change
+                deformer["show_weights"] = False  # an item write runs no update callback
+                deformer.status = problem
+                print(f"Affine Deformers: Show Weights refused: {problem}")
+                return
         if deformer.show_weights:
             for other in obj.affine_deformers:
                 if other.show_weights and other.uid != deformer.uid:

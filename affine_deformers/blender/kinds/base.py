@@ -25,6 +25,9 @@ import numpy as np
 
 from .. import storage
 
+#: `override=` of the deformer's control pointers and of every collection holding them: a library
+#: override of a rig then keeps them pointed at the overridden controls, and saves that.
+OVERRIDABLE = {"LIBRARY_OVERRIDABLE"}  # a set: bpy.props refuses a frozenset
 IDENTITY16 = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 #: Items of the rest rotation mode properties (a control's rotation mode at bind).

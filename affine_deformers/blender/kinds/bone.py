@@ -43,6 +43,7 @@ from .. import caches
 from . import armature_convert, bone_tools
 from .base import (
     INTERFACE,
+    OVERRIDABLE,
     READ_BY_KIND,
     Adopted,
     BindError,
@@ -282,7 +283,7 @@ class BoneKind(DeformerKind):
     def properties(cls) -> dict[str, KindProperty]:
         return {
             "armature": KindProperty(PointerProperty(
-                name="Armature", type=bpy.types.Object, poll=_poll_armature,
+                name="Armature", override=OVERRIDABLE, type=bpy.types.Object, poll=_poll_armature,
                 update=control_picker(cls.id, "armature", "the new armature"),
                 description="Armature whose pose bones drive the target (its deform bones, at their rest "
                             "pose in Edit Mode, are the rest)"), READ_BY_KIND),

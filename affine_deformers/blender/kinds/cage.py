@@ -74,6 +74,7 @@ from ...core.cage.harmonic import harmonic_weights, node_matrices_linear
 from .. import caches, nodes, storage
 from .base import (
     IDENTITY16,
+    OVERRIDABLE,
     PREVIEW,
     READ_BY_KIND,
     REWEIGHTS,
@@ -320,7 +321,7 @@ class CageKind(DeformerKind):
     def properties(cls) -> dict[str, KindProperty]:
         return {
             "cage": KindProperty(PointerProperty(
-                name="Cage", type=bpy.types.Object, poll=_poll_cage,
+                name="Cage", override=OVERRIDABLE, type=bpy.types.Object, poll=_poll_cage,
                 update=control_picker(cls.id, "cage", "the new cage"),
                 description="Closed mesh with outward normals whose faces drive the target (a new pick is "
                             "bound at its current shape)"), READ_BY_KIND),

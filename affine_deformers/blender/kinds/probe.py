@@ -22,6 +22,7 @@ from .. import caches, nodes, storage
 from . import probe_tools
 from .base import (
     INTERFACE,
+    OVERRIDABLE,
     READ_BY_KIND,
     Adopted,
     BindError,
@@ -94,7 +95,8 @@ class ProbeKind(DeformerKind):
     @classmethod
     def properties(cls) -> dict[str, KindProperty]:
         return {
-            "probes": KindProperty(CollectionProperty(type=probe_tools.AffineDeformerProbe), READ_BY_KIND),
+            "probes": KindProperty(CollectionProperty(type=probe_tools.AffineDeformerProbe,
+                                                      override=OVERRIDABLE), READ_BY_KIND),
             "active_probe_index": KindProperty(
                 IntProperty(name="Active Probe", default=0, min=0, update=on_preview_option), INTERFACE),
         }

@@ -31,7 +31,7 @@ from bpy.props import (
 from ...core import aff3
 from .. import caches
 from ..addressing import DeformerIndexed, active_deformer, addressed_deformer
-from .base import IDENTITY16, ROTATION_MODES, BindError
+from .base import IDENTITY16, OVERRIDABLE, ROTATION_MODES, BindError
 from .services import on_item_weight_option, owner, reweight, search_vertex_groups, services
 from .transforms import finite_transform, in_a_scene, local_matrix, relative_motion, world_matrix
 
@@ -118,7 +118,7 @@ class AffineDeformerProbe(bpy.types.PropertyGroup):
     """One probe: a control object and its rest pose in the target's local space (float32, as stored)."""
 
     object: PointerProperty(
-        name="Probe", type=bpy.types.Object, update=_on_probe_object,
+        name="Probe", override=OVERRIDABLE, type=bpy.types.Object, update=_on_probe_object,
         description="Object whose motion drives the deformation (a new pick is bound at its current pose)")
     rest_matrix: FloatVectorProperty(
         name="Rest Matrix", size=16, default=IDENTITY16,

@@ -1,0 +1,174 @@
+"""Deformers on library overrides: the local output carrier, and controls pointed at their overrides.
+
+A shot file links a rig from an asset file and overrides it (Object ▸ Library Override ▸ Make). The
+target object becomes a local override, but its mesh stays linked: its attributes are read-only
+(writes to linked and override meshes are silently dropped by Blender, and Mesh data is not
+overridable, so nothing written there would be saved either). The per-frame output of such a target
+goes to a **carrier**: a hidden local mesh object in no scene, one point per target vertex, holding
+the same offset / motion attributes the mesh would. Our modifier names it on the group's "Output
+Carrier" input (modifier inputs are overridable, so the pointer is saved with the override) and
+reads the attributes from it by point index (nodes.py, version 4). Local targets never get one.
+
+The bind data (weights, rest data) stay on the linked mesh, read-only: everything that would rewrite
+them (bind, re-weight, apply, paint) is refused on such a target (addressing.target_problem).
+
+Controls: the deformer's pointers (`probes[].object`, `cage`, `armature`) are overridable, so when
+the hierarchy is overridden Blender points them at the controls' overrides and saves that. A shot
+overridden while the add-on was disabled (or by an older version) still names the linked controls:
+`remap_controls` points them at the override of the same control in the same hierarchy.
+
+An asset saved by an older version has a version-3 group, linked and read-only, without the carrier
+input: the target cannot follow its controls in the shot, and `problem` says what to do.
+"""
+
+from __future__ import annotations
+
+import bpy
+
+from . import binding, kinds, nodes, outputs
+from .addressing import library_name
+
+MARK = "affine_deformers_carrier"  # custom property on the carrier objects we own
+NAME = ".AffineDeformer Output {}"
+
+
+def needs_carrier(obj: bpy.types.Object) -> bool:
+    """Whether `obj` is a local (or override) mesh object whose mesh is linked from a library or an
+    override: its output cannot be written to its mesh."""
+    if obj.type != "MESH" or obj.library is not None:
+        return False
+    mesh = obj.data
+    return mesh.library is not None or mesh.override_library is not None
+
+
+def _our_modifiers(obj: bpy.types.Object) -> list[bpy.types.NodesModifier]:
+    mods = []
+    for deformer in obj.affine_deformers:
+        mod = outputs.modifier(obj, deformer.uid) if deformer.uid else None
+        if mod is not None:
+            mods.append(mod)
+    return mods
+
+
+def problem(obj: bpy.types.Object, deformer) -> str:
+    """Why deformer `deformer` of `obj` (linked, or needing a carrier) cannot follow its controls
+    here, or ''."""
+    mod = outputs.modifier(obj, deformer.uid) if deformer.uid else None
+    if mod is not None and not (mod.show_viewport or mod.show_render):
+        return ""  # muted (e.g. baked in the asset: a Mesh Cache plays instead): nothing is stale
+    if obj.library is not None:  # nothing of it is local: no carrier can be named on its modifier
+        return (f"'{obj.name}' is linked from '{library_name(obj)}' without a library override: it shows "
+                "the shape saved in that file. Make a library override (Object ▸ Library Override ▸ "
+                "Make) to animate it, or bake it in that file")
+    if mod is None or nodes.has_carrier_input(mod):
+        return ""
+    group = mod.node_group
+    return (f"'{obj.name}' uses the node group '{group.name}' saved in '{library_name(group)}' by an older "
+            "version of Affine Deformers, which cannot show a library override's deformation: open and "
+            "save the asset file once with this version of Affine Deformers, or bake it there (until "
+            "then the mesh shows the shape saved in the asset)")
+
+
+def ensure(obj: bpy.types.Object, create: bool = True) -> bpy.types.Object | None:
+    """The carrier of `obj` (made when missing and `create`), with one point per vertex of its mesh,
+    named on every modifier of ours on `obj` that has the input; None when there is none."""
+    mods = [mod for mod in _our_modifiers(obj) if nodes.has_carrier_input(mod)]
+    if not mods:
+        return None
+    found = next((c for c in map(nodes.carrier_of, mods) if c is not None), None)
+    if found is not None and _shared(found, obj, mods):
+        found = None  # a copy of the object (Shift+D of an override) names its original's carrier
+    if found is None or found.library is not None or found.type != "MESH" or not found.get(MARK):
+        if not create:
+            return None
+        name = NAME.format(obj.name)
+        found = bpy.data.objects.new(name, bpy.data.meshes.new(name))
+        found[MARK] = True
+    count = len(obj.data.vertices)
+    if len(found.data.vertices) != count:
+        if not create:
+            return None
+        old = found.data
+        mesh = bpy.data.meshes.new(old.name)
+        mesh.vertices.add(count)  # the points' positions are never read, only their attributes
+        found.data = mesh
+        if old.users == 0:
+            bpy.data.meshes.remove(old)
+    for mod in mods:
+        nodes.set_carrier(mod, found)
+    return found
+
+
+def _shared(found: bpy.types.Object, obj: bpy.types.Object, mods: list) -> bool:
+    """Whether another object with deformers names `found` on a modifier too (a copy of `obj`; the
+    bake's stand-in, which has no deformers, reads it on purpose). Its users are the modifiers naming
+    it, so the scan runs only when it has more users than `obj` has naming modifiers."""
+    if found.users <= sum(nodes.carrier_of(mod) == found for mod in mods):
+        return False
+    return any(nodes.carrier_of(mod) == found for other in bpy.data.objects
+               if other != obj and len(other.affine_deformers)
+               for mod in other.modifiers if mod.type == "NODES")
+
+
+def output_mesh(obj: bpy.types.Object, create: bool = True) -> bpy.types.Mesh | None:
+    """Where the output of `obj`'s deformers goes: its own mesh, or its carrier's when it needs one
+    (None when that carrier does not exist and may not be made now, e.g. during a render frame)."""
+    if not needs_carrier(obj):
+        return obj.data
+    found = ensure(obj, create)
+    return found.data if found is not None else None
+
+
+def ensure_all(scene: bpy.types.Scene | None = None) -> None:
+    """Make the carriers the targets of `scene` (default: every object) need, before a render (no ID
+    is created while a render runs) or after a file is loaded."""
+    objects = scene.objects if scene is not None else bpy.data.objects
+    for obj in objects:
+        if len(obj.affine_deformers) and needs_carrier(obj):
+            ensure(obj)
+
+
+def _control_fields(deformer) -> list[tuple]:
+    """(owner, property name) of every control pointer of the deformer's kind that is set."""
+    kind = kinds.get(deformer.kind)
+    if kind is None:
+        return []
+    fields = [(item, "object") for item in getattr(deformer, "probes", ())]
+    fields += [(deformer, name) for name in ("cage", "armature") if hasattr(deformer, name)]
+    return [(owner, name) for owner, name in fields if getattr(owner, name) is not None]
+
+
+def _root(override: bpy.types.IDOverrideLibrary) -> int:
+    """The session uid of an override's hierarchy root (two overrides of one rig are two hierarchies)."""
+    root = override.hierarchy_root
+    return root.session_uid if root is not None else 0
+
+
+def remap_controls(objects=None) -> int:
+    """Point every control of an override's deformers that names a linked object at that object's
+    override in the same override hierarchy (a shot overridden while the add-on was disabled). Returns
+    how many pointers changed."""
+    objects = list(bpy.data.objects if objects is None else objects)
+    overrides = {}
+    for cand in bpy.data.objects:
+        ol = cand.override_library
+        if cand.library is None and ol is not None and ol.reference is not None:
+            overrides[(ol.reference.session_uid, _root(ol))] = cand
+    if not overrides:
+        return 0
+    changed = 0
+    with binding.quiet():  # a picked control rebinds (control_picker): this is not a pick
+        for obj in objects:
+            ol = obj.override_library
+            if obj.library is not None or ol is None:
+                continue
+            for deformer in obj.affine_deformers:
+                for owner, name in _control_fields(deformer):
+                    control = getattr(owner, name)
+                    if control.library is None:
+                        continue
+                    found = overrides.get((control.session_uid, _root(ol)))
+                    if found is not None:
+                        setattr(owner, name, found)
+                        changed += 1
+    return changed
