@@ -13,12 +13,16 @@ handler and Blender's re-evaluation included) — median of `--reps` repetitions
   (p) playback: frames per second over 48 keyed frames with every control animated, ours vs Hooks,
       Armature (Preserve Volume) and Mesh Deform;
   (m) many deformed objects: playback of 10 objects of ~5k vertices with 4 keyed probes each, ours
-      vs the same rigs built with Hooks.
+      vs the same rigs built with Hooks;
+  (s) shape preservation: a bar bent 90° / 180° and twisted 270° by two bones, Suzanne's cage pulled:
+      volume, edge distortion, roughness and update time, ours vs Armature (Preserve Volume) and Mesh
+      Deform.
 
 Exit status 1 when a measurement is not trustworthy (an update that changed nothing, a result still
 moving after the timed passes) or our operators fail; a missing operator is a printed note, not a failure.
 
-Usage: python bench/run.py [--quick] [--reps N] [--markdown docs/benchmarks.md] [--only a,b,c,d,p,m] [--zip Z]
+Usage: python bench/run.py [--quick] [--reps N] [--markdown docs/benchmarks.md] [--only a,b,c,d,p,m,s]
+                           [--zip Z]
 """
 
 from __future__ import annotations
@@ -42,13 +46,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true", help="small meshes, few reps (smoke test)")
     parser.add_argument("--reps", type=int, help="timed repetitions per case (default 15, quick 3)")
     parser.add_argument("--markdown", type=Path, help="also write the tables to this markdown file")
-    parser.add_argument("--only", default="a,b,c,d,p,m", help="comma list of parts to run (a, b, c, d, p, m)")
+    parser.add_argument("--only", default="a,b,c,d,p,m,s",
+                        help="comma list of parts to run (a, b, c, d, p, m, s)")
     parser.add_argument("--zip", type=Path, help="extension package (default: newest dist/*.zip)")
     ns = parser.parse_args(argv)
     ns.parts = {p.strip() for p in ns.only.split(",") if p.strip()}
-    unknown = ns.parts - {"a", "b", "c", "d", "p", "m"}
+    unknown = ns.parts - {"a", "b", "c", "d", "p", "m", "s"}
     if unknown:
-        parser.error(f"unknown part(s) {sorted(unknown)}: use a, b, c, d, p, m")
+        parser.error(f"unknown part(s) {sorted(unknown)}: use a, b, c, d, p, m, s")
     if ns.reps is not None and ns.reps < 1:
         parser.error("--reps must be at least 1")
     if ns.zip is None:

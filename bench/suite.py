@@ -19,6 +19,7 @@ import common
 import native
 import ours
 import playback
+import shape
 from common import Samples, Table, fmt_ms, fmt_ratio
 
 
@@ -40,6 +41,7 @@ class Plan:
     m_objects: int = 10  # (m) many deformed objects: how many
     m_verts: int = 5_000  # (m) vertices of each
     m_probes: int = 4  # (m) keyed probes on each
+    s_verts: tuple[int, ...] = (10_000, 130_000)  # (s) shape preservation: the bar's sizes
 
 
 FULL = Plan(
@@ -67,6 +69,7 @@ QUICK = Plan(
     p_frames=6,
     m_objects=3,
     m_verts=1_000,
+    s_verts=(2_000,),
 )
 
 STAGES = (
@@ -616,7 +619,7 @@ def run(ns: argparse.Namespace) -> int:
     report = Report()
     t0 = time.perf_counter()
     for part, fn in (("a", part_a), ("b", part_b), ("c", part_c), ("d", part_d), ("p", playback.part_p),
-                     ("m", playback.part_m)):
+                     ("m", playback.part_m), ("s", shape.part_s)):
         if part in ns.parts:
             fn(plan, have_ours, report)
     if report.split_rows:
