@@ -22,6 +22,7 @@ __all__ = [
     "by_name",
     "open_rig",
     "pose",
+    "save_and_reopen",
 ]
 
 
@@ -39,6 +40,12 @@ def open_rig(asset: dict, tmp_path) -> dict[str, np.ndarray]:
     for name in BODIES:
         assert np.abs(reference[f"{name}_12"] - reference[f"{name}_1"]).max() > 0.05, "the rig deforms"
     return reference
+
+
+def save_and_reopen(path) -> None:
+    """Save the open file as `path` and open it again (what the next session or a farm worker sees)."""
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
 
 
 def body_positions(bl, get: Callable[[str], bpy.types.Object] = by_name, frames=FRAMES,

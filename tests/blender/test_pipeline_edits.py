@@ -18,6 +18,7 @@ from tests.blender.pipeline_rig import (
     by_name,
     open_rig,
     pose,
+    save_and_reopen,
 )
 from tests.blender.test_stack import _expected_contract
 
@@ -218,24 +219,30 @@ def test_a_duplicate_plays_as_the_original_and_follows_its_controls(asset, bl, t
             copy(name).delta_location = (0.0, -8.0, 3.0)
         assert_plays_as(body_positions(bl, copy), reference, "posed_")
         assert_plays_as(body_positions(bl), reference)
+    save_and_reopen(tmp_path / "duplicated.blend")
+    assert_plays_as(body_positions(bl, copy), reference, "posed_")
+    assert_plays_as(body_positions(bl), reference, "" if with_controls else "posed_")
 
 
 def test_make_single_user_after_alt_d_keeps_both_results(asset, bl, tmp_path):
-    """Alt+D with the controls, the copies' controls posed, then Object ▸ Relations ▸ Make Single
-    User (object and data) on the copies: every result stays the same, also after save and reopen."""
+    """Alt+D with the controls, the copies' controls posed and played, then Object ▸ Relations ▸ Make
+    Single User (object and data) on the copies: every frame of every body is the same as before, also
+    after save and reopen."""
     reference = open_rig(asset, tmp_path)
     copy = _duplicate(linked=True, with_controls=True)
     bpy.context.scene.frame_set(12)
     pose(copy)
+    shared = {"copy": body_positions(bl, copy), "original": body_positions(bl)}
+    assert_plays_as(shared["copy"], reference, "posed_")
+    assert_plays_as(shared["original"], reference)
     assert bpy.ops.object.make_single_user(type="SELECTED_OBJECTS", object=True, obdata=True) == {"FINISHED"}
     assert all(copy(name).data != by_name(name).data for name in BODIES)
-    assert_plays_as(body_positions(bl, copy), reference, "posed_")
-    assert_plays_as(body_positions(bl), reference)
-    path = tmp_path / "single.blend"
-    bpy.ops.wm.save_as_mainfile(filepath=str(path))
-    bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
-    assert_plays_as(body_positions(bl, copy), reference, "posed_")
-    assert_plays_as(body_positions(bl), reference)
+    for reopened in (False, True):
+        if reopened:
+            save_and_reopen(tmp_path / "single.blend")
+        for label, got in (("copy", body_positions(bl, copy)), ("original", body_positions(bl))):
+            for key, value in got.items():
+                assert np.array_equal(value, shared[label][key]), (label, key, reopened)
 
 
 # ------------------------------------------------------------------------------------------- undo / redo
@@ -340,7 +347,5 @@ def test_renaming_targets_controls_and_modifiers_changes_nothing(asset, bl, tmp_
     bpy.context.scene.frame_set(12)
     pose(renamed)
     assert_plays_as(body_positions(bl, renamed), reference, "posed_")
-    path = tmp_path / "renamed.blend"
-    bpy.ops.wm.save_as_mainfile(filepath=str(path))
-    bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
+    save_and_reopen(tmp_path / "renamed.blend")
     assert_plays_as(body_positions(bl, renamed), reference, "posed_")
