@@ -20,7 +20,8 @@ An attribute that is missing reads as no change, so a modifier with neither pass
 
 Version 2 added two inputs that no node reads, "Cage" (Object) and "Probes" (Collection), hidden in
 the modifier panel: Geometry Nodes adds a depsgraph relation for every ID set on a modifier's inputs,
-used or not, so the controls named there are evaluated whenever the modifier is (see relations.py).
+used or not, so the controls named there are evaluated whenever the modifier is (see relations.py;
+the armature of a bone deformer goes in the collection, whose relation also evaluates its pose).
 Version 3 added the motion inputs and nodes. Version 4 added "Output Carrier" (Object, hidden): a
 target whose mesh is linked from a library (a library override in a shot file) cannot hold per-frame
 attributes, so the handler writes them to a local carrier object instead (carrier.py), one point
@@ -52,8 +53,9 @@ MOTION_SOCKETS = ("Motion X", "Motion Y", "Motion Z", "Motion T")
 CONTROL_SOCKETS = (
     (CAGE_SOCKET, "NodeSocketObject", "The cage of a cage deformer (set by the add-on; only makes the "
                                       "depsgraph evaluate it)"),
-    (PROBES_SOCKET, "NodeSocketCollection", "The probes of a probe deformer (set by the add-on; only "
-                                            "makes the depsgraph evaluate them)"),
+    (PROBES_SOCKET, "NodeSocketCollection", "The probes of a probe deformer, or the armature of a bone "
+                                            "deformer (set by the add-on; only makes the depsgraph "
+                                            "evaluate them)"),
 )
 _MOTION_INPUTS = tuple(
     (name, "NodeSocketString", f"Point attribute holding the {what} of each vertex's motion (set by the "

@@ -1,19 +1,25 @@
-"""Depsgraph relations from a deformed mesh to its controls (cage, probes).
+"""Depsgraph relations from a deformed mesh to its controls (cage, probes, armature).
 
 Blender evaluates an object only when it is visible or something visible depends on it, and nothing
-made the target depend on its controls: a cage or probe disabled in viewports (or in renders) kept a
-stale evaluated copy, so the deformer read old transforms and shapes, or had to refuse. Each
-deformer's modifier now names its controls on the shared group's inputs (nodes.CAGE_SOCKET, an
-Object; nodes.PROBES_SOCKET, a Collection). Geometry Nodes adds a depsgraph relation for every ID set
-on a modifier's inputs, whether or not a node reads it (object: transform and geometry; collection:
-its objects' transforms and geometry), so while the modifier is enabled the controls are evaluated
-with the target, in the viewport and in renders.
+made the target depend on its controls: a cage, probe or armature disabled in viewports (or in
+renders) kept a stale evaluated copy, so the deformer read old transforms, shapes and poses, or had to
+refuse. Each deformer's modifier now names its controls on the shared group's inputs
+(nodes.CAGE_SOCKET, an Object; nodes.PROBES_SOCKET, a Collection). Geometry Nodes adds a depsgraph
+relation for every ID set on a modifier's inputs, whether or not a node reads it (object: transform,
+and geometry when it has a geometry component; collection: its geometry, which waits for each
+member's transform, geometry and instancing), so while the modifier is enabled the controls are
+evaluated with the target, in the viewport and in renders.
 
-The probes of a deformer are held by a collection of its own, named PROBES_NAME, marked with
-PROBES_MARK and linked to no scene (the Collection input is the only way to name a changing number of
-objects on one shared node group). `sync` keeps it and the inputs in step with the deformer; it is
-called at bind / re-weight, when a control is picked or cleared, and for every deformer when a file is
-loaded (which also upgrades node groups saved by older versions, see nodes.upgrade_group).
+An armature's pose is neither its transform nor geometry (it has no geometry component): named on
+the Object input, a disabled armature kept a stale pose. Its instancing waits for its whole pose, so
+the Collection input evaluates it: an armature goes in the collection (`object_input_evaluates`).
+
+The probes (or armature) of a deformer are held by a collection of its own, named PROBES_NAME, marked
+with PROBES_MARK and linked to no scene (the Collection input is the only way to name a changing
+number of objects on one shared node group). `sync` keeps it and the inputs in step with the
+deformer; it is called at bind / re-weight, when a control is picked or cleared, and for every
+deformer when a file is loaded (which also upgrades node groups saved by older versions, see
+nodes.upgrade_group, and moves an armature an older version named on the Object input).
 
 Only controls the depsgraph would not evaluate anyway are named (`evaluated_anyway`). A relation
 also re-evaluates the target whenever a named control moves, before our handler has written the
@@ -86,14 +92,22 @@ def _fcurves(action: bpy.types.Action) -> list:
     return curves + (list(legacy) if legacy is not None and not curves else [])
 
 
+def object_input_evaluates(control: bpy.types.Object) -> bool:
+    """Whether naming `control` on the Object input makes the depsgraph evaluate all a kind reads of
+    it: not for an armature, whose pose only the Collection input evaluates (see the module doc;
+    measured on 4.2, 4.5 and 5.0, and kept by tests/blender/test_pipeline_files.py)."""
+    return control.type != "ARMATURE"
+
+
 def _wanted(obj: bpy.types.Object, deformer) -> tuple[bpy.types.Object | None, list[bpy.types.Object]]:
     """(object, collection members) the deformer's modifier should name: a kind with one control
-    object (a cage) names it on the Object input, others (probes) put theirs in the collection; the
-    target itself never, nor controls the depsgraph evaluates anyway."""
+    object (a cage) names it on the Object input, others (probes) and armatures
+    (`object_input_evaluates`) go in the collection; the target itself never, nor controls the
+    depsgraph evaluates anyway."""
     kind = kinds.get(deformer.kind)
     controls = kind.controls(obj, deformer) if kind is not None else []
     controls = [control for control in controls if not evaluated_anyway(obj, control)]
-    if kind is not None and kind.single_control:
+    if kind is not None and kind.single_control and all(map(object_input_evaluates, controls)):
         return (controls[0] if controls else None), []
     return None, controls
 

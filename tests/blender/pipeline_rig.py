@@ -21,6 +21,8 @@ __all__ = [
     "body_positions",
     "by_name",
     "open_rig",
+    "overridden",
+    "override_rig",
     "pose",
     "save_and_reopen",
 ]
@@ -40,6 +42,26 @@ def open_rig(asset: dict, tmp_path) -> dict[str, np.ndarray]:
     for name in BODIES:
         assert np.abs(reference[f"{name}_12"] - reference[f"{name}_1"]).max() > 0.05, "the rig deforms"
     return reference
+
+
+def override_rig(path) -> None:
+    """Link the collection "Rig" of the asset file `path` into the open file and override it, as
+    Object ▸ Library Override ▸ Make does on an instance of it."""
+    scene = bpy.context.scene
+    with bpy.data.libraries.load(str(path), link=True) as (_source, linked):
+        linked.collections = ["Rig"]
+    instance = bpy.data.objects.new("RigInstance", None)
+    instance.instance_type, instance.instance_collection = "COLLECTION", linked.collections[0]
+    scene.collection.objects.link(instance)
+    linked.collections[0].override_hierarchy_create(scene, bpy.context.view_layer, reference=instance)
+    bpy.data.objects.remove(instance)
+
+
+def overridden(name: str) -> bpy.types.Object:
+    """The local override of the rig's object `name`."""
+    found = [obj for obj in bpy.data.objects if obj.name == name and obj.library is None]
+    assert len(found) == 1 and found[0].override_library is not None, (name, found)
+    return found[0]
 
 
 def save_and_reopen(path) -> None:

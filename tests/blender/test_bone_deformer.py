@@ -7,6 +7,7 @@ smooth ramps in x, quantised to 1/256 so that they can be painted per value (no 
 
 from __future__ import annotations
 
+import importlib
 import itertools
 import math
 
@@ -243,6 +244,108 @@ def test_bad_inputs_get_a_message_and_the_input_passes_through(bl):
     bpy.context.view_layer.update()
     assert "armature" in deformer.status.lower()
     assert np.array_equal(bl.evaluated_positions(bar), rest)
+
+
+def test_an_armature_disabled_in_viewports_is_followed_while_the_deformer_is_on(bl, installed):
+    """The monitor icon on the armature or on its collection (as riggers do): the modifier names the
+    armature in its collection, whose relation evaluates the pose (an Object input evaluates only the
+    transform: relations.object_input_evaluates), so the mesh follows the pose as when the armature is
+    enabled. With the deformer off in viewports the stale pose is reported, not read; enabled again,
+    or hidden with the eye icon, nothing is named."""
+    nodes = importlib.import_module(f"{installed.package}.blender.nodes")
+    bar, arm, _native, deformer = _rig(bl)
+    mod = nodes.find_modifier(bar, f"affdef_{deformer.uid}_offset")
+    rest = bl.rest_positions(bar)
+    bone = arm.pose.bones["B1"]
+    bone.rotation_mode = "XYZ"
+    shown = {}
+    for angle in (0.6, -0.4, 0.9):  # each pose with the armature enabled: the reference
+        bone.rotation_euler.z = angle
+        bpy.context.view_layer.update()
+        shown[angle] = bl.evaluated_positions(bar).copy()
+    assert nodes.controls(mod) == (None, None), "enabled everywhere: evaluated without a relation"
+
+    def follows(angle: float) -> None:
+        bone.rotation_euler.z = angle
+        bpy.context.view_layer.update()
+        assert np.array_equal(bl.evaluated_positions(bar), shown[angle]), angle
+        assert deformer.status == ""
+
+    arm.hide_viewport = True
+    follows(0.6)
+    cage, collection = nodes.controls(mod)
+    assert cage is None and set(collection.objects) == {arm}, "in the collection, not on the Object input"
+    follows(-0.4)
+    deformer.show_viewport = False  # nothing asks for the pose then: reported, not read
+    bone.rotation_euler.z = 0.9
+    bpy.context.view_layer.update()
+    assert "Armature 'Rig' is not evaluated" in deformer.status and "eye icon" in deformer.status
+    deformer.show_viewport = True
+    follows(0.9)
+    arm.hide_viewport = False
+    arm.hide_set(True)  # the eye icon: evaluated anyway
+    follows(0.6)
+    assert nodes.controls(mod) == (None, None)
+    arm.hide_set(False)
+    rigs = bpy.data.collections.new("Rigs")
+    bpy.context.scene.collection.children.link(rigs)
+    rigs.objects.link(arm)
+    bpy.context.scene.collection.objects.unlink(arm)
+    rigs.hide_viewport = True  # its collection disabled in viewports
+    follows(-0.4)
+    assert set(nodes.controls(mod)[1].objects) == {arm}
+    rigs.hide_viewport = False
+    follows(0.9)
+    assert nodes.controls(mod) == (None, None), "enabled again: the relation is dropped"
+    bone.rotation_euler.z = 0.0
+    bpy.context.view_layer.update()
+    assert np.array_equal(bl.evaluated_positions(bar), rest)
+
+
+def test_an_armature_disabled_and_keyed_between_frame_changes_is_read_at_its_pose(bl, installed):
+    """frame_set runs no depsgraph_update_post, so no update saw the armature disabled: the handler
+    finds it unevaluated, names it and evaluates again, instead of reading the stale pose."""
+    bar, arm, _native, deformer = _rig(bl)
+    _key_twist(arm, "B1", {1: 0.0, 20: 90.0})
+    expected = {}
+    for frame in (10, 20):
+        bpy.context.scene.frame_set(frame)
+        expected[frame] = bl.evaluated_positions(bar).copy()
+    bpy.context.scene.frame_set(1)
+    arm.hide_viewport = True
+    for frame in (10, 20):
+        bpy.context.scene.frame_set(frame)
+        assert np.array_equal(bl.evaluated_positions(bar), expected[frame]), frame
+        assert deformer.status == ""
+
+
+def test_a_file_naming_a_disabled_armature_on_the_object_input_is_resynced_at_load(bl, installed, tmp_path):
+    """Files saved before armatures went in the collection name a disabled armature on the Object input
+    (its pose stale): at load the armature moves to the collection, and the mesh follows its pose."""
+    nodes = importlib.import_module(f"{installed.package}.blender.nodes")
+    bar, arm, _native, deformer = _rig(bl)
+    bone = arm.pose.bones["B1"]
+    bone.rotation_mode = "XYZ"
+    bone.rotation_euler.z = 0.7
+    bpy.context.view_layer.update()
+    shown = bl.evaluated_positions(bar).copy()
+    bone.rotation_euler.z = 0.0
+    arm.hide_viewport = True
+    bpy.context.view_layer.update()
+    mod = nodes.find_modifier(bar, f"affdef_{deformer.uid}_offset")
+    nodes.set_controls(mod, arm, None)
+    assert nodes.controls(mod) == (arm, None)
+    path = tmp_path / "named_on_the_object_input.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
+    bar, arm = bpy.data.objects["Bar"], bpy.data.objects["Rig"]
+    deformer = bar.affine_deformers[0]
+    cage, collection = nodes.controls(nodes.find_modifier(bar, f"affdef_{deformer.uid}_offset"))
+    assert cage is None and set(collection.objects) == {arm}
+    arm.pose.bones["B1"].rotation_euler.z = 0.7
+    bpy.context.view_layer.update()
+    assert np.array_equal(bl.evaluated_positions(bar), shown)
+    assert deformer.status == ""
 
 
 def _key_twist(arm, bone: str, frames_degrees: dict[int, float]) -> None:

@@ -1,8 +1,10 @@
 """Issue 38's pipeline cases that go through files, on the rig asset of test_overrides (a probe, a cage
 and a bone deformer with keyed controls, and the asset's own positions at frames 1, 12, 24 as the
 reference): File ▸ Append of the rig twice into one file; Alembic, USD and FBX exports of the live
-deformers (no bake) read back and compared with the evaluated meshes; and the modifier's Viewport /
-Render toggles as a background render of the saved file sees them."""
+deformers (no bake) read back and compared with the evaluated meshes; the modifier's Viewport /
+Render toggles as a background render of the saved file sees them; and the rig's armature disabled in
+viewports or renders (locally, in a background render, and on overrides), which the bone deformer
+follows as the Armature modifier does."""
 
 from __future__ import annotations
 
@@ -16,7 +18,10 @@ from tests.blender.pipeline_rig import (
     TOLERANCE,
     assert_plays_as,
     body_positions,
+    by_name,
     open_rig,
+    overridden,
+    override_rig,
     pose,
     save_and_reopen,
 )
@@ -198,23 +203,48 @@ def test_a_background_render_respects_the_modifiers_viewport_and_render_toggles(
     assert np.abs(images["on"] - images["removed"]).max() > 0.05, "the render shows the deformation"
 
 
-ARMATURE_POSE_NOT_EVALUATED = (
-    "Bug: a bone deformer reads the armature's evaluated pose, but when the armature is disabled in "
-    "viewports or renders nothing makes the depsgraph evaluate that pose: the modifier names the "
-    "armature on an Object input, and Geometry Nodes then adds a relation to its transform only (an "
-    "armature has no geometry component), where the Armature modifier adds one to its pose "
-    "(DEG_OB_COMP_EVAL_POSE). The deformer reads a stale pose, with a clean status.")
+# ------------------------------------------------------------------------------- disabled armatures
 
 
-@pytest.mark.xfail(strict=True, reason=ARMATURE_POSE_NOT_EVALUATED)
 def test_a_bone_deformer_whose_armature_is_disabled_in_viewports_plays(asset, bl, tmp_path):
-    """Riggers disable rigs in viewports (the monitor icon); the Armature modifier still deforms."""
+    """Riggers disable rigs in viewports (the monitor icon); the Armature modifier still deforms, and
+    so does ours: posed, and after save and reopen."""
     reference = open_rig(asset, tmp_path)
     bpy.data.objects["Arm"].hide_viewport = True
     assert_plays_as(body_positions(bl), reference)
+    bpy.context.scene.frame_set(12)
+    pose(by_name)
+    assert_plays_as(body_positions(bl), reference, "posed_")
+    save_and_reopen(tmp_path / "disabled.blend")
+    assert_plays_as(body_positions(bl), reference, "posed_")
 
 
-@pytest.mark.xfail(strict=True, reason=ARMATURE_POSE_NOT_EVALUATED)
+@pytest.mark.parametrize("where", ["shot", "asset"])
+def test_an_overridden_rig_whose_armature_is_disabled_plays(asset, bl, tmp_path, where):
+    """A shot overriding the rig, its armature disabled in viewports and renders there (on the
+    override) or in the asset: the bodies play as the asset, posed, and after save and reopen."""
+    source = asset["asset"]
+    if where == "asset":
+        reference = open_rig(asset, tmp_path)
+        bpy.data.objects["Arm"].hide_viewport = bpy.data.objects["Arm"].hide_render = True
+        source = str(tmp_path / "disabled_asset.blend")
+        bpy.ops.wm.save_as_mainfile(filepath=source)
+        bpy.ops.wm.read_homefile(use_empty=True)
+    else:
+        reference = dict(np.load(asset["reference"]))
+    override_rig(source)
+    if where == "shot":
+        overridden("Arm").hide_viewport = overridden("Arm").hide_render = True
+    assert overridden("Arm").hide_viewport
+    assert_plays_as(body_positions(bl, overridden), reference)
+    bpy.context.scene.frame_set(12)
+    pose(overridden)
+    assert_plays_as(body_positions(bl, overridden), reference, "posed_")
+    save_and_reopen(tmp_path / "shot.blend")
+    assert overridden("Arm").hide_viewport
+    assert_plays_as(body_positions(bl, overridden), reference, "posed_")
+
+
 def test_a_bone_deformer_whose_armature_is_disabled_in_renders_renders_as_shown(asset, bl, tmp_path):
     """A rig disabled in renders (the camera icon): the background render shows the posed bodies."""
     open_rig(asset, tmp_path)

@@ -198,8 +198,9 @@ class DeformerKind(ABC):
 
     id: the value of `AffineDeformer.kind` (and of kinds.KindId); label, description, icon and
     add_description (the add operator's tooltip): how the interface names it; single_control: the
-    kind's controls are one object (named on the modifier's Object input; otherwise they go in its
-    probe collection, relations.py). Every method receives the target object and its deformer item.
+    kind's controls are one object (named on the modifier's Object input, unless it is an armature;
+    otherwise they go in its probe collection, relations.py). Every method receives the target object
+    and its deformer item.
 
     A kind owns its properties, operators and panel part: `properties` (merged into the deformer's
     property group before it is registered: the names are RNA paths saved in .blend files and used by

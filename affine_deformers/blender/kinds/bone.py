@@ -39,7 +39,7 @@ import numpy as np
 from bpy.props import CollectionProperty, IntProperty, PointerProperty
 
 from ...core import hierarchy, unwrap
-from .. import caches
+from .. import caches, storage
 from . import armature_convert, bone_tools
 from .base import (
     INTERFACE,
@@ -58,6 +58,7 @@ from .bone_tools import DEFAULT_INFLUENCES, deform_bones
 from .services import control_picker, on_preview_option
 from .transforms import (
     MAX_COORDINATE,
+    StaleControls,
     finite_transform,
     frame_rotation,
     in_a_scene,
@@ -391,7 +392,12 @@ class BoneKind(DeformerKind):
         if not finite_transform(frame):
             return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' has a non-finite "
                                    "transform: the mesh shows its input")
-        pose = armature.evaluated_get(depsgraph).pose
+        evaluated = armature.evaluated_get(depsgraph)
+        if StaleControls(obj, storage.offset_name(deformer.uid), depsgraph, True).stale(armature, evaluated):
+            return Motions.invalid(m, f"Armature '{armature.name}' is not evaluated (it is disabled in "
+                                   "viewports or renders, and the deformer is off there): enable the "
+                                   "deformer, or enable the armature and hide it with the eye icon")
+        pose = evaluated.pose
         rows: dict[str, _BoneRow | None] = {}
         misses: list[tuple] = []
         missing = ""

@@ -18,7 +18,7 @@ from bpy.props import CollectionProperty, IntProperty
 
 from ... import accel
 from ...core import weights
-from .. import caches, nodes, storage
+from .. import caches, storage
 from . import probe_tools
 from .base import (
     INTERFACE,
@@ -36,6 +36,7 @@ from .probe_tools import group_names, new_probe, probe_label, selected_probes
 from .services import on_preview_option
 from .transforms import (
     MAX_COORDINATE,
+    StaleControls,
     finite_transform,
     frame_rotation,
     frame_rotations,
@@ -48,8 +49,6 @@ from .transforms import (
     ordered_matmul,
     relative_motion,
     rotation_channels,
-    unnamed_control_stale,
-    want_resync,
     world_matrix,
 )
 from .weighting import control_weights, draw_weight_options
@@ -169,11 +168,8 @@ class ProbeKind(DeformerKind):
         misses: list[tuple[int, tuple, np.ndarray, tuple, str, tuple]] = []
         problem = ""
         # Probes the modifier does not name are evaluated because they are enabled (relations.py);
-        # each is checked, so a visibility change not synced yet is an error, not a stale pose. The
-        # viewport's test is one flag, cheaper than listing the modifier's controls, so there the
-        # list is made only for a probe that fails it; a render's test is not, so it comes second.
-        attr = storage.offset_name(deformer.uid)
-        named = nodes.named_controls(obj, attr, depsgraph) if m and depsgraph.mode == "RENDER" else None
+        # each is checked, so a visibility change not synced yet is an error, not a stale pose.
+        stale = StaleControls(obj, storage.offset_name(deformer.uid), depsgraph, bool(m))
         for i, item in enumerate(probes):
             probe = item.object
             if probe is None:
@@ -187,15 +183,11 @@ class ProbeKind(DeformerKind):
             if problem:
                 break
             evaluated = probe.evaluated_get(depsgraph)
-            if (named is None or probe not in named) and unnamed_control_stale(probe, evaluated, depsgraph):
-                if named is None:
-                    named = nodes.named_controls(obj, attr, depsgraph)
-                if probe not in named:
-                    want_resync()
-                    problem = (f"Probe '{probe.name}' is not evaluated (it is disabled in viewports or "
-                               "renders, and the deformer is off there): enable the deformer, or show the "
-                               "probe")
-                    break
+            if stale.stale(probe, evaluated):
+                problem = (f"Probe '{probe.name}' is not evaluated (it is disabled in viewports or "
+                           "renders, and the deformer is off there): enable the deformer, or show the "
+                           "probe")
+                break
             world = np.array(evaluated.matrix_world, dtype=np.float64)
             mode = evaluated.rotation_mode
             channels = rotation_channels(evaluated, mode)

@@ -15,6 +15,7 @@ import numpy as np
 
 from ... import accel
 from ...core import aff3, unwrap
+from .. import nodes
 
 
 def world_matrix(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
@@ -288,6 +289,32 @@ def unnamed_control_stale(control: bpy.types.Object, evaluated: bpy.types.Object
     if depsgraph.mode == "RENDER":
         return not control_evaluated(control, evaluated, depsgraph)
     return control.hide_viewport or not evaluated.is_evaluated
+
+
+class StaleControls:
+    """The controls of one deformer found unevaluated this update (a visibility change not synced yet
+    would otherwise be read stale): `stale(control, evaluated)` is True for a control that the
+    deformer's modifier does not name (nodes.named_controls) and `unnamed_control_stale` finds not
+    evaluated, and then asks for a re-sync (`want_resync`). The viewport's test is one flag, cheaper
+    than listing the modifier's controls, so there the list is made only for a control that fails it;
+    a render's test is not, so there it comes second."""
+
+    def __init__(self, obj: bpy.types.Object, attr: str, depsgraph: bpy.types.Depsgraph, any_control: bool):
+        self._obj, self._attr, self._depsgraph = obj, attr, depsgraph
+        render = any_control and depsgraph.mode == "RENDER"
+        self._named = nodes.named_controls(obj, attr, depsgraph) if render else None
+
+    def stale(self, control: bpy.types.Object, evaluated: bpy.types.Object) -> bool:
+        named = self._named
+        if (named is not None and control in named) or not unnamed_control_stale(control, evaluated,
+                                                                                   self._depsgraph):
+            return False
+        if named is None:
+            named = self._named = nodes.named_controls(self._obj, self._attr, self._depsgraph)
+        if control in named:
+            return False
+        want_resync()
+        return True
 
 
 def in_a_scene(obj: bpy.types.Object) -> bool:
