@@ -43,11 +43,17 @@ def _values(deformer, motions: Motions, bound: BoundData) -> np.ndarray:
 
 def _pooled(table: np.ndarray, motions: Motions, bound: BoundData) -> np.ndarray:
     """`table` (m, ...) — parameters, or matrices for the linear blend — with the truncation's pooled
-    control appended as row m when the bound weights point at it (MATH.md §12): the mix
-    Σ a_i table[i] of the controls not skipped, a = `motions.pool` (uniform when None)."""
+    nodes appended when the bound weights point at them (MATH.md §12): for a flat set, row m, the mix
+    Σ a_i table[i] of the controls not skipped, a = `motions.pool` (uniform when None); for a
+    hierarchy, rows m … 2m, the means of each control's children and of the roots as mixes of the
+    table (core.hierarchy.pool_mix: its rows are exact as weights on the controls, so the linear
+    blend takes them as such; the affine blend down the hierarchy uses `_chain_inputs`)."""
     if not bound.pooled:
         return table
     m = len(table)
+    if motions.chain is not None:
+        mix = hierarchy.pool_mix(motions.chain.parents, np.ones(m) if motions.pool is None else motions.pool)
+        return np.concatenate([table, np.tensordot(mix, table, axes=(1, 0))])
     a = np.full(m, 1.0 / m) if motions.pool is None else np.asarray(motions.pool, dtype=np.float64)
     if motions.valid is not None and not np.all(motions.valid):
         a = np.where(motions.valid, a, 0.0)
@@ -256,9 +262,14 @@ def _chain_inputs(deformer, motions: Motions, bound: BoundData, state: tuple
     its full motion (a prefix)."""
     chain = motions.chain
     params = parameters.chain_params(motions, deformer.branch_rule)
-    prefixes = hierarchy.prefix_table(motions.matrices)
-    layout = bound.chain_layout(chain.parents, deformer.strength)
-    state = (state, chain.parents.tobytes())
+    matrices, parents = motions.matrices, chain.parents
+    if bound.pooled:  # the pooled nodes below each bone and the roots (MATH.md §12)
+        scales = np.ones(len(params)) if motions.pool is None else motions.pool
+        params, matrices = hierarchy.pool_tables(params, matrices, parents, scales)
+        parents = hierarchy.pool_parents(parents)
+    prefixes = hierarchy.prefix_table(matrices)
+    layout = bound.chain_layout(parents, deformer.strength)
+    state = (state, parents.tobytes())
     previous = bound.motions if bound.offsets is None else bound.offsets
     if (previous is None or bound.state != state or bound.params is None or bound.prefixes is None
             or bound.params.shape != params.shape):

@@ -108,7 +108,8 @@ def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Sna
         error = motions.error
     if not error:
         try:
-            bound = bound_data.bind_data(obj, deformer, len(motions.matrices), pool=motions.chain is None)
+            m = len(motions.matrices)
+            bound = bound_data.bind_data(obj, deformer, m, pool=1 if motions.chain is None else m + 1)
         except storage.StorageError as exc:
             error = str(exc)
     if not error:
