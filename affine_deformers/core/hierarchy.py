@@ -125,18 +125,20 @@ def pool_parents(parents: ArrayLike) -> NDArray[np.intp]:
     return np.concatenate([parents, np.arange(m), [-1]]).astype(np.intp)
 
 
-def pool_tables(params: ArrayLike, matrices: ArrayLike, parents: ArrayLike,
-                scales: ArrayLike) -> tuple[FloatArray, FloatArray]:
+def pool_tables(params: ArrayLike, matrices: ArrayLike, mix: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """(local parameters (2m + 1, 12), motions (2m + 1, 4, 4)) of the controls and their pooled nodes
-    (`pool_parents` numbering): μ_i blends its children's ψ(L_c) (`pool_mix` without leaves: 0 for a
-    leaf) and moves by A_i φ(q_i); μ_⊤ blends the roots' ψ(L_r) and moves by φ(q_⊤). A motion shared
-    by all controls (L = I below the roots) gives every μ_i its parent's motion and μ_⊤ the common one."""
+    (`pool_parents` numbering), from ψ(L) (m, 12), the controls' motions A (m, 4, 4) and `pool_mix`
+    (m + 1, m): μ_i blends its children's ψ(L_c) (a leaf's row, itself, counts as no children: q = 0)
+    and moves by A_i φ(q_i); μ_⊤ blends the roots' ψ(L_r) and moves by φ(q_⊤). A motion shared by
+    all controls (L = I below the roots) gives every μ_i its parent's motion and μ_⊤ the common one."""
     from .aff3 import matrices_from_params
 
     P = np.asarray(params, dtype=np.float64)
     A = np.asarray(matrices, dtype=np.float64)
     m = len(P)
-    q = pool_mix(parents, scales, leaves=False) @ P
+    local = np.array(mix, dtype=np.float64)
+    local[np.arange(m), np.arange(m)] = 0.0  # a leaf's own row: its mean of no children
+    q = local @ P
     moved = matrices_from_params(q)
     full = np.concatenate([A @ moved[:m], moved[m:]])
     return np.concatenate([P, q]), np.concatenate([A, full])

@@ -17,8 +17,9 @@ the lowered weights and T a total the caller gives (by default the kept weights'
 the kept weights sum to S/D < 1; the rest, the pooled weight λ = 1 − S/D, goes to a pooled control:
 `sparse_from_blocks` stores it as one more column whose index is m (one past the last control), and
 the deformer blends there the mean of all controls' parameters weighted by `pool_weights`
-(`with_pool`), so a motion shared by all controls stays exact everywhere. Nothing is pooled when
-m ≤ K.
+(`with_pool`), so a motion shared by all controls stays exact everywhere; with a `PoolColumns` (bones:
+core.hierarchy.PoolPoint) the pooled weight goes to its columns of pooled nodes instead, each a fixed
+mix of the controls. Nothing is pooled when m ≤ K.
 
 Normalisation of the kept K weights of a row: 'NONE' (as is), 'SUM' (divide by the row sum; all-zero
 rows stay zero), 'SOFTMAX' (exp(w − max w) over the row's positive entries, summing to 1; zero
@@ -81,7 +82,8 @@ MIN_DISTANCE_FRACTION = 1e-6
 #: vertex; the numpy kernel's dense blend (≤ 48 probes) does not depend on it
 #: (bench/influence_cost.py).
 PROBE_INFLUENCES = 8
-#: c in the truncation's divisor D = max(S, c·T) (MATH.md §12) for probe and bone weights, T the
+#: c in the truncation's divisor D = max(S, c·T) (MATH.md §12) for probe weights (bones:
+#: hierarchy.BONE_POOL_FLOOR; cages use this c with T their 16 nearest faces' weight), T the
 #: row's total weight over every control: the kept weights are renormalised exactly (nothing pooled)
 #: wherever their excess over the (K+1)-th keeps half of the total weight, and no slope exceeds
 #: about 2(1 + K)/c times the untruncated field's. Measured on rings, grids and a mirrored bar
@@ -90,12 +92,6 @@ PROBE_INFLUENCES = 8
 #: at every truncated vertex, which carries the mean of far probes' motions into all of them (MATH.md
 #: §12 has the numbers).
 POOL_FLOOR = 0.5
-#: c when `truncate` is given no total (the cage: it measures only the faces that can matter, so it
-#: knows the kept weights' sum P but not the total): D = max(S, c·P). Small, because inside a box
-#: cage many faces are about equally far and a larger c pools weight over much of the interior
-#: (with c = 0.5, 40% of the points deep in a rigidly moved half of a long box cage pooled up to
-#: 2/3 of their weight and left it by 0.26 of the box's width); 0.1 pools only near true ties.
-LOCAL_FLOOR = 0.1
 
 
 def inverse_distance(
@@ -180,7 +176,7 @@ def truncate(
     k: int,
     raw: bool = False,
     total: ArrayLike | None = None,
-    floor: float = LOCAL_FLOOR,
+    floor: float = POOL_FLOOR,
     with_pooled: bool = False,
 ) -> tuple[IntArray, FloatArray] | tuple[IntArray, FloatArray, FloatArray]:
     """Continuous top-K of non-negative weights W (n, m) with a bounded slope -> (indices (n, K) int32,

@@ -603,7 +603,7 @@ def test_pooled_bone_weight_follows_the_bones_tree(bl, installed):
                                 for i in range(8)])
     parents = np.array([-1] + [0] * 8)
     params, matrices = hierarchy.pool_tables(aff3.params_from_matrices(hierarchy.local_motions(A, parents)),
-                                             A, parents, np.ones(m))
+                                             A, hierarchy.pool_mix(parents, np.ones(m)))
     layout = hierarchy.chain_layout(indices, values, hierarchy.pool_parents(parents))
     expected = hierarchy.chain_points(rest, params, hierarchy.prefix_table(matrices), layout)
     assert np.abs(got - expected).max() < 1e-4

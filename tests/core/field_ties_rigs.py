@@ -16,9 +16,9 @@ about the face's horizontal axis through its centre).
 
 The measure is field_ties.jump_ratio: (largest jump between neighbours / largest displacement) on
 the mesh's edges and along lines of 4,001 points through the tie sets, divided by the same of the
-untruncated field (every control kept). "before" is the bones' rule before this table (their pooled
-weight given to the root bones, c = 1/2) and the cages' 0.1.x rule (the lowered weights divided by
-their own sum).
+untruncated field (every control kept). "before" is the rule before this table: the bones' pooled
+weight given to the root bones (c = 1/2), the cages' divided by D = max(S, 0.1 Σ kept) and pooled to
+the faces' uniform mean; "former" the 0.1.x rule (the lowered weights divided by their own sum).
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ import numpy as np
 from affine_deformers.core import aff3, deform, hierarchy
 from affine_deformers.core import weights as wt
 from affine_deformers.core.cage import CageTopology, cage_weights, face_motions
+from affine_deformers.core.cage.pool import pool_mixes
 
 from .field_ties import SHIFT, TURN, Ratios, cylinder, icosphere, jump_ratio, segment
 
@@ -178,20 +179,34 @@ def roots_rule(points: np.ndarray, layout: BoneLayout, k: int) -> tuple[np.ndarr
             np.concatenate([val[:, :-1], val[:, -1:] * share], axis=1))
 
 
+def former_bone_rule(points: np.ndarray, layout: BoneLayout, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The 0.1.x truncation: (w_j − w_{K+1}) / Σ_{i≤K} (w_i − w_{K+1}), nothing pooled."""
+    W = wt.inverse_distance(wt.segment_distances(points, layout.heads, layout.tails))
+    if k >= W.shape[1]:
+        idx, val = wt.top_k(W, k)
+        return idx, wt.normalize(val)
+    idx, val = wt.top_k(W, k + 1)
+    return former_cage_rule(idx, val, k)
+
+
 def bone_field(points: np.ndarray, layout: BoneLayout, matrices: np.ndarray, k: int,
                rule: str = "now") -> np.ndarray:
     """d(x) of the bones of `layout` moved by `matrices`, distance weights with k influences, blended
     down the hierarchy: the bone deformer's rule ("now": the pooled weight to a point on the tree,
-    core.hierarchy.PoolPoint) or the former one ("before", `roots_rule`)."""
+    core.hierarchy.PoolPoint), the rule before this table ("before", `roots_rule`) or 0.1.x's
+    ("former", `former_bone_rule`)."""
     parents = layout.parents
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, parents))
     if rule == "before":
         idx, val = roots_rule(points, layout, k)
+    elif rule == "former":
+        idx, val = former_bone_rule(points, layout, k)
     else:
         idx, val = wt.probe_weights(points, layout.heads, tails=layout.tails, k=k,
                                     floor=hierarchy.BONE_POOL_FLOOR, pool=hierarchy.PoolPoint(parents))
     if idx.size and int(idx.max()) >= len(parents):
-        params, matrices = hierarchy.pool_tables(params, matrices, parents, np.ones(len(parents)))
+        params, matrices = hierarchy.pool_tables(params, matrices,
+                                                 hierarchy.pool_mix(parents, np.ones(len(parents))))
         parents = hierarchy.pool_parents(parents)
     layout_ = hierarchy.chain_layout(idx, val, parents)
     return hierarchy.chain_points(points, params, hierarchy.prefix_table(matrices), layout_) - points
@@ -296,26 +311,41 @@ def cage_current(layout: CageLayout) -> np.ndarray:
 
 
 def former_cage_rule(idx: np.ndarray, val: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The 0.1.x truncation of untruncated cage weights (sorted rows): (w_j − w_{K+1}) / Σ_{i≤K}
-    (w_i − w_{K+1}), the plain top-K where that sum is 0."""
+    """The 0.1.x truncation of untruncated weights (rows sorted, strongest first): (w_j − w_{K+1}) /
+    Σ_{i≤K} (w_i − w_{K+1}), the plain top-K where that sum is 0."""
     excess = val[:, :k] - val[:, k:k + 1]
     S = excess.sum(axis=1, keepdims=True)
     return idx[:, :k], np.where(S > 0.0, excess / np.where(S > 0.0, S, 1.0), wt.normalize(val[:, :k]))
 
 
+def kept_floor_rule(idx: np.ndarray, val: np.ndarray, k: int, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """The cage rule before this table, on untruncated weights: D = max(S, 0.1 Σ kept), the pooled
+    weight to the faces' uniform mean (index F)."""
+    W = np.zeros((len(idx), n_faces))
+    np.put_along_axis(W, idx.astype(np.intp), val, axis=1)
+    cols, vals, pooled = wt.truncate(W, k, floor=0.1, with_pooled=True)
+    return (np.concatenate([cols, np.full((len(idx), 1), n_faces, dtype=np.int32)], axis=1),
+            np.concatenate([vals, pooled[:, None]], axis=1))
+
+
 def cage_field(points: np.ndarray, layout: CageLayout, params: np.ndarray, k: int,
                rule: str = "now") -> np.ndarray:
     """d(x) of the cage of `layout` whose faces move by `params`: the Inverse Distance option's
-    weights with k influences ("now") or the 0.1.x truncation ("before")."""
+    weights with k influences ("now"), the rule before this table ("before", `kept_floor_rule`) or
+    the 0.1.x truncation ("former")."""
     F = layout.topology.n_faces
-    if rule == "before" and k < F:
+    if rule in ("before", "former") and k < F:
         idx, val = cage_weights(points, layout.cage, layout.topology, k=F)
+        if rule == "before":
+            idx, val = kept_floor_rule(idx, val, k, F)
+            return deform.deform_points_params(points, wt.with_pool(params, np.full(F, 1.0 / F)), idx, val,
+                                               cache_weights=False) - points
         order = np.argsort(-val, axis=1, kind="stable")
         idx, val = former_cage_rule(np.take_along_axis(idx, order, 1), np.take_along_axis(val, order, 1), k)
     else:
         idx, val = cage_weights(points, layout.cage, layout.topology, k=k)
-    if idx.size and int(idx.max()) == F:  # rows that pool weight read the faces' uniform mean
-        params = wt.with_pool(params, np.full(F, 1.0 / F))
+    if idx.size and int(idx.max()) >= F:  # rows that pool weight read the pooled nodes (core.cage.pool)
+        params = np.concatenate([params, pool_mixes(layout.cage, layout.topology) @ params])
     return deform.deform_points_params(points, params, idx, val, cache_weights=False) - points
 
 
@@ -354,3 +384,20 @@ def ratios(kind: str, index: int, k: int, rule: str = "now") -> Ratios:
 
 def layouts(kind: str) -> tuple[BoneLayout, ...] | tuple[CageLayout, ...]:
     return bone_layouts() if kind == "bones" else cage_layouts()
+
+
+def markdown_table(kind: str, ks: tuple[int, ...]) -> str:
+    """The ratios of every bone or cage layout at each k in `ks`: the rule in the code ("now"), the
+    rule before this table and 0.1.x's, edges and the worst line (its name in the last column)."""
+    rows = ["| layout | K | edges, now | worst line, now | edges, before | worst line, before | edges, 0.1.x "
+            "| worst line, 0.1.x | worst line (now) |", "|---|---|---|---|---|---|---|---|---|"]
+    for index, layout in enumerate(layouts(kind)):
+        m = len(layout.parents) if kind == "bones" else layout.topology.n_faces
+        for k in ks:
+            now, before, former = (ratios(kind, index, k, rule) for rule in ("now", "before", "former"))
+            name, worst = now.worst_line
+            kept = " (all kept)" if k >= m else ""
+            rows.append(f"| {layout.name} | {k}{kept} | {now.edges:.2f} | {worst:.2f} | {before.edges:.2f} | "
+                        f"{before.worst_line[1]:.1f} | {former.edges:.2f} | {former.worst_line[1]:.1f} "
+                        f"| {name} |")
+    return "\n".join(rows)

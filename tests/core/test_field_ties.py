@@ -116,3 +116,31 @@ def test_bone_weight_is_pooled_near_its_own_bones() -> None:
     far = layout.vertices[:, 0] < -1.2
     d = fr.bone_field(layout.vertices[far], layout, fr.bone_motions(layout), 4)
     assert np.abs(d).max() == 0.0
+
+
+# --- cages, the Inverse Distance option: the pooled weight to the nodes of a coarse grid ----------
+
+CAGE_CASES = [(i, k) for i in range(len(fr.cage_layouts())) for k in (fr.CAGE_DEFAULT, 4)]
+
+
+@pytest.mark.parametrize(("index", "k"), CAGE_CASES,
+                         ids=[f"{fr.cage_layouts()[i].name}-K{k}" for i, k in CAGE_CASES])
+def test_no_seam_where_cage_faces_tie(index: int, k: int) -> None:
+    """A cage's Inverse Distance weights (core.cage.cage_weights) on an octagonal prism around a
+    cylinder and a cube of 54 faces around a sphere, one face moved and turned: the same criterion."""
+    layout = fr.cage_layouts()[index]
+    assert len(layout.vertices) >= 20_000
+    r = fr.ratios("cages", index, k)
+    worst_name, worst = r.worst_line
+    print(f"\n{layout.name}, K = {k}: edges {r.edges:.2f}, worst line {worst:.2f} ({worst_name})")
+    assert r.edges <= JUMP_RATIO, r
+    assert worst <= JUMP_RATIO, r
+
+
+def test_the_former_cage_rule_seams_on_the_prism() -> None:
+    """The control: the rule before (D = max(S, 0.1 Σ kept), the pooled weight to the faces' uniform
+    mean) steps 26× the untruncated field's along the prism's axis at the default 8 influences."""
+    r = fr.ratios("cages", 0, fr.CAGE_DEFAULT, "before")
+    print(f"\n{fr.cage_layouts()[0].name}, K = {fr.CAGE_DEFAULT}, before: edges {r.edges:.2f}, worst line "
+          f"{r.worst_line[1]:.2f}")
+    assert r.worst_line[1] > 5 * JUMP_RATIO

@@ -267,7 +267,7 @@ def _pooled_field(points, matrices, indices, values, scales=None):  # type: igno
     m = len(PARENTS)
     scales = np.ones(m) if scales is None else scales
     params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
-    P, M = hierarchy.pool_tables(params, matrices, PARENTS, scales)
+    P, M = hierarchy.pool_tables(params, matrices, hierarchy.pool_mix(PARENTS, scales))
     layout = hierarchy.chain_layout(indices, values, hierarchy.pool_parents(PARENTS))
     return hierarchy.chain_points(points, P, hierarchy.prefix_table(M), layout)
 

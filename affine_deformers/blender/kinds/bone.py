@@ -39,7 +39,7 @@ import numpy as np
 from bpy.props import CollectionProperty, IntProperty, PointerProperty
 
 from ...core import hierarchy, unwrap
-from .. import caches, storage
+from .. import caches
 from . import armature_convert, bone_tools
 from .base import (
     INTERFACE,
@@ -439,7 +439,7 @@ class BoneKind(DeformerKind):
         if deformer.branch_rule != "CHANNELS":
             chain.references = chain.pivots = None
         return Motions(matrices, np.array([r.at_rest for r in chosen]), chain=chain,
-                       pool=_pool_scales(deformer))
+                       pool=hierarchy.pool_mix(chain.parents, _pool_scales(deformer)))
 
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
         armature = deformer.armature
@@ -465,23 +465,16 @@ class BoneKind(DeformerKind):
         return len(deformer.bones)
 
     def pool_mix(self, deformer) -> np.ndarray | None:
-        """None: the pooled nodes are the means of each bone's children and of the roots
-        (`stored_weights`), not one mix."""
-        return None
-
-    def stored_weights(self, obj: bpy.types.Object,
-                       deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Weights indexing the pooled nodes m … 2m (core.hierarchy.pool_parents) come with those
-        nodes as weights on the bones (core.hierarchy.pool_mix: exact, as the blend takes them)."""
-        m = len(deformer.bones)
-        indices, values = storage.read_weights(obj.data, deformer.uid, 2 * m + 1)
-        if not (indices.size and int(indices.max()) >= m):
-            return indices, values, None
+        """The pooled nodes m … 2m (core.hierarchy.pool_parents) as weights on the bones: the means
+        of each bone's children and of the roots (core.hierarchy.pool_mix, exact as the blend takes
+        them)."""
         names = [item.name for item in deformer.bones]
+        if not names:
+            return None
         armature = deformer.armature
         parents = (bone_parents(armature, names) if armature is not None and armature.type == "ARMATURE"
-                   else np.full(m, -1, dtype=np.intp))
-        return indices, values, np.vstack([np.eye(m), hierarchy.pool_mix(parents, _pool_scales(deformer))])
+                   else np.full(len(names), -1, dtype=np.intp))
+        return hierarchy.pool_mix(parents, _pool_scales(deformer))
 
     def active_control(self, deformer) -> int:
         return deformer.active_bone_index
