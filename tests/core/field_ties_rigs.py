@@ -35,7 +35,7 @@ from affine_deformers.core import weights as wt
 from affine_deformers.core.cage import CageTopology, cage_weights, face_motions
 from affine_deformers.core.cage.pool import pool_mixes
 
-from .field_ties import SHIFT, TURN, Ratios, cylinder, icosphere, jump_ratio, segment
+from .field_ties import RING_LINES, SHIFT, TURN, Ratios, cylinder, icosphere, jump_ratio, segment
 
 #: Max Influences a new bone deformer gets (blender/kinds/bone_tools.DEFAULT_INFLUENCES) and a cage
 #: deformer's for the Inverse Distance option (blender/kinds/cage.py set_up).
@@ -102,12 +102,11 @@ def mirrored_chains() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 BONE_RING_LINES = {
-    # the axis ties the whole ring: along it (a hair off), across it, and tilted through the centre
+    # the axis ties the whole ring: along it (a hair off, over the bones' length), across it and
+    # tilted through the centre (the probes' ring lines)
     "along the axis": segment([0.002, 0.001, -1.0], [0.002, 0.001, 1.0]),
-    "across the axis, through bones": segment([-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]),
-    "across the axis, between bones": segment([-math.cos(0.2), -math.sin(0.2), 0.3],
-                                              [math.cos(0.2), math.sin(0.2), 0.3]),
-    "tilted through the centre": segment([-0.8, -0.3, -0.52], [0.8, 0.3, 0.52]),
+    **{name.replace("probes", "bones"): line for name, line in RING_LINES.items()
+       if name != "along the axis"},
 }
 
 

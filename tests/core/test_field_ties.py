@@ -72,9 +72,14 @@ def test_no_seam_where_bones_tie(index: int, k: int) -> None:
     """Distance weights of a bone deformer blended down its hierarchy: rings of bones whose root's
     end sweeps through the ring's ties, a chain curled into an octagon, a straight chain, mirrored
     chains (tests/core/field_ties_rigs.py); the same criterion as probes."""
-    layout = fr.bone_layouts()[index]
+    _assert_no_seam("bones", index, k)
+
+
+def _assert_no_seam(kind: str, index: int, k: int) -> None:
+    """The criterion on bone or cage layout `index` (tests/core/field_ties_rigs.py) with k influences."""
+    layout = fr.layouts(kind)[index]
     assert len(layout.vertices) >= 20_000
-    r = fr.ratios("bones", index, k)
+    r = fr.ratios(kind, index, k)
     worst_name, worst = r.worst_line
     print(f"\n{layout.name}, K = {k}: edges {r.edges:.2f}, worst line {worst:.2f} ({worst_name})")
     assert r.edges <= JUMP_RATIO, r
@@ -128,13 +133,7 @@ CAGE_CASES = [(i, k) for i in range(len(fr.cage_layouts())) for k in (fr.CAGE_DE
 def test_no_seam_where_cage_faces_tie(index: int, k: int) -> None:
     """A cage's Inverse Distance weights (core.cage.cage_weights) on an octagonal prism around a
     cylinder and a cube of 54 faces around a sphere, one face moved and turned: the same criterion."""
-    layout = fr.cage_layouts()[index]
-    assert len(layout.vertices) >= 20_000
-    r = fr.ratios("cages", index, k)
-    worst_name, worst = r.worst_line
-    print(f"\n{layout.name}, K = {k}: edges {r.edges:.2f}, worst line {worst:.2f} ({worst_name})")
-    assert r.edges <= JUMP_RATIO, r
-    assert worst <= JUMP_RATIO, r
+    _assert_no_seam("cages", index, k)
 
 
 def test_the_former_cage_rule_seams_on_the_prism() -> None:

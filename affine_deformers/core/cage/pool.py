@@ -43,24 +43,16 @@ def pool_columns(points: np.ndarray, cage_points: np.ndarray, n_faces: int,
     return (n_faces + nodes).astype(np.int32), np.asarray(pooled, dtype=np.float64)[:, None] * weights
 
 
-def cage_weights(
-    points: np.ndarray,
-    cage_points: np.ndarray,
-    topology: CageTopology,
-    *,
-    exponent: float = 2.0,
-    half_space: bool = True,
-    k: int = 8,
-    chunk_size: int = 64,
-) -> tuple[np.ndarray, np.ndarray]:
+def cage_weights(points: np.ndarray, cage_points: np.ndarray, topology: CageTopology, *, k: int = 8,
+                 **options: float | bool | int) -> tuple[np.ndarray, np.ndarray]:
     """Sparse 'INVERSE_DISTANCE' cage weights: (indices (N, K or K + 8) int32, values float64),
-    K = min(k, F), rows summing to 1: the faces' continuous top-K (core.cage.distances.face_weights:
-    inverse distance to each face polygon with the half-space ramp, the K largest lowered by the
-    (K+1)-th and divided by D = max(S, c·T), MATH.md §10, §12), and where weight is pooled the 8 nodes
-    F + g of the point's cell sharing it (`pool_columns`; their parameters: `with_pool_nodes`), so any
-    motion shared by all faces stays exact. Arguments as face_weights'."""
-    indices, values = face_weights(points, cage_points, topology, exponent=exponent, half_space=half_space,
-                                   k=k, chunk_size=chunk_size)
+    K = min(k, F), rows summing to 1: the faces' continuous top-K (core.cage.distances.face_weights,
+    whose keyword `options` — exponent, half_space, chunk_size — it takes: inverse distance to each
+    face polygon with the half-space ramp, the K largest lowered by the (K+1)-th and divided by
+    D = max(S, c·T), MATH.md §10, §12), and where weight is pooled the 8 nodes F + g of the point's
+    cell sharing it (`pool_columns`; their parameters: `with_pool_nodes`), so any motion shared by
+    all faces stays exact."""
+    indices, values = face_weights(points, cage_points, topology, k=k, **options)
     F = topology.n_faces
     K = min(int(k), F)
     if indices.shape[1] == K:  # nothing pooled
