@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import accel
-from ..core import deform, hierarchy, weights
+from ..core import deform, hierarchy
 from . import params as parameters
 from .bound import BoundData
 from .kinds import Motions
@@ -33,27 +33,40 @@ def redistribute(indices: np.ndarray, values: np.ndarray, valid: np.ndarray) -> 
 
 
 def _values(deformer, motions: Motions, bound: BoundData) -> np.ndarray:
-    """The bound weights at the deformer's strength, with skipped controls' weight redistributed (the
-    pooled control, a mix of the valid ones, is valid while any is)."""
+    """The bound weights at the deformer's strength, with skipped controls' weight redistributed (a
+    pooled node, a mix of controls, is valid while any control of its mix is)."""
     if motions.valid is not None and not np.all(motions.valid):
-        valid = np.append(motions.valid, motions.valid.any()) if bound.pooled else motions.valid
+        valid = motions.valid
+        if bound.pooled:
+            valid = np.append(valid, (pool_mix(motions, len(valid))[:, valid] > 0.0).any(axis=1))
         return redistribute(bound.indices, bound.values, valid) * deformer.strength
     return bound.scaled_values(deformer.strength)
 
 
+def pool_mix(motions: Motions, m: int) -> np.ndarray:
+    """The truncation's pooled nodes as mixes of the m controls (G, m) (MATH.md §12): `motions.pool`
+    ((m,): one node, the probes' pooled control; (G, m): cage pool nodes, bones' children means), the
+    controls alike when None."""
+    if motions.pool is None:
+        return np.full((1, m), 1.0 / m)
+    return np.atleast_2d(np.asarray(motions.pool, dtype=np.float64))
+
+
 def _pooled(table: np.ndarray, motions: Motions, bound: BoundData) -> np.ndarray:
     """`table` (m, ...) — parameters, or matrices for the linear blend — with the truncation's pooled
-    control appended as row m when the bound weights point at it (MATH.md §12): the mix
-    Σ a_i table[i] of the controls not skipped, a = `motions.pool` (uniform when None)."""
+    nodes appended as rows m … m + G − 1 when the bound weights point at them (MATH.md §12): each
+    the mix Σ_i mix_gi table[i] (`pool_mix`) of the controls not skipped. A bone's pooled nodes mix
+    its children (core.hierarchy.pool_mix: exact as weights on the controls, so the linear blend takes
+    them as such; the affine blend down the hierarchy uses `_chain_inputs`)."""
     if not bound.pooled:
         return table
     m = len(table)
-    a = np.full(m, 1.0 / m) if motions.pool is None else np.asarray(motions.pool, dtype=np.float64)
+    mix = pool_mix(motions, m)
     if motions.valid is not None and not np.all(motions.valid):
-        a = np.where(motions.valid, a, 0.0)
-        total = a.sum()
-        a = a / total if total > 0.0 else a  # none valid: every weight was redistributed to zero
-    return weights.with_pool(table, a)
+        mix = np.where(motions.valid, mix, 0.0)
+        total = mix.sum(axis=1, keepdims=True)
+        mix = np.divide(mix, total, out=np.zeros_like(mix), where=total > 0.0)  # none valid: 0 anyway
+    return np.concatenate([np.asarray(table, dtype=np.float64), np.tensordot(mix, table, axes=(1, 0))])
 
 
 def blend_offsets(deformer, motions: Motions, bound: BoundData,
@@ -256,9 +269,13 @@ def _chain_inputs(deformer, motions: Motions, bound: BoundData, state: tuple
     its full motion (a prefix)."""
     chain = motions.chain
     params = parameters.chain_params(motions, deformer.branch_rule)
-    prefixes = hierarchy.prefix_table(motions.matrices)
-    layout = bound.chain_layout(chain.parents, deformer.strength)
-    state = (state, chain.parents.tobytes())
+    matrices, parents = motions.matrices, chain.parents
+    if bound.pooled:  # the pooled nodes below each bone and the roots (MATH.md §12)
+        params, matrices = hierarchy.pool_tables(params, matrices, motions.pool)
+        parents = hierarchy.pool_parents(parents)
+    prefixes = hierarchy.prefix_table(matrices)
+    layout = bound.chain_layout(parents, deformer.strength)
+    state = (state, parents.tobytes())
     previous = bound.motions if bound.offsets is None else bound.offsets
     if (previous is None or bound.state != state or bound.params is None or bound.prefixes is None
             or bound.params.shape != params.shape):

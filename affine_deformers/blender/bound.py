@@ -43,8 +43,9 @@ class BoundData:
     points: np.ndarray  # (N, 3) float64
     indices: np.ndarray  # (N, K) int32
     values: np.ndarray  # (N, K) float64, strength not applied
-    # the last column is the truncation's pooled control, index m (core.weights, MATH.md §12): the
-    # blend appends its parameter row (blend.py, `with_pool`)
+    # the weights index the truncation's pooled nodes past the m controls (MATH.md §12): index m, the
+    # pooled control, for probes and cage faces (the blend appends its parameter row, `with_pool`);
+    # the nodes m … 2m of core.hierarchy.pool_parents for bones (blend.py `_pooled`)
     pooled: bool = False
     scaled: tuple[float, np.ndarray] | None = None  # (strength, values · strength)
     # per control: the rows it influences (ptr, rows), and the rows with any weight
@@ -148,11 +149,12 @@ def cached(obj: bpy.types.Object, deformer) -> BoundData | None:
     return _bound.get((obj.session_uid, deformer.uid))
 
 
-def bind_data(obj: bpy.types.Object, deformer, n_controls: int, pool: bool = False) -> BoundData:
+def bind_data(obj: bpy.types.Object, deformer, n_controls: int, pool: int = 0) -> BoundData:
     """The cached bind data of `deformer`, re-read when the bind generation, mesh, vertex or control
-    count changed or the rest positions differ from the cached ones. `pool`: whether its weights may
-    point at the pooled control (index n_controls; not for a hierarchy, whose bind gives that weight
-    to the root bones). Raises storage.StorageError."""
+    count changed or the rest positions differ from the cached ones. `pool`: how many pooled nodes
+    past the controls its weights may point at (MATH.md §12): 1 for the pooled control of a flat set
+    (index n_controls), n_controls + 1 for a hierarchy's (core.hierarchy.pool_parents). Raises
+    storage.StorageError."""
     mesh = obj.data
     rest = storage.read_positions(mesh)
     key = (mesh.session_uid, deformer.bind_generation, len(rest), n_controls)
@@ -163,7 +165,7 @@ def bind_data(obj: bpy.types.Object, deformer, n_controls: int, pool: bool = Fal
     _bound.pop(cache_key, None)
     _check_vertices(mesh, deformer, rest)
     indices, values = storage.read_weights(mesh, deformer.uid, n_controls + pool)
-    pooled = bool(pool and indices.size and int(indices.max()) == n_controls)
+    pooled = bool(pool and indices.size and int(indices.max()) >= n_controls)
     bound = BoundData(key, next(_serial), rest, rest.astype(np.float64), indices, values, pooled=pooled)
     _bound[cache_key] = bound
     return bound

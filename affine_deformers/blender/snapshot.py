@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import bpy
+import numpy as np
 
 from .. import accel
 from . import bound as bound_data
@@ -108,7 +109,8 @@ def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Sna
         error = motions.error
     if not error:
         try:
-            bound = bound_data.bind_data(obj, deformer, len(motions.matrices), pool=motions.chain is None)
+            pool = 1 if motions.pool is None else len(np.atleast_2d(motions.pool))  # nodes (MATH.md §12)
+            bound = bound_data.bind_data(obj, deformer, len(motions.matrices), pool=pool)
         except storage.StorageError as exc:
             error = str(exc)
     if not error:

@@ -27,9 +27,10 @@ class StorageError(Exception):
 
 #: The layout of the bind data in a .blend, versioned apart from the extension (which can change
 #: without touching it). 1: written by 0.1.x (no format stamp). 2: weights may use the pooled column
-#: (index m, MATH.md §12), a bound topology signature. Stamped on each deformer at bind; a deformer
+#: (index m, MATH.md §12), a bound topology signature. 3: a bone deformer's weights may use the
+#: pooled nodes m … 2m (core.hierarchy.pool_parents). Stamped on each deformer at bind; a deformer
 #: of a higher format (bound by a newer add-on) is not evaluated: its status says to update.
-FILE_FORMAT = 2
+FILE_FORMAT = 3
 FORMAT_KEY = "file_format"
 
 

@@ -19,9 +19,10 @@ control's weights go into) comes from its `DeformerKind` methods.
       and by c_j = max(1, largest such weight of control j) (a vertex group holds 0…1); Weight Scale
       j becomes c_j (1 unless a scale above 1 made weights above 1);
     - the Mask stays as it is, and so does Max Influences unless a vertex has more controls with
-      weight than it: where the truncation pooled weight (MATH.md §12) it is spread over all the
-      controls (probes: by the pooled mix; bones: the roots), and Max Influences is raised to keep
-      them (exact up to the property's maximum of 16 controls per vertex).
+      weight than it: where the truncation pooled weight (MATH.md §12) it is spread over the
+      controls of its pooled nodes (probes: all, by the pooled mix; bones: a bone's children or the
+      roots, core.hierarchy.pool_mix), and Max Influences is raised to keep them (exact up to the
+      property's maximum of 16 controls per vertex).
   Groups are written vectorised: a FLOAT point attribute per control (foreach_set), turned into a
   vertex group by `geometry.attribute_convert` (only non-zero weights are assigned).
   Kinds that do not paint groups (cages: their controls are cage faces, hundreds of groups, and

@@ -39,10 +39,18 @@ IntArray = NDArray[np.intp]
 #: A cumulative weight within this of 1 counts as 1 (stored weights are float32: a vertex's weights
 #: sum to 1 within ~1e-7), so its factor is the control's exact local motion and joins the prefix.
 FULL_TOL = 1e-5
-#: Most roots the truncation's pooled weight is spread over (`pool_to_roots`); a forest with more
-#: (a flat rig: every bone a root) leaves the pooled weight at rest instead, since a column per root
-#: would cost as much as keeping every bone.
-MAX_POOL_ROOTS = 4
+
+#: The band of cumulative weight over which the truncation's pooled point descends one bone
+#: (`PoolPoint`, MATH.md §12): a bone on the majority path counts fully once its subtree holds
+#: 1/2 + POOL_BAND of the vertex's weight. 1/4 follows a chain curled into a ring of ties (its
+#: cumulative weights fall by 1/8 a bone there) closely enough; 1/2 left steps 3.6× the
+#: untruncated field's there at 4 influences (docs/field_ties.md).
+POOL_BAND = 0.25
+#: c in the bones' truncation divisor D = max(S, c·T) (weights.POOL_FLOOR is the probes'): the
+#: pooled point is local, so pooling a little more costs little, and at 0.5 the end of a root bone
+#: sweeping through the ties of a ring of 8 bones stepped 3.0× the untruncated field's along its
+#: axis at 4 influences (0.6: 2.5×; 0.75: 2.1×, but 2.8× on the ring-shaped chain's edges).
+BONE_POOL_FLOOR = 0.6
 
 PointKernel = Callable[[FloatArray, FloatArray, NDArray[np.int32], FloatArray], FloatArray]
 MotionKernel = Callable[[FloatArray, NDArray[np.int32], FloatArray], np.ndarray]
@@ -68,43 +76,142 @@ def depths(parents: ArrayLike) -> IntArray:
     raise ValueError("parents form a cycle")
 
 
-def pool_to_roots(indices: ArrayLike, values: ArrayLike, parents: ArrayLike, scales: ArrayLike,
-                  max_roots: int = MAX_POOL_ROOTS) -> tuple[NDArray[np.int32], FloatArray]:
-    """Truncated weights (indices (N, K + 1), values) whose last column is the pooled control (index
-    m = len(parents), weights.sparse_from_blocks) -> the same weights with that column's weight λ
-    given to the roots of the forest instead: root r gets λ a_r, a_r = Σ_{i in r's tree} s_i / Σ_i s_i
-    (s = `scales`), one column per root (MATH.md §12). The blend down the hierarchy (MATH.md §14)
-    then follows the roots fully (W_root = 1 for a single tree), so a motion shared by all bones,
-    which is the root's, stays exact wherever weight is pooled, and the pooled share does not follow
-    the bones below the root. With more than `max_roots` roots the pooled column is dropped (that
-    weight stays at rest). Weights without a pooled column are returned as they are."""
-    indices = np.asarray(indices)
-    values = np.asarray(values, dtype=np.float64)
+def subtree_sums(values: ArrayLike, parents: ArrayLike) -> FloatArray:
+    """Σ_{j in the subtree of i} x_j for every control i, over the last axis of `values` (..., m): own
+    weights become cumulative weights W (MATH.md §14). A pass per level, deepest first."""
+    parents = np.asarray(parents, dtype=np.intp)
+    depth = depths(parents)
+    out = np.array(values, dtype=np.float64, copy=True)
+    for d in range(int(depth.max(initial=0)), 0, -1):  # a pass per level
+        level = np.flatnonzero(depth == d)
+        np.add.at(out, (..., parents[level]), out[..., level])
+    return out
+
+
+def pool_mix(parents: ArrayLike, scales: ArrayLike, *, leaves: bool = True) -> FloatArray:
+    """The pooled nodes of a forest of controls as weights on the controls (m + 1, m) (MATH.md §12):
+    row i (< m) is the mean of control i's children μ_i, each child c by its tree share
+    A_c / Σ_{c'} A_c' (A = `subtree_sums` of the scale shares a = s / Σ s; uniform when those are 0);
+    row m is the mean of the roots μ_⊤ (root r by A_r). A vertex with weight x on μ_i blends exactly
+    as with x A_c / Σ A_c' on the children (they share one depth, so their factor gets
+    x Σ_c (A_c / Σ A_c') ψ(L_c) either way, and every ancestor x): this matrix converts pooled weights
+    to control weights. A leaf's row is the leaf itself (its mean of no children is its own motion)
+    or, with leaves=False, zero: then `mix @ ψ(L)` are the pooled nodes' local parameters."""
     parents = np.asarray(parents, dtype=np.intp)
     m = len(parents)
-    if indices.size == 0 or int(indices.max()) != m:
-        return indices.astype(np.int32), values
-    if not np.all(indices[:, -1] == m) or np.any(indices[:, :-1] == m):
-        raise ValueError("the pooled control must be the last column of every row")
     s = np.asarray(scales, dtype=np.float64).reshape(-1)
     if s.shape != (m,) or not np.all(np.isfinite(s)) or np.any(s < 0.0):
         raise ValueError(f"scales must be {m} finite non-negative numbers")
-    depths(parents)  # checks the forest (no cycle)
-    root = np.arange(m)
-    for _ in range(m):  # a pass per level: every control climbs to its root
-        up = parents[root]
-        if np.all(up < 0):
-            break
-        root = np.where(up >= 0, up, root)
-    share = np.bincount(root, weights=s, minlength=m) if s.sum() > 0.0 else np.bincount(root, minlength=m)
-    roots = np.flatnonzero(share > 0.0)
-    pooled = values[:, -1]
-    if len(roots) > max_roots:
-        return indices[:, :-1].astype(np.int32), values[:, :-1].copy()
-    share = share[roots] / share[roots].sum()
-    new_idx = np.concatenate([indices[:, :-1], np.broadcast_to(roots, (len(indices), len(roots)))], axis=1)
-    new_val = np.concatenate([values[:, :-1], pooled[:, None] * share[None, :]], axis=1)
-    return new_idx.astype(np.int32), new_val
+    share = subtree_sums(s / s.sum() if s.sum() > 0.0 else np.zeros(m), parents)
+    owner = np.where(parents >= 0, parents, m)  # the row a control belongs to: its parent's, or μ_⊤
+    mix = np.zeros((m + 1, m))
+    alike = np.zeros((m + 1, m))
+    mix[owner, np.arange(m)] = share
+    alike[owner, np.arange(m)] = 1.0
+    mix = np.where(mix.sum(axis=1, keepdims=True) > 0.0, mix, alike)  # children that all weigh 0: alike
+    count = mix.sum(axis=1, keepdims=True)
+    mix /= np.where(count > 0.0, count, 1.0)
+    if leaves:
+        leaf = np.flatnonzero(count[:m, 0] == 0.0)
+        mix[leaf, leaf] = 1.0
+    return mix
+
+
+def pool_parents(parents: ArrayLike) -> NDArray[np.intp]:
+    """The forest with its pooled nodes (2m + 1,): control i < m keeps its parent, μ_i = m + i hangs
+    below control i, μ_⊤ = 2m is one more root."""
+    parents = np.asarray(parents, dtype=np.intp)
+    m = len(parents)
+    return np.concatenate([parents, np.arange(m), [-1]]).astype(np.intp)
+
+
+def pool_tables(params: ArrayLike, matrices: ArrayLike, mix: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """(local parameters (2m + 1, 12), motions (2m + 1, 4, 4)) of the controls and their pooled nodes
+    (`pool_parents` numbering), from ψ(L) (m, 12), the controls' motions A (m, 4, 4) and `pool_mix`
+    (m + 1, m): μ_i blends its children's ψ(L_c) (a leaf's row, itself, counts as no children: q = 0)
+    and moves by A_i φ(q_i); μ_⊤ blends the roots' ψ(L_r) and moves by φ(q_⊤). A motion shared by
+    all controls (L = I below the roots) gives every μ_i its parent's motion and μ_⊤ the common one."""
+    from .aff3 import matrices_from_params
+
+    P = np.asarray(params, dtype=np.float64)
+    A = np.asarray(matrices, dtype=np.float64)
+    m = len(P)
+    local = np.array(mix, dtype=np.float64)
+    local[np.arange(m), np.arange(m)] = 0.0  # a leaf's own row: its mean of no children
+    q = local @ P
+    moved = matrices_from_params(q)
+    full = np.concatenate([A @ moved[:m], moved[m:]])
+    return np.concatenate([P, q]), np.concatenate([A, full])
+
+
+@dataclass(frozen=True)
+class PoolPoint:
+    """Where the truncation's pooled weight λ of a vertex goes on a forest of controls (MATH.md §12):
+    a point on the tree of the vertex's untruncated cumulative weights, `width` = 4 columns.
+
+    With W_i = Σ_{j in the subtree of i} w_j / Σ w (continuous in the weights, no order statistic),
+    the controls with W_i > 1/2 form a path from a root down (two siblings cannot both hold more than
+    half), below a top node ⊤. Each bone on it counts g_i = clamp((W_i − 1/2)/`band`, 0, 1), and the
+    point lies at depth ρ = Σ g_i along the path: between its nodes n_k (k = ⌊ρ⌋, position 0 being
+    ⊤) and n_(k+1), a fraction f = ρ − k of the way. Each of the two takes its share ((1 − f), f),
+    split between the node itself, 1 − σ, and the mean of its children μ_n, σ: σ_n = 1 − w_n / (Σ w ·
+    W_n), the share of the node's cumulative weight its children hold (σ_⊤ = 1: μ_⊤, the mean of the
+    roots; 0 for a leaf). Returned: node indices (n, 4) in the `pool_parents` numbering and shares
+    (n, 4) summing to 1 (0 for an all-zero row).
+
+    Continuous: W is; a bone joins or leaves the path at its end with g = 0, so ρ is continuous and the
+    point passes a node with all its share on it. Slope: |∇ρ| ≤ Σ |∇W_i| / band, the untruncated
+    cumulative weights' own slope over the band. Local: the point is an ancestor of most of the
+    vertex's weight, or the mean of the children of one, never a far control's motion."""
+
+    parents: NDArray[np.intp]
+    band: float = POOL_BAND
+    width: int = 4
+
+    def __call__(self, weights: ArrayLike) -> tuple[NDArray[np.int32], FloatArray]:
+        W = np.asarray(weights, dtype=np.float64)
+        parents = np.asarray(self.parents, dtype=np.intp)
+        m = len(parents)
+        if W.ndim != 2 or W.shape[1] != m:
+            raise ValueError(f"weights must have shape (n, {m}), got {W.shape}")
+        n = len(W)
+        total = W.sum(axis=1)
+        ok = total > 0.0
+        own = W / np.where(ok, total, 1.0)[:, None]
+        cum = subtree_sums(own, parents)
+        depth = depths(parents)
+        levels = int(depth.max(initial=0)) + 1
+        rows = np.arange(n)
+        path = np.full((n, levels + 1), 2 * m, dtype=np.intp)  # position 0: ⊤ (its mean, μ_⊤)
+        rho = np.zeros(n)
+        length = np.zeros(n, dtype=np.intp)
+        for d in range(levels):  # a pass per level: the bone of that depth holding more than half
+            level = np.flatnonzero(depth == d)
+            best = level[np.argmax(cum[:, level], axis=1)]
+            c = cum[rows, best]
+            on = c > 0.5
+            path[:, d + 1] = np.where(on, best, path[:, d])
+            rho += np.where(on, np.clip((c - 0.5) / self.band, 0.0, 1.0), 0.0)
+            length += on
+        k = np.minimum(np.floor(rho).astype(np.intp), length)
+        f = np.where(k < length, rho - k, 0.0)
+        first, second = path[rows, k], path[rows, np.minimum(k + 1, levels)]
+        has_children = np.zeros(m + 1, dtype=bool)
+        has_children[parents[parents >= 0]] = True
+
+        def split(node: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray]:
+            """(the node, its children's mean, σ): σ_⊤ = 1; a bone on the path has W > 1/2."""
+            bone = node < m
+            b = np.where(bone, node, 0)
+            held = 1.0 - own[rows, b] / np.maximum(cum[rows, b], 0.5)  # by the children
+            sigma = np.where(bone, np.where(has_children[b], np.clip(held, 0.0, 1.0), 0.0), 1.0)
+            return np.where(bone, node, 2 * m), np.where(bone, node + m, 2 * m), sigma
+
+        a, mu_a, sa = split(first)
+        b, mu_b, sb = split(second)
+        idx = np.stack([a, mu_a, b, mu_b], axis=1).astype(np.int32)
+        shares = np.stack([(1.0 - f) * (1.0 - sa), (1.0 - f) * sa, f * (1.0 - sb), f * sb], axis=1)
+        return idx, np.where(ok[:, None], shares, 0.0)
 
 
 def local_motions(matrices: ArrayLike, parents: ArrayLike) -> FloatArray:

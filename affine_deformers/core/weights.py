@@ -17,8 +17,9 @@ the lowered weights and T a total the caller gives (by default the kept weights'
 the kept weights sum to S/D < 1; the rest, the pooled weight λ = 1 − S/D, goes to a pooled control:
 `sparse_from_blocks` stores it as one more column whose index is m (one past the last control), and
 the deformer blends there the mean of all controls' parameters weighted by `pool_weights`
-(`with_pool`), so a motion shared by all controls stays exact everywhere. Nothing is pooled when
-m ≤ K.
+(`with_pool`), so a motion shared by all controls stays exact everywhere; with a `PoolColumns` (bones:
+core.hierarchy.PoolPoint) the pooled weight goes to its columns of pooled nodes instead, each a fixed
+mix of the controls. Nothing is pooled when m ≤ K.
 
 Normalisation of the kept K weights of a row: 'NONE' (as is), 'SUM' (divide by the row sum; all-zero
 rows stay zero), 'SOFTMAX' (exp(w − max w) over the row's positive entries, summing to 1; zero
@@ -30,6 +31,7 @@ of `truncate`.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -38,9 +40,21 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int32]
 BlockFn = Callable[[int, int], ArrayLike]
 
+
+class PoolColumns(Protocol):
+    """Where a row's pooled weight λ goes, when not to one pooled control (index m): `width` columns
+    of node indices and shares summing to 1, from the row's untruncated weights (the block `truncate`
+    lowers). core.hierarchy.PoolPoint is the bones' (MATH.md §12)."""
+
+    width: int
+
+    def __call__(self, weights: FloatArray) -> tuple[IntArray, FloatArray]: ...
+
+
 __all__ = [
     "NORMALIZE_MODES",
     "WEIGHT_MODES",
+    "PoolColumns",
     "inverse_distance",
     "normalize",
     "pool_weights",
@@ -68,7 +82,8 @@ MIN_DISTANCE_FRACTION = 1e-6
 #: vertex; the numpy kernel's dense blend (≤ 48 probes) does not depend on it
 #: (bench/influence_cost.py).
 PROBE_INFLUENCES = 8
-#: c in the truncation's divisor D = max(S, c·T) (MATH.md §12) for probe and bone weights, T the
+#: c in the truncation's divisor D = max(S, c·T) (MATH.md §12) for probe weights (bones:
+#: hierarchy.BONE_POOL_FLOOR; cages use this c with T their 16 nearest faces' weight), T the
 #: row's total weight over every control: the kept weights are renormalised exactly (nothing pooled)
 #: wherever their excess over the (K+1)-th keeps half of the total weight, and no slope exceeds
 #: about 2(1 + K)/c times the untruncated field's. Measured on rings, grids and a mirrored bar
@@ -77,12 +92,6 @@ PROBE_INFLUENCES = 8
 #: at every truncated vertex, which carries the mean of far probes' motions into all of them (MATH.md
 #: §12 has the numbers).
 POOL_FLOOR = 0.5
-#: c when `truncate` is given no total (the cage: it measures only the faces that can matter, so it
-#: knows the kept weights' sum P but not the total): D = max(S, c·P). Small, because inside a box
-#: cage many faces are about equally far and a larger c pools weight over much of the interior
-#: (with c = 0.5, 40% of the points deep in a rigidly moved half of a long box cage pooled up to
-#: 2/3 of their weight and left it by 0.26 of the box's width); 0.1 pools only near true ties.
-LOCAL_FLOOR = 0.1
 
 
 def inverse_distance(
@@ -167,7 +176,7 @@ def truncate(
     k: int,
     raw: bool = False,
     total: ArrayLike | None = None,
-    floor: float = LOCAL_FLOOR,
+    floor: float = POOL_FLOOR,
     with_pooled: bool = False,
 ) -> tuple[IntArray, FloatArray] | tuple[IntArray, FloatArray, FloatArray]:
     """Continuous top-K of non-negative weights W (n, m) with a bounded slope -> (indices (n, K) int32,
@@ -281,6 +290,7 @@ def sparse_from_blocks(
     temperature: float = 1.0,
     continuous: bool = True,
     floor: float = POOL_FLOOR,
+    pool: PoolColumns | None = None,
 ) -> tuple[IntArray, FloatArray]:
     """Build sparse top-K weights from `block(lo, hi)` -> dense non-negative (hi − lo, n_controls).
 
@@ -291,7 +301,9 @@ def sparse_from_blocks(
       'SOFTMAX': the same on the softmax numerators exp((w − max w)/temperature) of the positive
       entries. The pooled weight λ = 1 − Σ_j v_j goes to one more column, index n_controls (the
       pooled control: the mean of all controls' parameters, `with_pool`), so a row still sums to 1
-      (0 for an all-zero row). The column is left out when no row pools anything. (With floor = 1,
+      (0 for an all-zero row). With `pool`, λ goes to its `width` columns instead, λ times the shares
+      it gives each row (bones: a point on their tree, core.hierarchy.PoolPoint). The pooled
+      columns are left out when no row pools anything. (With floor = 1,
       D = T: each kept weight would be the untruncated weight w_j/T lowered by w_{K+1}/T, and what is
       taken off all weights, min(w_i, w_{K+1})/T each, pooled at every truncated row; POOL_FLOOR says
       why the default is 1/2.)
@@ -315,10 +327,11 @@ def sparse_from_blocks(
     if chunk < 1:
         raise ValueError(f"chunk_size must be positive, got {chunk_size}")
     pooled = continuous and normalize_mode != "NONE" and n_controls > K
-    indices = np.zeros((n_points, K + pooled), dtype=np.int32)
-    values = np.zeros((n_points, K + pooled), dtype=np.float64)
+    width = (1 if pool is None else int(pool.width)) if pooled else 0
+    indices = np.zeros((n_points, K + width), dtype=np.int32)
+    values = np.zeros((n_points, K + width), dtype=np.float64)
     if pooled:
-        indices[:, K] = n_controls
+        indices[:, K:] = n_controls
     for lo in range(0, n_points, chunk):
         hi = min(lo + chunk, n_points)
         W = np.asarray(block(lo, hi), dtype=np.float64)
@@ -341,11 +354,16 @@ def sparse_from_blocks(
         else:
             E = W if normalize_mode == "SUM" else _softmax_numerators(W, temperature)
             idx, top = top_k(E, K + 1)
-            val, values[lo:hi, K] = _lowered(np.maximum(top[:, :K] - top[:, K:], 0.0), E.sum(axis=1), floor)
+            val, lam = _lowered(np.maximum(top[:, :K] - top[:, K:], 0.0), E.sum(axis=1), floor)
+            if pool is None:
+                values[lo:hi, K] = lam
+            else:
+                indices[lo:hi, K:], shares = pool(E)
+                values[lo:hi, K:] = lam[:, None] * shares
             idx = idx[:, :K]
         indices[lo:hi, :K] = idx
         values[lo:hi, :K] = val
-    if pooled and not np.any(values[:, K]):
+    if pooled and not np.any(values[:, K:]):
         return indices[:, :K].copy(), values[:, :K].copy()
     return indices, values
 
@@ -416,6 +434,7 @@ def probe_weights(
     tails: ArrayLike | None = None,
     chunk_size: int | None = None,
     floor: float = POOL_FLOOR,
+    pool: PoolColumns | None = None,
 ) -> tuple[IntArray, FloatArray]:
     """Sparse probe weights for points (N, 3) and probe rest positions centers (m, 3).
 
@@ -436,8 +455,9 @@ def probe_weights(
     `scales` (m,) multiplies each probe's weight before the top-K selection. Distance and surface
     weights are truncated continuously with a bounded slope (`sparse_from_blocks` with `floor`; with
     more than k probes and normalize 'SUM' or 'SOFTMAX' a row may have one more column, index m:
-    the pooled control, whose parameters are `with_pool`'s mean with `pool_weights(scales)`), painted
-    ones keep their K largest values as painted. Returns (indices (N, K or K + 1) int32, values).
+    the pooled control, whose parameters are `with_pool`'s mean with `pool_weights(scales)`; with
+    `pool`, its columns instead: bones), painted ones keep their K largest values as painted. Returns
+    (indices (N, K, K + 1 or K + pool.width) int32, values).
     """
     pts, ctr, ends, scale = _control_inputs(points, centers, tails, scales)
     m = ctr.shape[0]
@@ -491,4 +511,4 @@ def probe_weights(
     else:
         raise ValueError(f"weight mode must be one of {WEIGHT_MODES}, got {mode!r}")
     return sparse_from_blocks(pts.shape[0], m, block, k, normalize, chunk_size,
-                              continuous=mode != "VERTEX_GROUPS", floor=floor)
+                              continuous=mode != "VERTEX_GROUPS", floor=floor, pool=pool)

@@ -634,3 +634,98 @@ def test_bone_rows_in_a_batch_equal_each_alone_bit_for_bit(installed):
     assert "non-finite" in batch[6].error
     assert np.isnan(batch[7].turn).all() and not batch[7].error
     assert not any(batch[i].error for i in (0, 1, 2, 3, 5))
+
+
+def _ring_rig(bl):
+    """A cylinder (radius 0.5, z from −1 to 1) and an armature of a root bone below it (z −1.7 → −1.6)
+    with 8 child bones parallel to z on a ring of radius 1: the ring ties on the axis, so distance
+    weights at 4 influences pool weight (MATH.md §12), on the bones' tree."""
+    bpy.ops.mesh.primitive_cylinder_add(vertices=64, radius=0.5, depth=2.0)
+    tube = bpy.context.active_object
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.select_all(action="SELECT")
+    bpy.ops.mesh.subdivide(number_cuts=12)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    data = bpy.data.armatures.new("Ring")
+    arm = bpy.data.objects.new("Ring", data)
+    bpy.context.scene.collection.objects.link(arm)
+    bpy.context.view_layer.objects.active = arm
+    bpy.ops.object.mode_set(mode="EDIT")
+    root = data.edit_bones.new("Root")
+    root.head, root.tail = (0.0, 0.0, -1.7), (0.0, 0.0, -1.6)
+    for i in range(8):
+        a = 2.0 * math.pi * i / 8
+        bone = data.edit_bones.new(f"R{i}")
+        bone.head, bone.tail = (math.cos(a), math.sin(a), -1.0), (math.cos(a), math.sin(a), 1.0)
+        bone.parent = root
+    bpy.ops.object.mode_set(mode="OBJECT")
+    with bpy.context.temp_override(active_object=tube, object=tube, selected_objects=[tube, arm]):
+        assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+    deformer = tube.affine_deformers[0]
+    deformer.max_influences = 4
+    assert deformer.weight_mode == "INVERSE_DISTANCE" and deformer.status == ""
+    return tube, arm, deformer
+
+
+def test_pooled_bone_weight_follows_the_bones_tree(bl, installed):
+    """Distance weights of a ring of 8 bones at 4 influences pool weight (on the axis all of it) on
+    the pooled nodes m … 2m (the mean of a bone's children, of the roots): the mesh gets what the core
+    computes with core.hierarchy's tables, a motion of the root moves it rigidly, the compiled and
+    incremental results equal a recompute, and Weights → Vertex Groups keeps the deformation."""
+    tube, arm, deformer = _ring_rig(bl)
+    storage = installed.storage
+    m = len(deformer.bones)
+    indices, values = storage.read_weights(tube.data, deformer.uid, 2 * m + 1)
+    pooled = np.where(indices >= m, values, 0.0).sum(axis=1)
+    assert pooled.max() > 0.3 and (pooled > 0.0).mean() > 0.2 and indices.max() <= 2 * m
+    rest = bl.rest_positions(tube).astype(np.float64)
+
+    root = arm.pose.bones["Root"]
+    root.rotation_mode = "XYZ"
+    root.rotation_euler = (0.4, -0.3, 0.9)
+    root.location = (0.2, -0.1, 0.3)
+    bpy.context.view_layer.update()
+    M = np.array(root.matrix) @ np.linalg.inv(np.array(arm.data.bones["Root"].matrix_local))
+    got = bl.evaluated_positions(tube).astype(np.float64)
+    assert np.abs(got - (rest @ M[:3, :3].T + M[:3, 3])).max() < 1e-5, "the skeleton's motion, exactly"
+
+    root.rotation_euler, root.location = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+    bend = arm.pose.bones["R0"]
+    bend.rotation_mode = "XYZ"
+    bend.rotation_euler = (0.0, 0.0, 0.0)
+    bend.rotation_euler.x = math.radians(60.0)
+    bend.location = (0.0, 0.36, 0.0)
+    bpy.context.view_layer.update()
+    got = bl.evaluated_positions(tube).astype(np.float64)
+    assert deformer.status == ""
+    hierarchy = importlib.import_module(f"{installed.package}.core.hierarchy")
+    aff3 = importlib.import_module(f"{installed.package}.core.aff3")
+    A = np.stack([np.eye(4)] + [np.array(arm.pose.bones[f"R{i}"].matrix)
+                                @ np.linalg.inv(np.array(arm.data.bones[f"R{i}"].matrix_local))
+                                for i in range(8)])
+    parents = np.array([-1] + [0] * 8)
+    params, matrices = hierarchy.pool_tables(aff3.params_from_matrices(hierarchy.local_motions(A, parents)),
+                                             A, hierarchy.pool_mix(parents, np.ones(m)))
+    layout = hierarchy.chain_layout(indices, values, hierarchy.pool_parents(parents))
+    expected = hierarchy.chain_points(rest, params, hierarchy.prefix_table(matrices), layout)
+    assert np.abs(got - expected).max() < 1e-4
+    axis = np.hypot(rest[:, 0], rest[:, 1]) < 1e-6
+    assert np.abs(got - rest)[~axis].max() > 0.05
+
+    incremental = storage.read_offsets(tube.data, deformer.uid).copy()
+    installed.evaluate.forget()
+    installed.evaluate.evaluate_object(tube, bpy.context.evaluated_depsgraph_get())
+    assert np.array_equal(incremental, storage.read_offsets(tube.data, deformer.uid))
+
+    with bpy.context.temp_override(active_object=tube, object=tube, selected_objects=[tube]):
+        assert bpy.ops.object.affine_deformer_weights_to_groups(index=0) == {"FINISHED"}
+    assert deformer.weight_mode == "VERTEX_GROUPS"
+    bpy.context.view_layer.update()
+    assert np.abs(bl.evaluated_positions(tube) - got).max() <= 1e-5
+    assert deformer.status == ""
+
+    deformer.weight_mode = "INVERSE_DISTANCE"
+    deformer.max_influences = 4
+    deformer.blend_mode = "LINEAR"
+    bpy.context.view_layer.update()
+    assert deformer.status == "" and np.abs(bl.evaluated_positions(tube) - rest).max() > 0.05

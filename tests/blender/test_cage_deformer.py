@@ -159,26 +159,30 @@ def node_weights(deformer) -> tuple[np.ndarray, np.ndarray] | None:
             np.asarray(deformer["cage_node_weights"], dtype=np.float64).reshape(-1, m))
 
 
-def pooled(params: np.ndarray, idx: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """`params` (F, 12) with the truncation's pooled control appended as row F when the weights `idx`
-    point at it (docs/MATH.md §12): the uniform mean of the faces (of the valid ones)."""
+def pooled(params: np.ndarray, idx: np.ndarray, mixes: np.ndarray,
+           valid: np.ndarray | None = None) -> np.ndarray:
+    """`params` (F, 12) with the truncation's pooled nodes appended as rows F … when the weights `idx`
+    point at them (docs/MATH.md §12): each its mix of the faces (core.cage.pool.pool_mixes; of the
+    valid ones, renormalised)."""
     if idx.max() < len(params):
         return params
-    a = np.ones(len(params)) if valid is None else valid.astype(np.float64)
-    return np.vstack([params, (a / a.sum()) @ params])
+    mix = mixes if valid is None else mixes * valid
+    return np.vstack([params, (mix / mix.sum(axis=1, keepdims=True)) @ params])
 
 
-def dense_weights(obj, deformer) -> np.ndarray:
+def dense_weights(obj, deformer, mixes: np.ndarray | None = None) -> np.ndarray:
     """(N, faces) face weights rebuilt from the stored attributes (and, for 'HARMONIC' weights, the
-    grid nodes' face weights: a vertex's face weights are its trilinear blend of its nodes')."""
+    grid nodes' face weights: a vertex's face weights are its trilinear blend of its nodes'; for
+    'INVERSE_DISTANCE' ones the pooled nodes' `mixes` (G, faces), core.cage.pool.pool_mixes)."""
     n, m = len(obj.data.vertices), len(deformer["cage_loop_total"])
     idx, val = stored_weights(obj, deformer)
     nodes = node_weights(deformer)
     if nodes is not None:
         return np.einsum("nk,nkf->nf", val, nodes[1][idx])
-    dense = np.zeros((n, m + 1))  # column m: the truncation's pooled control (docs/MATH.md §12)
+    G = 0 if mixes is None else len(mixes)
+    dense = np.zeros((n, m + G))  # columns m …: the truncation's pooled nodes (docs/MATH.md §12)
     np.add.at(dense, (np.arange(n)[:, None], idx), val)
-    return dense[:, :m] + dense[:, m:] / m  # its mix: the faces' uniform mean
+    return dense[:, :m] + (dense[:, m:] @ mixes if G else 0.0)
 
 
 def harmonic_expected(installed, core_harmonic, rest, rest_cage, topo, current_cage, face_motions):
@@ -465,7 +469,8 @@ def test_animated_cage_matches_the_core_at_every_frame(bl, installed, core_cage,
             return harmonic_expected(installed, core_harmonic, rest, rest_cage, topo, current,
                                      core_cage.face_motions)
         motion = core_cage.face_motions(rest_cage, current, topo)
-        return installed.deform.deform_points_params(rest, pooled(motion.params, idx), idx, val)
+        mixes = core_cage.pool.pool_mixes(rest_cage, topo)
+        return installed.deform.deform_points_params(rest, pooled(motion.params, idx, mixes), idx, val)
 
     results = bl.check_frames_in_any_order(target, deformer, rest, expected_at)
     assert np.abs(results[10] - results[1]).max() > 0.05
@@ -557,8 +562,9 @@ def test_collapsed_face_is_skipped_and_reported(bl, installed, core_cage, core_h
     else:
         kept = np.where(idx == 0, 0.0, val)
         kept /= kept.sum(axis=1, keepdims=True)
-        expected = installed.deform.deform_points_params(rest, pooled(motion.params, idx, motion.valid), idx,
-                                                         kept)
+        mixes = core_cage.pool.pool_mixes(points, topo)
+        table = pooled(motion.params, idx, mixes, motion.valid)
+        expected = installed.deform.deform_points_params(rest, table, idx, kept)
     assert np.abs(got - expected).max() < 1e-5
 
     set_cage_points(cage, points)  # fixed: no message, bit-for-bit rest again
@@ -1021,13 +1027,15 @@ def test_weight_options_reweight_live_from_the_stored_rest(bl, core_cage, core_h
         kwargs = {"half_space": deformer.half_space, "exponent": deformer.exponent,
                   "k": deformer.max_influences}
         idx, val = core_cage.cage_weights(rest, stored_rest, topo, **kwargs)
-        expected = np.zeros((len(rest), 25))  # column 24: the pooled control, the faces' mean
+        mixes = core_cage.pool.pool_mixes(stored_rest, topo, exponent=kwargs["exponent"],
+                                          half_space=kwargs["half_space"])
+        expected = np.zeros((len(rest), 24 + len(mixes)))  # columns 24 …: the pooled nodes
         np.add.at(expected, (np.arange(len(rest))[:, None], idx), val)
-        expected = expected[:, :24] + expected[:, 24:] / 24
-        assert np.abs(dense_weights(target, deformer) - expected).max() < 1e-6, options
+        expected = expected[:, :24] + expected[:, 24:] @ mixes
+        assert np.abs(dense_weights(target, deformer, mixes) - expected).max() < 1e-6, options
     assert np.array_equal(np.asarray(deformer["cage_rest_points"]).reshape(-1, 3), stored_rest)
     columns = [a for a in affdef_attributes(target) if a.startswith(f".affdef_{deformer.uid}_idx")]
-    assert len(columns) == idx.shape[1] in (3, 4)  # 3 faces, and the pooled control where any pools
+    assert len(columns) == idx.shape[1] in (3, 11)  # 3 faces, and a cell's 8 pooled nodes where any pools
     idx_on, _ = core_cage.cage_weights(rest, stored_rest, topo, half_space=True)
     idx_off, _ = core_cage.cage_weights(rest, stored_rest, topo, half_space=False)
     assert not np.array_equal(idx_on, idx_off), "the half-space rule matters for this target"

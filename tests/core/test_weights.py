@@ -100,9 +100,9 @@ def test_truncation_is_continuous_where_controls_swap_ranks() -> None:
     excess = kept - fourth[:, None]
     D = np.maximum(excess.sum(1), wt.POOL_FLOOR * W.sum(1))
     np.testing.assert_allclose(val[:, :3], excess / D[:, None], atol=1e-15)
-    # truncate on its own (the cage's use): D = max(S, c Σ kept), exactly renormalised where S is large
+    # truncate without a total: D = max(S, c Σ kept), exactly renormalised where S is large
     idx, val = wt.truncate(W, 3)
-    D = np.maximum(excess.sum(1), wt.LOCAL_FLOOR * kept.sum(1))
+    D = np.maximum(excess.sum(1), wt.POOL_FLOOR * kept.sum(1))
     np.testing.assert_allclose(val, excess / D[:, None], atol=1e-15)
     idx, val = wt.truncate(W, 6)
     np.testing.assert_allclose(val, wt.normalize(wt.top_k(W, 6)[1], "SUM"), rtol=1e-15)

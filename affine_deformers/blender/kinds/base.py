@@ -128,8 +128,10 @@ class Motions:
     outer_reference (3,) and outer_pivot (3,): the reference rotation vector and current origin of
       the object `outer` belongs to, for the branch of ψ(outer) when it is scaled by a strength;
     chain: the controls' hierarchy — the affine blend then goes down it (bones) and `turns` is unused;
-    pool (m,): the coefficients a_i of the truncation's pooled control (core.weights.pool_weights),
-      whose parameters Σ a_i ψ(A_i) weights pointing at index m blend (MATH.md §12); None: uniform.
+    pool: the truncation's pooled nodes as mixes of the controls (MATH.md §12), which weights pointing
+      at indices m … m + G − 1 blend: (m,) one node, the coefficients a_i of the probes' pooled
+      control (core.weights.pool_weights); (G, m) a cage's pool nodes or a bone's children means
+      (with `chain`: core.hierarchy.pool_mix, blended down the hierarchy); None: one, uniform.
     """
 
     matrices: np.ndarray
@@ -320,10 +322,11 @@ class DeformerKind(ABC):
         controls at them where the kind records that (a probe's `vertex_group`)."""
 
     def pool_mix(self, deformer) -> np.ndarray | None:
-        """The mix (m,) of controls the truncation's pooled column (index m, MATH.md §12) blends, or
-        None for a kind whose stored weights never index it. Default: all controls alike."""
+        """The truncation's pooled nodes (indices m … m + G − 1 of the stored weights, MATH.md §12) as
+        mixes of the controls (G, m), or None for a kind whose stored weights never index them.
+        Default: one node, all controls alike."""
         m = self.control_count(deformer)
-        return np.full(m, 1.0 / m) if m else None
+        return np.full((1, m), 1.0 / m) if m else None
 
     def stored_weights(self, obj: bpy.types.Object,
                        deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -333,9 +336,10 @@ class DeformerKind(ABC):
         controls. storage.StorageError / BindError when the bind data is damaged."""
         m = self.control_count(deformer)
         pool = self.pool_mix(deformer)
-        indices, values = storage.read_weights(obj.data, deformer.uid, m + (pool is not None))
-        if pool is not None and indices.size and int(indices.max()) == m:
-            return indices, values, np.vstack([np.eye(m), pool[None, :]])
+        pool = None if pool is None else np.atleast_2d(pool)
+        indices, values = storage.read_weights(obj.data, deformer.uid, m + (0 if pool is None else len(pool)))
+        if pool is not None and indices.size and int(indices.max()) >= m:
+            return indices, values, np.vstack([np.eye(m), pool])
         return indices, values, None
 
     def follow_renames(self, obj: bpy.types.Object, deformer) -> None:  # noqa: B027 (optional)

@@ -102,6 +102,15 @@ def bone_parents(armature: bpy.types.Object, names: list[str]) -> np.ndarray:
     return parents
 
 
+def _pool_scales(deformer) -> np.ndarray:
+    """The bones' weight scales (m,), which weigh the children in the pooled nodes' means
+    (core.hierarchy.pool_mix)."""
+    scales = np.empty(len(deformer.bones), dtype=np.float32)
+    if len(scales):
+        deformer.bones.foreach_get("weight_scale", scales)
+    return scales.astype(np.float64)
+
+
 def armature_problem(target: bpy.types.Object, armature: bpy.types.Object | None) -> str:
     """Why `armature` cannot drive `target` ('' when it can)."""
     if armature is None:
@@ -361,20 +370,21 @@ class BoneKind(DeformerKind):
         segments = stored.reshape(-1, 2, 3)
         heads, tails = segments[:, 0], segments[:, 1]
         scales = np.array([item.weight_scale for item in deformer.bones], dtype=np.float64)
+        # Weight the truncation pools (near ties of more bones than Max Influences) goes to a point on
+        # the bones' tree, an ancestor of most of the vertex's weight or the mean of its children
+        # (core.hierarchy.PoolPoint, MATH.md §12): indices m … 2m name those means.
+        armature = deformer.armature
+        parents = (bone_parents(armature, names) if armature is not None and armature.type == "ARMATURE"
+                   else np.full(len(names), -1, dtype=np.intp))
         indices, values, warning = control_weights(obj, deformer, rest_points, heads, scales, names, names,
-                                                   anchors=0.5 * (heads + tails), tails=tails)
+                                                   anchors=0.5 * (heads + tails), tails=tails,
+                                                   pool=hierarchy.PoolPoint(parents),
+                                                   floor=hierarchy.BONE_POOL_FLOOR)
         if deformer.weight_mode == "VERTEX_GROUPS":
             missing = [n for n in names if obj.vertex_groups.get(n) is None]
             if len(missing) == len(names):
                 warning = ("No vertex group is named after a bone: paint groups named after the bones, "
                            "or choose distance weights")
-        if indices.size and int(indices.max()) == len(names):
-            # Weight the truncation pools (near ties of more bones than Max Influences) follows the
-            # root bones, so a motion of the whole skeleton stays exact there (MATH.md §12, §14).
-            armature = deformer.armature
-            parents = (bone_parents(armature, names) if armature is not None and armature.type == "ARMATURE"
-                       else np.full(len(names), -1, dtype=np.intp))
-            indices, values = hierarchy.pool_to_roots(indices, values, parents, scales)
         return indices, values, warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
@@ -434,7 +444,8 @@ class BoneKind(DeformerKind):
                                    "unwrapped (non-finite or too many turns): the mesh shows its input")
         if deformer.branch_rule != "CHANNELS":
             chain.references = chain.pivots = None
-        return Motions(matrices, np.array([r.at_rest for r in chosen]), chain=chain)
+        return Motions(matrices, np.array([r.at_rest for r in chosen]), chain=chain,
+                       pool=hierarchy.pool_mix(chain.parents, _pool_scales(deformer)))
 
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
         armature = deformer.armature
@@ -460,8 +471,16 @@ class BoneKind(DeformerKind):
         return len(deformer.bones)
 
     def pool_mix(self, deformer) -> np.ndarray | None:
-        """None: weight the truncation pools goes to the root bones at bind (`sparse_weights`)."""
-        return None
+        """The pooled nodes m … 2m (core.hierarchy.pool_parents) as weights on the bones: the means
+        of each bone's children and of the roots (core.hierarchy.pool_mix, exact as the blend takes
+        them)."""
+        names = [item.name for item in deformer.bones]
+        if not names:
+            return None
+        armature = deformer.armature
+        parents = (bone_parents(armature, names) if armature is not None and armature.type == "ARMATURE"
+                   else np.full(len(names), -1, dtype=np.intp))
+        return hierarchy.pool_mix(parents, _pool_scales(deformer))
 
     def active_control(self, deformer) -> int:
         return deformer.active_bone_index

@@ -70,6 +70,7 @@ from ...core.cage import (
     face_motions,
     signed_volume,
 )
+from ...core.cage import pool as cage_pool
 from ...core.cage.harmonic import harmonic_weights, node_matrices_linear
 from .. import caches, nodes, storage
 from .base import (
@@ -133,6 +134,10 @@ _TOTALS_KEPT = 2
 # (vertex count, loop arrays' bytes) -> the validated CageTopology (`rest_cage`), oldest first.
 _topologies: dict[tuple, CageTopology] = {}
 _TOPOLOGIES_KEPT = 8
+# (rest cage and topology bytes, exponent, half-space) -> the 'INVERSE_DISTANCE' weights' pooled
+# nodes as mixes of the faces (core.cage.pool.pool_mixes), oldest first.
+_pool_mixes: dict[tuple, np.ndarray] = {}
+_POOL_MIXES_KEPT = 4
 
 
 @caches.register
@@ -142,6 +147,7 @@ def _forget(key: caches.Key | None) -> None:
     caches.drop(_node_data, key)
     if key is None:
         _topologies.clear()
+        _pool_mixes.clear()
 
 
 def _get_cage_weights(self) -> int:
@@ -164,6 +170,24 @@ def _poll_cage(self, candidate: bpy.types.Object) -> bool:
 def weight_mode(deformer) -> str:
     """The deformer's cage weight mode (`props.AffineDeformer.cage_weights`)."""
     return deformer.cage_weights
+
+
+def pool_mixes(deformer) -> np.ndarray:
+    """(G, F): where the 'INVERSE_DISTANCE' weights' truncation pools weight (MATH.md §12), the
+    pooled nodes F … F + G − 1 as mixes of the faces (core.cage.pool.pool_mixes of the stored rest
+    cage and the weight options); memoised on their content. BindError when the bind data is
+    damaged."""
+    points, topology, loops, start, total = rest_cage(deformer)
+    key = (points.tobytes(), loops.tobytes(), start.tobytes(), total.tobytes(), float(deformer.exponent),
+           bool(deformer.half_space))
+    mixes = _pool_mixes.get(key)
+    if mixes is None:
+        mixes = cage_pool.pool_mixes(points, topology, exponent=deformer.exponent,
+                                     half_space=deformer.half_space)
+        if len(_pool_mixes) >= _POOL_MIXES_KEPT:
+            _pool_mixes.pop(next(iter(_pool_mixes)))
+        _pool_mixes[key] = mixes
+    return mixes
 
 
 def bound_with_nodes(deformer) -> bool:
@@ -406,9 +430,14 @@ class CageKind(DeformerKind):
             index = cage.data.polygons.active if cage is not None and cage.type == "MESH" else 0
         return index
 
+    def pool_mix(self, deformer) -> np.ndarray | None:
+        """'INVERSE_DISTANCE': the pooled nodes' mixes of the faces (`pool_mixes`); None unbound."""
+        return pool_mixes(deformer) if self.control_count(deformer) else None
+
     def stored_weights(self, obj: bpy.types.Object,
                        deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """'HARMONIC' weights index grid nodes, each with its face weights (`node_data`)."""
+        """'HARMONIC' weights index grid nodes, each with its face weights (`node_data`);
+        'INVERSE_DISTANCE' ones faces and the pooled nodes (`pool_mixes`)."""
         if not bound_with_nodes(deformer):
             return super().stored_weights(obj, deformer)
         node_weights = node_data(obj, deformer, self.control_count(deformer)).weights
@@ -546,7 +575,14 @@ class CageKind(DeformerKind):
                 if nodes is not None:
                     controls = _node_motions(controls, nodes, linear=linear)
             _last_motions[(obj.session_uid, deformer.uid)] = (key, controls)
-        return dataclasses.replace(controls, outer=outer, outer_reference=reference, outer_pivot=pivot)
+        pool = None
+        if nodes is None and not controls.error:  # faces: their pooled nodes (MATH.md §12)
+            try:
+                pool = pool_mixes(deformer)
+            except BindError as exc:
+                return Motions.invalid(F, str(exc))
+        return dataclasses.replace(controls, outer=outer, outer_reference=reference, outer_pivot=pivot,
+                                   pool=pool)
 
 
 def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph, target_world: np.ndarray,

@@ -30,13 +30,16 @@ def draw_weight_options(layout: bpy.types.UILayout, deformer) -> None:
 def control_weights(obj: bpy.types.Object, deformer, rest_points: np.ndarray, heads: np.ndarray,
                     scales: np.ndarray, groups: list[str], labels: list[str], *,
                     anchors: np.ndarray | None = None,
-                    tails: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+                    tails: np.ndarray | None = None,
+                    pool: weights.PoolColumns | None = None,
+                    floor: float = weights.POOL_FLOOR) -> tuple[np.ndarray, np.ndarray, str]:
     """(indices (N, K), values (N, K), warning) of controls at `heads` (m, 3) (segments heads → tails
     for the distance modes when `tails` is given) with weight scales `scales` (m,), by the deformer's
     weight options: 'VERTEX_GROUPS' reads the vertex groups `groups` (one per control; a missing one
     reads as 0, the kind words that warning), 'SURFACE' solves harmonic weights anchored at `anchors`
     (default: the heads), whose loose parts and unanchored controls (named by `labels`) are the
-    warning."""
+    warning. `pool` and `floor`: where the truncation's pooled weight goes and its divisor's floor
+    (core.weights.probe_weights; bones pass their tree's, MATH.md §12)."""
     mode = deformer.weight_mode
     warning = ""
     dense = solved = None
@@ -49,7 +52,8 @@ def control_weights(obj: bpy.types.Object, deformer, rest_points: np.ndarray, he
     indices, values = weights.probe_weights(
         rest_points, heads, mode=mode, radius=deformer.radius, exponent=deformer.exponent,
         normalize=deformer.normalize, k=deformer.max_influences, scales=scales, dense=dense,
-        solved=solved, tails=tails if mode in ("INVERSE_DISTANCE", "FALLOFF") else None)
+        solved=solved, tails=tails if mode in ("INVERSE_DISTANCE", "FALLOFF") else None, pool=pool,
+        floor=floor)
     return indices, values, warning
 
 

@@ -6,11 +6,14 @@ One module per part, each with the mathematics it relies on in its docstring:
 - `motions` — corner tetrahedra, the 'NEIGHBOURS' apex stencils and the per-face motion parameters
   (`face_motions`, `face_tables`, `affected_faces`; MATH.md §9), with the content-keyed caches of the
   rest corners and stencils;
-- `distances` — exact point–polygon distances and the 'INVERSE_DISTANCE' cage weights (`cage_weights`;
-  MATH.md §10, §12);
+- `distances` — exact point–polygon distances and the faces' part of the 'INVERSE_DISTANCE' cage
+  weights (`face_weights`; MATH.md §10, §12);
 - `checks` — `check_cage` / `validate_cage` / `signed_volume`;
 - `harmonic` — the default 'HARMONIC' cage weights on a grid and the node blend, used as the module
-  `core.cage.harmonic` (its names are not re-exported here).
+  `core.cage.harmonic` (its names are not re-exported here);
+- `pool` — the 'INVERSE_DISTANCE' cage weights (`cage_weights`) with where their truncation pools
+  weight (MATH.md §12): a coarse grid's nodes, each a mix of the faces near it (the rest of its names
+  used as the module `core.cage.pool`).
 
 The names below are what the rest of the package, the tests and the benchmarks use as `core.cage.X`.
 They are re-exports: a test that patches a module-level constant or function (FOLD_KAPPA, …) patches
@@ -24,7 +27,8 @@ from .distances import (
     DISTANCE_FLOOR,
     HALF_SPACE_BAND,
     HALF_SPACE_TOL,
-    cage_weights,
+    TOTAL_FACES,
+    face_weights,
     half_space_ramp,
     nearest_faces,
     point_triangle_distance_sq,
@@ -54,6 +58,7 @@ from .motions import (
     face_tables,
     rest_corners,
 )
+from .pool import cage_weights
 from .topology import CageTopology, face_centroids, face_normals
 
 __all__ = [
@@ -70,6 +75,7 @@ __all__ = [
     "STENCIL_RIDGE",
     "STENCIL_SIZE",
     "STRAIGHT_CORNER_RATIO",
+    "TOTAL_FACES",
     "ApexStencil",
     "CageReport",
     "CageTopology",
@@ -89,6 +95,7 @@ __all__ = [
     "face_motions",
     "face_normals",
     "face_tables",
+    "face_weights",
     "half_space_ramp",
     "nearest_faces",
     "point_triangle_distance_sq",

@@ -1,10 +1,11 @@
-"""Distances from points to cage faces, and the 'INVERSE_DISTANCE' cage weights (`cage_weights`).
+"""Distances from points to cage faces, and the faces' part of the 'INVERSE_DISTANCE' cage weights.
 
-Weights (`cage_weights`, the 'INVERSE_DISTANCE' option; MATH.md §10, §12): inverse distance to the
-face polygon (exact point–triangle distance, minimum over the polygon's fan triangles), faded to zero
-over a band above each face's plane (the half-space rule as a C¹ ramp), continuous top-K with a
-bounded slope (what the kept faces leave of 1 near ties goes to the pooled control, index F), rows
-summing to 1; computed in chunks of vertices. The default harmonic weights: core/cage/harmonic.py.
+Weights (`face_weights`; core.cage.pool.cage_weights completes them; MATH.md §10, §12): inverse
+distance to the face polygon (exact point–triangle distance, minimum over the polygon's fan
+triangles), faded to zero over a band above each face's plane (the half-space rule as a C¹ ramp),
+continuous top-K with a bounded slope (what the kept faces leave of 1 near ties, λ, in a column of
+index F), rows summing to 1; computed in chunks of vertices. The default harmonic weights:
+core/cage/harmonic.py.
 """
 
 from __future__ import annotations
@@ -16,14 +17,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..kernel import default_threads
-from ..weights import truncate
+from ..weights import POOL_FLOOR, truncate
 from .topology import CageTopology, _check_points, _norm, face_centroids, face_normals
 
 # Points this close to a face plane (relative to the cage size) are not "outside" it, so a target
 # vertex lying on the cage surface keeps the face it lies on.
 HALF_SPACE_TOL = 1e-9
 
-# Half-space ramp (cage_weights): a face's weight fades from full at its plane to 0 where the point
+# Half-space ramp (face_weights): a face's weight fades from full at its plane to 0 where the point
 # is this far above the plane relative to its distance to the face (sin of the elevation angle).
 HALF_SPACE_BAND = 0.5
 
@@ -31,13 +32,21 @@ HALF_SPACE_BAND = 0.5
 # dominant weight from the faces it touches instead of 1/0.
 DISTANCE_FLOOR = 1e-6
 
-# Elements per work array of cage_weights ((chunks × faces) in its first pass, (chunk points ×
+# Elements per work array of face_weights ((chunks × faces) in its first pass, (chunk points ×
 # candidate faces) in its second): bounds memory and keeps the arrays in cache.
 BATCH_ELEMENTS = 1 << 17
 
-# Slack on cage_weights' pruning bounds, relative to the cage size. It covers their rounding (dot
+# Slack on face_weights' pruning bounds, relative to the cage size. It covers their rounding (dot
 # products of coordinates of the order of the cage size, some expanded), never the geometry.
 BOUND_SLACK = 1e-6
+
+# The truncation's total T (MATH.md §12): the weight of this many nearest faces (or K + 1 when more),
+# measured exactly like the (K+1)-th, so D = max(S, c·T) with c = weights.POOL_FLOOR. A sum of the
+# largest weights is continuous; the cage measures only the faces that can matter, not all of them
+# (T over all faces would bound the slope as well: an octagonal prism's steps were 2.5× the
+# untruncated field's at 4 influences with it, 2.7× with this; T = the kept faces' weight and c = 0.1
+# stepped 5.5× on its edges and 25× along its axis).
+TOTAL_FACES = 16
 
 
 def _inverse_or_zero(x: np.ndarray) -> np.ndarray:
@@ -124,7 +133,7 @@ def point_triangle_distance_sq(
 ) -> np.ndarray:
     """Exact squared distance from each point (N, 3) to each triangle (a, b, c) (T, 3 each) -> (N, T).
 
-    Dense; for tests and small inputs (cage_weights works in chunks). Coordinates are taken relative
+    Dense; for tests and small inputs (face_weights works in chunks). Coordinates are taken relative
     to the triangles' mean vertex, which keeps the expanded dot products well conditioned."""
     a, b, c = (np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in (a, b, c))
     origin = (a.mean(axis=0) + b.mean(axis=0) + c.mean(axis=0)) / 3.0 if a.size else np.zeros(3)
@@ -173,7 +182,7 @@ def _pair_distance_sq(p: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _CageFields:
-    """What cage_weights needs of the rest cage, relative to `origin` (the mean vertex).
+    """What face_weights needs of the rest cage, relative to `origin` (the mean vertex).
 
     Two cheap bounds on the distance from a point p to face f's polygon prune the exact distances:
 
@@ -361,11 +370,13 @@ def _batch_weights(
     """Weights of a batch of chunks: rows (B, C) point indices (−1 = padding), slots (B, M) candidate
     faces in increasing order (−1 = padding). Returns (points (R,), face indices (R, k), values (R, k)).
 
-    The k + 1 largest weights are needed (continuous truncation subtracts the (k+1)-th). Per point,
-    the (k+1)-th smallest upper bound over its candidates with full weight (ramp 1: in the face's inner
-    half-space), τ_p, bounds its (k+1)-th nearest such distance; no weight is above d^(−p) (the ramp is
-    ≤ 1), so only candidates with dist(p, box_f) ≤ τ_p get exact distances. Kept pairs are listed point
-    by point in increasing face order, so ties break by face index as over all faces."""
+    The M = max(k + 1, TOTAL_FACES) largest weights are needed (continuous truncation subtracts the
+    (k+1)-th, and T is the sum of the M largest). Per point, the M-th smallest upper bound over its
+    candidates with full weight (ramp 1: in the face's inner half-space), τ_p, bounds its M-th nearest
+    such distance; no weight is above d^(−p) (the ramp is ≤ 1), so only candidates with
+    dist(p, box_f) ≤ τ_p get exact distances. Kept pairs are listed point by point in increasing face
+    order, so ties break by face index as over all faces. The last column of values is the pooled
+    weight λ (index F)."""
     size = fields.size
     real_slot = slots >= 0
     f = np.where(real_slot, slots, 0)
@@ -393,7 +404,7 @@ def _batch_weights(
         # where every face is a candidate) keeps plain inverse-distance weights over all faces.
         plain = ~full.any(axis=2)
         full = full | (eligible & plain[:, :, None])
-    measured = min(k + 1, int(real_slot.sum(axis=1).max(initial=0)) or 1)
+    measured = min(max(k + 1, TOTAL_FACES), int(real_slot.sum(axis=1).max(initial=0)) or 1)
     tau = np.partition(np.where(full, upper, np.inf), measured - 1, axis=2)[:, :, measured - 1]
     floor = DISTANCE_FLOOR * size
     tau = np.maximum(tau, floor) + BOUND_SLACK * size
@@ -428,9 +439,11 @@ def _batch_weights(
     faces = np.zeros((per_row.size, width), dtype=np.int32)
     W[row_of_pair, column] = w
     faces[row_of_pair, column] = pair_face
-    # D = max(S, c Σ kept): the cage measures only the faces that can matter, so the divisor's floor
-    # is relative to the kept faces' weight (c = weights.LOCAL_FLOOR); the pooled rest goes to index F
-    cols, vals, pooled = truncate(W, k, with_pooled=True)
+    # D = max(S, c T), T the weight of the M nearest faces (TOTAL_FACES); the pooled rest goes to
+    # index F here, to pooled nodes in core.cage.pool.cage_weights
+    M = min(max(k + 1, TOTAL_FACES), width)
+    total = -np.partition(-W, M - 1, axis=1)[:, :M].sum(axis=1)
+    cols, vals, pooled = truncate(W, k, total=total, floor=POOL_FLOOR, with_pooled=True)
     idx = np.take_along_axis(faces, cols, axis=1)
     idx = np.where(vals > 0.0, idx, idx[:, :1])  # zero-weight slots point at the row's best face
     real = rows.ravel() >= 0
@@ -445,7 +458,7 @@ def _group_weights(
     """(points, indices, values) of the chunks rows (B, C) (−1 = padding), batch by batch: chunks
     with similar candidate counts are measured together, so little of a batch is padding."""
     C = rows.shape[1]
-    measured = min(k + 1, fields.centers.shape[0])  # continuous truncation needs the (k+1)-th weight
+    measured = min(max(k + 1, TOTAL_FACES), fields.centers.shape[0])  # the (k+1)-th weight, and T
     candidates = _chunk_candidates(fields, *_chunk_spheres(local, rows), measured, half_space)
     count = candidates.sum(axis=1)
     order = np.argsort(count, kind="stable")
@@ -477,7 +490,7 @@ def _chunk_spheres(local: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.
     return q, rho
 
 
-def cage_weights(
+def face_weights(
     points: np.ndarray,
     cage_points: np.ndarray,
     topology: CageTopology,
@@ -487,8 +500,9 @@ def cage_weights(
     k: int = 8,
     chunk_size: int = 64,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Sparse cage weights: (indices (N, K or K + 1) int32, values float64), K = min(k, F), rows sum to 1
-    (index F in column K, when present: the pooled control, the mean of all faces' parameters).
+    """The faces' part of the cage weights (core.cage.pool.cage_weights adds where the rest is pooled):
+    (indices (N, K or K + 1) int32, values float64), K = min(k, F), rows sum to 1 (column K, index F,
+    when present: the pooled weight λ, which core.cage.pool.cage_weights shares among pooled nodes).
 
     w_f(v) = d_f(v)^(−exponent), d_f the exact distance from v to face f's polygon (minimum over its
     fan triangles), floored at DISTANCE_FLOOR × cage size. With half_space (MATH.md §10, made
@@ -499,10 +513,10 @@ def cage_weights(
     A vertex cut off from every face (outside an open or broken cage) falls back to plain inverse
     distance, so no row is zero. Truncation to the K largest is continuous with a bounded slope
     (weights.truncate, MATH.md §12: the (K+1)-th weight, measured exactly, is subtracted and the
-    rest divided by D = max(S, c Σ kept), c = weights.LOCAL_FLOOR; zero-weight slots repeat the
-    row's first index), so no weight jumps or swings where faces swap ranks or tie; what the kept
-    faces leave of 1 (only near such ties) goes to the pooled control, so any motion shared by all
-    faces stays exact.
+    rest divided by D = max(S, c·T), c = weights.POOL_FLOOR, T the weight of the TOTAL_FACES
+    nearest faces (K + 1 when more); zero-weight slots repeat the row's first index), so no weight
+    jumps or swings where faces swap ranks or tie; what the kept faces leave of 1 (near such ties)
+    is λ.
 
     Only distances that can matter are measured exactly: vertices are grouped in spatially sorted
     chunks of chunk_size, each chunk keeps the faces its bounding sphere can reach
