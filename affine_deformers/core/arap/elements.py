@@ -100,14 +100,14 @@ def _mesh_inputs(points: ArrayLike, cells: ArrayLike, k: int, what: str) -> tupl
     return P, C
 
 
-def _refuse_degenerate(bad: NDArray[np.bool_], cells: IndexArray, what: str, measure: str) -> None:
+def _refuse_degenerate(bad: NDArray[np.bool_], cells: IndexArray, what: str, one: str, measure: str) -> None:
     if not bad.any():
         return
     first = int(np.flatnonzero(bad)[0])
     verts = ", ".join(str(int(v)) for v in cells[first])
     raise DegenerateElementsError(
-        f"{int(bad.sum())} of the mesh's {cells.shape[0]} {what} have zero {measure} (the first: {what[:-1]} "
-        f"{first}, vertices {verts}); the shape-preserving pass needs every one to have an {measure}: "
+        f"{int(bad.sum())} of the mesh's {cells.shape[0]} {what} have zero {measure} (the first: {one} "
+        f"{first}, vertices {verts}); the shape-preserving pass needs a {measure} for every one: "
         f"{DEGENERATE_FIX}")
 
 
@@ -121,7 +121,7 @@ def triangle_elements(points: ArrayLike, triangles: ArrayLike) -> Elements:
     n = np.cross(e1, e2)
     area2 = np.sqrt(np.einsum("ij,ij->i", n, n))
     longest = np.max(np.stack([np.einsum("ij,ij->i", e, e) for e in (e1, e2, p2 - p1)]), axis=0)
-    _refuse_degenerate(~(area2 > DEGENERATE_RATIO * longest), T, "triangles", "area")
+    _refuse_degenerate(~(area2 > DEGENERATE_RATIO * longest), T, "triangles", "triangle", "area")
     unit = n / area2[:, None]
     grads = np.empty((T.shape[0], 3, 3))
     grads[:, 1] = np.cross(e2, unit) / area2[:, None]
@@ -139,7 +139,8 @@ def tetrahedron_elements(points: ArrayLike, tetrahedra: ArrayLike) -> Elements:
     det = np.linalg.det(E)
     edges = corners[:, [1, 2, 3, 2, 3, 3]] - corners[:, [0, 0, 0, 1, 1, 2]]
     longest = np.sqrt(np.max(np.einsum("tij,tij->ti", edges, edges), axis=1))
-    _refuse_degenerate(~(np.abs(det) > DEGENERATE_RATIO * longest**3), T, "tetrahedra", "volume")
+    _refuse_degenerate(~(np.abs(det) > DEGENERATE_RATIO * longest**3), T, "tetrahedra", "tetrahedron",
+                       "volume")
     rows = np.linalg.inv(E)  # row a of E⁻¹: the gradient of the barycentric coordinate of corner a + 1
     grads = np.concatenate([-rows.sum(axis=1, keepdims=True), rows], axis=1)
     return Elements(T, grads, np.abs(det) / 6.0, np.zeros((T.shape[0], 3)), corners.mean(axis=1), P.shape[0])

@@ -59,7 +59,7 @@ __all__ = [
 ANCHOR_STRENGTH = 100.0
 #: A vertex is an anchor where its weight on a control reaches this fraction of that control's largest
 #: weight over the mesh (κ rises smoothly from 0 there to 1 at the control's strongest vertices).
-ANCHOR_LEVEL = 0.9
+ANCHOR_LEVEL = 0.5
 #: A connected part without any anchor gets α_v = UNANCHORED_FLOOR · m_v / A on every vertex.
 UNANCHORED_FLOOR = 1e-2
 #: The numpy solver's conjugate gradients stop at ‖r − L d‖ ≤ CG_TOLERANCE ‖r‖ per coordinate.
