@@ -343,3 +343,29 @@ def test_arguments_are_checked() -> None:
     big = arap.Elements(el.corners, el.gradients, el.weights, el.normals, el.centroids, 10**6)
     with pytest.raises(ValueError, match="at most"):
         arap.reference_positions(big, np.zeros(10**6), motions, np.zeros((10**6, 3)))
+
+
+def test_bind_triangles_is_the_steps_and_stays_exact_with_averaged_weights() -> None:
+    """The one-call bind equals its steps; with element weights averaged from the corners (what a
+    painted or surface weight mode gives) a shared motion is still exact."""
+    rig = twist_rig(4.0, np.pi)
+    P, T = box_bar(4)
+    idx, val = rig_weights(P, rig)
+    bound = arap.bind_triangles(P, T, idx, val, strength=30.0)
+    el = arap.triangle_elements(P, T)
+    steps = arap.bind_system(el, arap.anchor_weights(el, idx, val, strength=30.0))
+    assert np.array_equal(bound.system.matrix.data, steps.matrix.data)
+    e_idx, e_val = arap.element_weights(el, idx, val)
+    assert np.array_equal(bound.indices, e_idx) and np.array_equal(bound.values, e_val)
+    G = random_affine(np.random.default_rng(9), 1, log_scale=0.3)[0]
+    params = _shared(rig.params, G)
+    x = arap.NumpyArapSolver(bound.system).frame(deform.vertex_motions(params, bound.indices, bound.values),
+                                                 deform.deform_points_params(P, params, idx, val), 2)
+    expect = P @ G[:3, :3].T + G[:3, 3]
+    assert np.abs(x - expect).max() < 1e-12 * np.abs(expect).max()
+    given = rig_weights(el.centroids, rig)
+    assert np.array_equal(arap.bind_triangles(P, T, idx, val, at_elements=given).values, given[1])
+    with pytest.raises(ValueError, match="element weights must have shape"):
+        arap.bind_triangles(P, T, idx, val, at_elements=(given[0][:-1], given[1][:-1]))
+    painted = arap.bind_triangles(P, T, idx, val, anchors=np.full(len(P), 0.5))
+    assert np.all(painted.system.anchors == 0.5)

@@ -3,15 +3,16 @@ operator (`elements.py`), anchors, the system and its right-hand side (`system.p
 least-squares reference (`reference.py`). The compiled factor and per-frame solve are
 `affine_deformers.accel.arap`; `NumpyArapSolver` is the path without it.
 
-Bind (once per bind and topology):
+Bind (once per bind and topology), in one call or its steps:
 
-    elements = triangle_elements(rest_points, triangles)
-    elem_idx, elem_val = element_weights(elements, indices, values)   # or the weight mode at centroids
-    system = bind_system(elements, anchor_weights(elements, indices, values, strength=...))
-    solver = accel.arap.bind(system)  # or NumpyArapSolver(system)
+    bound = bind_triangles(rest_points, triangles, indices, values, strength=..., controls=m)
+    #   = triangle_elements + element_weights (or the weight mode at the centroids)
+    #     + anchor_weights (or painted per-vertex anchors) + bind_system
+    solver = accel.arap_bind(bound.system)  # the compiled factor, or NumpyArapSolver(system)
 
-Every frame: motions = vertex_motions(params, elem_idx, elem_val) (the blended maps at the elements),
-field = the per-vertex field's positions, x = solver.frame(motions, field, iterations).
+Every frame: motions = vertex_motions(params, bound.indices, bound.values) (the blended maps at the
+elements, (4, E, 3); chain_motions for bones), field = the per-vertex field's positions (N, 3),
+x = solver.frame(motions, field, iterations). solver.close() when the bind or topology changes.
 """
 
 from .elements import (
@@ -29,10 +30,12 @@ from .reference import reference_positions
 from .system import (
     ANCHOR_LEVEL,
     ANCHOR_STRENGTH,
+    ArapBind,
     ArapSystem,
     NumpyArapSolver,
     anchor_weights,
     bind_system,
+    bind_triangles,
     closest_rotations,
     linear_maps,
     right_hand_side,
@@ -45,12 +48,14 @@ __all__ = [
     "ANCHOR_LEVEL",
     "ANCHOR_STRENGTH",
     "DEGENERATE_RATIO",
+    "ArapBind",
     "ArapSystem",
     "DegenerateElementsError",
     "Elements",
     "NumpyArapSolver",
     "anchor_weights",
     "bind_system",
+    "bind_triangles",
     "closest_rotations",
     "element_gradients",
     "element_weights",

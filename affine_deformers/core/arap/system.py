@@ -34,17 +34,26 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..surface import Csr, Multigrid, conjugate_gradient
-from .elements import Elements, element_gradients, mesh_components, vertex_areas
+from .elements import (
+    Elements,
+    element_gradients,
+    element_weights,
+    mesh_components,
+    triangle_elements,
+    vertex_areas,
+)
 
 FloatArray = NDArray[np.float64]
 
 __all__ = [
     "ANCHOR_LEVEL",
     "ANCHOR_STRENGTH",
+    "ArapBind",
     "ArapSystem",
     "NumpyArapSolver",
     "anchor_weights",
     "bind_system",
+    "bind_triangles",
     "closest_rotations",
     "linear_maps",
     "right_hand_side",
@@ -146,6 +155,39 @@ def bind_system(elements: Elements, anchors: ArrayLike) -> ArapSystem:
     cols = np.concatenate([np.tile(C, (1, K)).ravel(), np.arange(n)])
     matrix = Csr.from_coo(rows, cols, np.concatenate([gg.ravel(), alpha]), (n, n))
     return ArapSystem(elements, alpha, matrix, n_loose)
+
+
+@dataclass(frozen=True)
+class ArapBind:
+    """Everything a deformer keeps per bind and topology (with the solver `accel.arap_bind(system)`
+    makes of `system`): the system, and the elements' control weights (indices (E, K') int32, values)
+    for `vertex_motions` / `chain_motions` every frame."""
+
+    system: ArapSystem
+    indices: NDArray[np.int32]
+    values: FloatArray
+
+
+def bind_triangles(points: ArrayLike, triangles: ArrayLike, indices: ArrayLike, values: ArrayLike, *,
+                   strength: float = ANCHOR_STRENGTH, level: float = ANCHOR_LEVEL,
+                   controls: int | None = None, anchors: ArrayLike | None = None,
+                   at_elements: tuple[ArrayLike, ArrayLike] | None = None) -> ArapBind:
+    """One call for a triangle mesh bound with per-vertex sparse weights (indices, values (N, K), the
+    deformer's): the elements (`triangle_elements`: DegenerateElementsError on zero-area triangles),
+    their control weights (the corners' mean, or `at_elements` = (indices, values) evaluated by
+    the weight mode at the centroids), the anchors (`anchor_weights` with strength, level, controls,
+    or the given per-vertex `anchors`) and the assembled system."""
+    elements = triangle_elements(points, triangles)
+    if at_elements is None:
+        e_idx, e_val = element_weights(elements, indices, values)
+    else:
+        e_idx = np.ascontiguousarray(at_elements[0], dtype=np.int32)
+        e_val = np.ascontiguousarray(at_elements[1], dtype=np.float64)
+        if e_idx.shape != e_val.shape or e_idx.ndim != 2 or e_idx.shape[0] != elements.count:
+            raise ValueError(f"element weights must have shape ({elements.count}, K)")
+    alpha = anchor_weights(elements, indices, values, strength=strength, level=level,
+                           controls=controls) if anchors is None else anchors
+    return ArapBind(bind_system(elements, alpha), e_idx, e_val)
 
 
 # ------------------------------------------------------------------------------- right-hand side
