@@ -41,6 +41,11 @@
 #define RELAX_SMALL 4
 /* Pivot columns applied together to the rest of a front. */
 #define FRONT_BLOCK 4
+/* Newton's polar iteration: at most this many steps, stopping when a step moves Q by NEWTON_TOL |Q|;
+ * POLAR_BLOCK elements at a time, structure of arrays. */
+#define NEWTON_STEPS 24
+#define NEWTON_TOL 1e-13
+#define POLAR_BLOCK 64
 
 enum { ORDER_NATURAL = 0, ORDER_NESTED_DISSECTION = 1, ORDER_GIVEN = 2 };
 enum { ST_OK = 0, ST_MEMORY = 1, ST_NOT_SPD = 2, ST_INPUT = 3 };
@@ -867,20 +872,62 @@ static void matmul3(const double A[9], const double B[9], double C[9]) {
         for (int c = 0; c < 3; c++) C[3 * r + c] = (A[3 * r] * B[c] + A[3 * r + 1] * B[3 + c]) + A[3 * r + 2] * B[6 + c];
 }
 
-/* S = V diag(s) V^T, the stretch of A's polar split (A row-major; det A > 0). */
-static void stretch_of(const double M[9], double S[9]) {
-    double A[9], V[9], s[3];
-    memcpy(A, M, sizeof A);
-    ak_jacobi3(A, V);
-    for (int c = 0; c < 3; c++) s[c] = sqrt(A[c] * A[c] + A[3 + c] * A[3 + c] + A[6 + c] * A[6 + c]);
-    for (int r = 0; r < 3; r++)
-        for (int c = 0; c < 3; c++)
-            S[3 * r + c] = (V[3 * r] * s[0] * V[3 * c] + V[3 * r + 1] * s[1] * V[3 * c + 1]) + V[3 * r + 2] * s[2] * V[3 * c + 2];
+/* The polar factors of n <= POLAR_BLOCK matrices at once, in place: q[i * POLAR_BLOCK + j] is entry i
+ * (row-major) of matrix j. Newton's iteration Q <- (zeta Q + Q^-T / zeta)/2 from Q = X, with Higham's
+ * scaling zeta = (|Q^-1|_F / |Q|_F)^(1/2) and Q^-T = cof(Q)/det Q, until a step changes Q by at most
+ * NEWTON_TOL |Q|_F (quadratic convergence: a handful of steps). For det X > 0 the limit is the rotation
+ * nearest X. Each column keeps the step that converged it (later passes select its old value), so its
+ * result does not depend on the other columns; the loop has no branches and vectorises. ok[j] = 1 where
+ * column j converged, 0 where det Q was not positive or finite or NEWTON_STEPS did not suffice (the
+ * caller then takes the SVD). */
+static void polar_block(double *restrict q, int64_t n, int8_t *restrict ok) {
+    int8_t done[POLAR_BLOCK], bad[POLAR_BLOCK];
+    for (int64_t j = 0; j < n; j++) done[j] = bad[j] = 0;
+    for (int step = 0; step < NEWTON_STEPS; step++) {
+        int open = 0;
+        for (int64_t j = 0; j < n; j++) {
+            double Q[9], C[9];
+            for (int i = 0; i < 9; i++) Q[i] = q[i * POLAR_BLOCK + j];
+            C[0] = Q[4] * Q[8] - Q[5] * Q[7];
+            C[1] = Q[5] * Q[6] - Q[3] * Q[8];
+            C[2] = Q[3] * Q[7] - Q[4] * Q[6];
+            C[3] = Q[2] * Q[7] - Q[1] * Q[8];
+            C[4] = Q[0] * Q[8] - Q[2] * Q[6];
+            C[5] = Q[1] * Q[6] - Q[0] * Q[7];
+            C[6] = Q[1] * Q[5] - Q[2] * Q[4];
+            C[7] = Q[2] * Q[3] - Q[0] * Q[5];
+            C[8] = Q[0] * Q[4] - Q[1] * Q[3];
+            double det = (Q[0] * C[0] + Q[1] * C[1]) + Q[2] * C[2];
+            double nq = 0.0, nc = 0.0;
+            for (int i = 0; i < 9; i++) {
+                nq += Q[i] * Q[i];
+                nc += C[i] * C[i];
+            }
+            int usable = det > 0.0 && det < INFINITY && nq > 0.0 && nq < INFINITY && nc < INFINITY;
+            int frozen = done[j] | bad[j];
+            double safe_det = usable ? det : 1.0, safe_nq = usable ? nq : 1.0, safe_nc = usable ? nc : 1.0;
+            double zeta = sqrt(sqrt(safe_nc / safe_nq) / safe_det), a = 0.5 * zeta, b = 0.5 / (zeta * safe_det);
+            double change = 0.0, norm = 0.0;
+            for (int i = 0; i < 9; i++) {
+                double v = a * Q[i] + b * C[i];
+                change += (v - Q[i]) * (v - Q[i]);
+                norm += v * v;
+                q[i * POLAR_BLOCK + j] = frozen ? Q[i] : v;
+            }
+            int now = change <= NEWTON_TOL * NEWTON_TOL * norm;
+            bad[j] = (int8_t)(bad[j] | ((!frozen) & (!usable)));
+            done[j] = (int8_t)(done[j] | ((!frozen) & usable & now));
+            open |= !(done[j] | bad[j]);
+        }
+        if (!open) break;
+    }
+    for (int64_t j = 0; j < n; j++) ok[j] = (int8_t)(done[j] & !bad[j]);
 }
 
-/* The rotation nearest X: U V^T from the SVD, the direction of the least singular value taken as the cross
- * product of the other two (so det = 1 even when det X <= 0). Returns 0 (R untouched) when X has rank < 2. */
-static int nearest_rotation(const double X[9], double R[9]) {
+/* R = U V^T for the SVD of X, the direction of the least singular value taken as the cross product of
+ * the other two (det R = 1 even when det X <= 0): the rotation nearest X. Returns 0 (R untouched) when X
+ * has rank < 2. */
+static int rotation_svd(const double X[9], double R[9]) {
     double A[9], V[9], s[3], U[9];
     memcpy(A, X, sizeof A);
     ak_jacobi3(A, V);
@@ -901,18 +948,77 @@ static int nearest_rotation(const double X[9], double R[9]) {
     return 1;
 }
 
-/* Targets of the next iteration: T = R S, R nearest (F(x) + T n n^T) S; buf holds (S, T) per element. */
-static void swap_rotations(const arap_elements *e, const double *x, double *buf) {
-    for (int64_t t = 0; t < e->n_elem; t++) {
-        double *S = buf + 18 * t, *T = S + 9, F[9], X[9], R[9];
-        gradient_of(e, t, x, F);
-        const double *nv = e->normals + 3 * t;
-        for (int r = 0; r < 3; r++) {
-            double tn = (T[3 * r] * nv[0] + T[3 * r + 1] * nv[1]) + T[3 * r + 2] * nv[2];
-            for (int c = 0; c < 3; c++) F[3 * r + c] += tn * nv[c];
+/* S = (R^T A + A^T R)/2, the stretch of A's polar split from its polar factor R. */
+static void stretch_from(const double R[9], const double A[9], double S[9]) {
+    for (int r = 0; r < 3; r++)
+        for (int c = r; c < 3; c++) {
+            double rc = (R[r] * A[c] + R[3 + r] * A[3 + c]) + R[6 + r] * A[6 + c];
+            double cr = (R[c] * A[r] + R[3 + c] * A[3 + r]) + R[6 + c] * A[6 + r];
+            S[3 * r + c] = S[3 * c + r] = 0.5 * (rc + cr);
         }
-        matmul3(F, S, X);
-        if (nearest_rotation(X, R)) matmul3(R, S, T);
+}
+
+/* The completed solved gradient times the stretch, X = (F(x) + T n n^T) S, of element t; buf holds
+ * (S, T) per element. */
+static void completed_times_stretch(const arap_elements *e, int64_t t, const double *x, const double *buf,
+                                    double X[9]) {
+    const double *S = buf + 18 * t, *T = S + 9, *nv = e->normals + 3 * t;
+    double F[9];
+    gradient_of(e, t, x, F);
+    for (int r = 0; r < 3; r++) {
+        double tn = (T[3 * r] * nv[0] + T[3 * r + 1] * nv[1]) + T[3 * r + 2] * nv[2];
+        for (int c = 0; c < 3; c++) F[3 * r + c] += tn * nv[c];
+    }
+    matmul3(F, S, X);
+}
+
+/* The first extra iteration's set-up: per element S (the blended map's stretch) and T = the blended map,
+ * into buf (18 per element). */
+static void stretches(const arap_elements *e, double *buf) {
+    double q[9 * POLAR_BLOCK];
+    int8_t ok[POLAR_BLOCK];
+    for (int64_t t0 = 0; t0 < e->n_elem; t0 += POLAR_BLOCK) {
+        int64_t nb = e->n_elem - t0 < POLAR_BLOCK ? e->n_elem - t0 : POLAR_BLOCK;
+        for (int64_t j = 0; j < nb; j++) {
+            double *T = buf + 18 * (t0 + j) + 9;
+            element_map(e, t0 + j, T);
+            for (int i = 0; i < 9; i++) q[i * POLAR_BLOCK + j] = T[i];
+        }
+        polar_block(q, nb, ok);
+        for (int64_t j = 0; j < nb; j++) {
+            double *S = buf + 18 * (t0 + j), *T = S + 9, R[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+            if (ok[j])
+                for (int i = 0; i < 9; i++) R[i] = q[i * POLAR_BLOCK + j];
+            else
+                rotation_svd(T, R); /* a blended map has det > 0: only rounding brings this here */
+            stretch_from(R, T, S);
+        }
+    }
+}
+
+/* Targets of the next iteration: T = R S, R the rotation nearest (F(x) + T n n^T) S, in blocks. */
+static void swap_rotations(const arap_elements *e, const double *x, double *buf) {
+    double q[9 * POLAR_BLOCK];
+    int8_t ok[POLAR_BLOCK];
+    for (int64_t t0 = 0; t0 < e->n_elem; t0 += POLAR_BLOCK) {
+        int64_t nb = e->n_elem - t0 < POLAR_BLOCK ? e->n_elem - t0 : POLAR_BLOCK;
+        for (int64_t j = 0; j < nb; j++) {
+            double X[9];
+            completed_times_stretch(e, t0 + j, x, buf, X);
+            for (int i = 0; i < 9; i++) q[i * POLAR_BLOCK + j] = X[i];
+        }
+        polar_block(q, nb, ok);
+        for (int64_t j = 0; j < nb; j++) {
+            double *S = buf + 18 * (t0 + j), *T = S + 9, R[9], X[9];
+            int found = 1;
+            if (ok[j]) {
+                for (int i = 0; i < 9; i++) R[i] = q[i * POLAR_BLOCK + j];
+            } else { /* det <= 0 (an element turned inside out): the SVD */
+                completed_times_stretch(e, t0 + j, x, buf, X);
+                found = rotation_svd(X, R);
+            }
+            if (found) matmul3(R, S, T);
+        }
     }
 }
 
@@ -935,12 +1041,7 @@ int64_t ak_arap_frame(void *handle, int64_t n, int64_t n_elem, int64_t k, const 
         f->bytes += 18 * n_elem * (int64_t)sizeof(double);
     }
     for (int64_t it = 0; it < iterations; it++) {
-        if (it == 1)
-            for (int64_t t = 0; t < n_elem; t++) {
-                double *S = f->elem + 18 * t;
-                element_map(&e, t, S + 9);
-                stretch_of(S + 9, S);
-            }
+        if (it == 1) stretches(&e, f->elem);
         if (it > 0) {
             swap_rotations(&e, out, f->elem);
             right_hand_side(&e, f->elem, f->rhs);
