@@ -256,3 +256,23 @@ def test_without_the_kernel_the_pass_runs_on_numpy(kernel: native.Kernel, monkey
     got, want = fallback.frame(c.motions, c.field), compiled.frame(c.motions, c.field)
     assert np.abs(got - want).max() < 1e-8 * np.abs(want).max()
     assert fallback.stats["cg_iterations"] > 0
+
+
+def test_elements_turned_inside_out_take_the_svd_and_agree(kernel: native.Kernel) -> None:
+    """A field that pushes a vertex through the bar turns its triangles inside out: their completed
+    gradients have det < 0, the compiled iteration takes the SVD there (nearest rotation with the
+    weakest direction flipped), as numpy's does."""
+    P, T = box_bar(3)
+    el = arap.triangle_elements(P, T)
+    system = arap.bind_system(el, np.ones(len(P)))  # strong anchors: x stays near the field
+    field = P.copy()
+    corner = int(np.argmax(P @ np.array([0.0, 1.0, 1.0]) - P[:, 0]))  # a corner at x = 0, y = z = ½
+    field[corner] -= np.array([0.0, 1.5, 1.5])  # through the bar and out of the far side
+    motions = np.repeat(np.eye(3)[:, None, :], el.count, axis=1)  # planar identity maps
+    x = arap.NumpyArapSolver(system).frame(motions, field, 1)
+    F = arap.element_gradients(el, x) + np.einsum("ti,tj->tij", el.normals, el.normals)
+    assert (np.linalg.det(F) < 0.0).sum() >= 2
+    compiled = carap.CompiledArapSolver.bind(kernel, LOCK, system)
+    for iterations in (2, 3):
+        want = arap.NumpyArapSolver(system).frame(motions, field, iterations)
+        assert np.abs(compiled.frame(motions, field, iterations) - want).max() < 1e-9
