@@ -33,6 +33,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from core_kernel import time_runs
 
 from affine_deformers import accel
 from affine_deformers.core import aff3, arap
@@ -43,13 +46,7 @@ from tests.core.conftest import random_affine
 
 def best(fn: Callable[[], object], repeat: int) -> float:
     """Minimum wall time of `repeat` calls after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
+    return time_runs(fn, repeat)[1]
 
 
 def side_for(n_vertices: int) -> int:

@@ -715,18 +715,23 @@ int64_t ak_spd_free(void *handle) {
  * x (3 planes of its m rows: dense, contiguous loops), substitutes through its panel and scatters back:
  * forward, x[j] /= L[j][j] then x[i] -= L[i][j] x[j] below; backward, x[j] = (x[j] - sum_i L[i][j] x[i])
  * / L[j][j], the sum in four interleaved partial sums added in a fixed order. */
+/* x[r * m + i] = w[R[i]][r]: a supernode's rows of the right-hand sides, as three planes. */
+static inline void gather_block(const double *w, const int32_t *R, int64_t m, double *x) {
+    for (int64_t i = 0; i < m; i++) {
+        const double *wi = w + 3 * (int64_t)R[i];
+        x[i] = wi[0];
+        x[m + i] = wi[1];
+        x[2 * m + i] = wi[2];
+    }
+}
+
 static void solve_permuted(const spd_factor *f, double *w, double *x) {
     for (int64_t J = 0; J < f->n_super; J++) {
         int64_t fj = f->first[J], nc = f->first[J + 1] - fj, m = f->rptr[J + 1] - f->rptr[J];
         const int32_t *R = f->rows + f->rptr[J];
         const double *L = f->val + f->vptr[J];
         double *x0 = x, *x1 = x + m, *x2 = x + 2 * m;
-        for (int64_t i = 0; i < m; i++) {
-            const double *wi = w + 3 * (int64_t)R[i];
-            x0[i] = wi[0];
-            x1[i] = wi[1];
-            x2[i] = wi[2];
-        }
+        gather_block(w, R, m, x);
         for (int64_t j = 0; j < nc; j++) {
             const double *col = L + m * j;
             double d = col[j], a0 = x0[j] / d, a1 = x1[j] / d, a2 = x2[j] / d;
@@ -752,12 +757,7 @@ static void solve_permuted(const spd_factor *f, double *w, double *x) {
         const int32_t *R = f->rows + f->rptr[J];
         const double *L = f->val + f->vptr[J];
         double *x0 = x, *x1 = x + m, *x2 = x + 2 * m;
-        for (int64_t i = 0; i < m; i++) {
-            const double *wi = w + 3 * (int64_t)R[i];
-            x0[i] = wi[0];
-            x1[i] = wi[1];
-            x2[i] = wi[2];
-        }
+        gather_block(w, R, m, x);
         for (int64_t j = nc - 1; j >= 0; j--) {
             const double *col = L + m * j;
             double s0[4] = {0, 0, 0, 0}, s1[4] = {0, 0, 0, 0}, s2[4] = {0, 0, 0, 0};

@@ -28,10 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..surface import connected_components
-
-FloatArray = NDArray[np.float64]
-IndexArray = NDArray[np.int64]
+from ..surface import FloatArray, IndexArray, connected_components
 
 __all__ = [
     "DEGENERATE_RATIO",

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..surface import Csr, Multigrid, conjugate_gradient
+from ..surface import Csr, FloatArray, Multigrid, conjugate_gradient
 from .elements import (
     Elements,
     element_gradients,
@@ -42,8 +42,6 @@ from .elements import (
     triangle_elements,
     vertex_areas,
 )
-
-FloatArray = NDArray[np.float64]
 
 __all__ = [
     "ANCHOR_LEVEL",
