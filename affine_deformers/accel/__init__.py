@@ -798,6 +798,8 @@ def arap_bind(system: _arap_core.ArapSystem, *, ordering: str | ArrayLike = "NES
     have `frame(motions, field, iterations=1, out=None)`, `stats` and `close()`. `ordering`:
     'NESTED_DISSECTION', 'NATURAL' or a permutation of the vertices (the compiled factor only).
     `arap.FactorError` (a ValueError) when the system cannot be factored."""
+    if system.n < 1:
+        raise ValueError("the shape-preserving pass needs a mesh with vertices")
     ordering = _arap.check_ordering(ordering, system.n)
     module = _usable()
     if module is not None:

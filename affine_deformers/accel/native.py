@@ -421,6 +421,8 @@ class Kernel:
         n = indptr.shape[0] - 1
         if indptr.ndim != 1 or n < 1 or indices.ndim != 1 or indices.shape != data.shape:
             raise ValueError("the matrix must be CSR: indptr (n + 1,), indices and data (nnz,), n ≥ 1")
+        if n >= 2**31 - 1:
+            raise ValueError("the factor numbers its rows with 32-bit integers: n must be below 2³¹ − 1")
         if int(indptr[0]) != 0 or int(indptr[-1]) != indices.shape[0] or np.any(np.diff(indptr) < 0):
             raise ValueError("indptr must rise from 0 to nnz")
         if indices.size and (int(indices.min()) < 0 or int(indices.max()) >= n):

@@ -138,6 +138,9 @@ def test_a_matrix_that_is_not_positive_definite_is_refused(kernel: native.Kernel
         carap.CompiledArapSolver.bind(kernel, LOCK, _system_of(A), [0, 1, 1, 2])
     with pytest.raises(ValueError, match="ordering must be one of"):
         carap.CompiledArapSolver.bind(kernel, LOCK, _system_of(A), "AMD")
+    with pytest.raises(ValueError, match="needs a mesh with vertices"):
+        accel.arap_bind(_system_of(sp.csr_matrix((0, 0))))
+    assert accel.active()  # refusals are not kernel failures
 
 
 # -------------------------------------------------------------------------------------------- frames
