@@ -75,8 +75,11 @@ def factor(kernel: Kernel, lock: threading.RLock, system: ArapSystem,
 class CompiledArapSolver:
     """A bound system's factor and the compiled frame. Use `bind`; `stats` holds the sizes and times:
     n, nnz_matrix, nnz_factor (nonzeros of the Cholesky factor L, diagonal included), supernodes,
-    bytes (the factor and its scratch), flops (of the factorisation), max_front, ordering, and
-    bind_seconds (ordering, symbolic and numeric factorisation; the assembly is core's)."""
+    stored (values kept: the supernodes' panels, relaxation zeros included), bytes (the factor and its
+    scratch; grows by 144 per element at the first iterating frame), flops (multiply-adds of the
+    numeric factorisation over the stored panels), max_front (rows of the largest front), ordering,
+    factorizations (1: never again per frame), and bind_seconds (ordering, symbolic and numeric
+    factorisation; the assembly is core's)."""
 
     def __init__(self, kernel: Kernel, lock: threading.RLock, system: ArapSystem, handle: int,
                  perm: NDArray[np.int64], stats: dict) -> None:
