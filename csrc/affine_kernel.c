@@ -35,6 +35,7 @@
  * Memory safety: indices into tables are clamped (one min per slot), so wrong but vouched-for
  * inputs can give wrong values, never an out-of-bounds read. */
 #include "affine_kernel.h"
+#include "affine_internal.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -738,12 +739,14 @@ int64_t ak_chain_motion(const double *table, int64_t m, const int32_t *idx, cons
 /* ------------------------------------------------------------------------------------------------
  * psi: the polar split and the logs (scalar code, a handful of rows per update) */
 
-/* R = U V^T and Yh = V diag(log s) V^T for the SVD U diag(s) V^T of A (3x3 row-major, overwritten),
- * by one-sided Jacobi (Hestenes) sweeps: plane rotations of column pairs (p, q) of A V,
- * zeta = (|a_q|^2 - |a_p|^2)/(2 a_p.a_q), t = sign(zeta)/(|zeta| + sqrt(1 + zeta^2)),
- * c = 1/sqrt(1 + t^2), s = c t, until no pair exceeds JACOBI_TOL. Backward stable (no A^T A). */
-static void polar_split(double A[9], double R[9], double Yh[9]) {
-    double V[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+/* One-sided Jacobi (Hestenes) sweeps on A (3x3 row-major): plane rotations of column pairs (p, q) of
+ * A V, zeta = (|a_q|^2 - |a_p|^2)/(2 a_p.a_q), t = sign(zeta)/(|zeta| + sqrt(1 + zeta^2)),
+ * c = 1/sqrt(1 + t^2), s = c t, until no pair exceeds JACOBI_TOL. Backward stable (no A^T A). On return
+ * A holds A V (orthogonal columns: U diag(s)) and V the right singular vectors, a product of plane
+ * rotations (det V = 1). Shared with affine_solve.c (affine_internal.h). */
+void ak_jacobi3(double A[9], double V[9]) {
+    static const double eye[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+    memcpy(V, eye, sizeof eye);
     for (int sweep = 0; sweep < JACOBI_SWEEPS; sweep++) {
         int rotated = 0;
         for (int p = 0; p < 2; p++) {
@@ -770,6 +773,12 @@ static void polar_split(double A[9], double R[9], double Yh[9]) {
         }
         if (!rotated) break;
     }
+}
+
+/* R = U V^T and Yh = V diag(log s) V^T for the SVD U diag(s) V^T of A (3x3 row-major, overwritten). */
+static void polar_split(double A[9], double R[9], double Yh[9]) {
+    double V[9];
+    ak_jacobi3(A, V);
     double sig[3], lsig[3];
     for (int c = 0; c < 3; c++) {
         sig[c] = sqrt(A[c] * A[c] + A[3 + c] * A[3 + c] + A[6 + c] * A[6 + c]);

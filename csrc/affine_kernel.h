@@ -58,6 +58,18 @@ AK_EXPORT int64_t ak_cage_nodes(const double *Wt, int64_t F, int64_t G, const in
                                 double *totals, int32_t fill_totals, const double *x, double *terms, double *blend,
                                 double *out, uint8_t *touched);
 
+/* The shape-preserving pass (affine_solve.c): a sparse SPD factorisation kept behind an opaque handle
+ * (ak_spd_factor writes it to *handle; ak_spd_free releases it), its solve, and a frame of the pass. */
+AK_EXPORT int64_t ak_spd_factor(int64_t n, const int64_t *indptr, const int64_t *indices, const double *data,
+                                int32_t ordering, const int64_t *perm_in, int64_t *perm_out, int64_t *info,
+                                void **handle);
+AK_EXPORT int64_t ak_spd_solve(void *handle, double *b, int64_t k);
+AK_EXPORT int64_t ak_spd_free(void *handle);
+AK_EXPORT int64_t ak_spd_bytes(void *handle);
+AK_EXPORT int64_t ak_arap_frame(void *handle, int64_t n, int64_t n_elem, int64_t k, const int64_t *corners,
+                                const double *grads, const double *weights, const double *normals,
+                                const double *motions, const double *field, int64_t iterations, double *out);
+
 AK_EXPORT int64_t ak_rows_reading(const uint8_t *hit, int64_t m, const int32_t *idx, const double *val, int64_t N,
                                   int64_t K, int64_t *out);
 AK_EXPORT int32_t ak_same_words(const uint32_t *a, const uint32_t *b, int64_t n);

@@ -128,7 +128,7 @@ def built_kernel_wheels(manifest: dict, platforms: list[str]) -> dict[str, Path]
     """Without zig in this interpreter (e.g. the Blender 4.2 venv running its suite): the wheels
     `make native` / `make release` built, which must be there and not older than the C sources."""
     native = build_native()
-    newest = max((ROOT / p).stat().st_mtime for p in (native.SOURCE, native.HEADER))
+    newest = max((ROOT / p).stat().st_mtime for p in (*native.SOURCES, *native.HEADERS))
     wheels = {}
     for target in platforms:
         (rel,) = package_wheels(manifest, target)

@@ -1,4 +1,5 @@
-"""Build the compiled kernel (csrc/affine_kernel.c) for every platform, and one wheel per platform.
+"""Build the compiled kernel (csrc/affine_kernel.c, affine_solve.c) for every platform, and one wheel per
+platform.
 
 The kernel is portable C11 loaded with ctypes (affine_deformers/accel/native.py), so one library per
 platform serves every Blender and Python from 4.2 on. It is cross-compiled here with zig's clang (the
@@ -42,8 +43,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-SOURCE = Path("csrc") / "affine_kernel.c"  # relative to ROOT: no checkout path in the binaries
-HEADER = Path("csrc") / "affine_kernel.h"
+#: The C sources compiled into each library, relative to ROOT (no checkout path in the binaries).
+SOURCES = (Path("csrc") / "affine_kernel.c", Path("csrc") / "affine_solve.c")
+HEADERS = (Path("csrc") / "affine_kernel.h", Path("csrc") / "affine_internal.h")
 NATIVE_PY = ROOT / "affine_deformers" / "accel" / "native.py"
 MANIFEST = ROOT / "blender_manifest.toml"
 WHEEL_NAME = "affine_deformers_kernel"
@@ -125,7 +127,7 @@ def zig_command(platform: str, variant: int, output: Path) -> list[str]:
     # a dylib records its install name, by default the output path: use a fixed one (reproducible)
     link = [f"-Wl,-install_name,@rpath/{output.name}"] if "-macos" in target.zig else []
     return [sys.executable, "-m", "ziglang", "cc", *CFLAGS, "-target", target.zig,
-            *VARIANT_FLAGS[variant], "-o", str(output), str(SOURCE), *link, *target.libs]
+            *VARIANT_FLAGS[variant], "-o", str(output), *(str(s) for s in SOURCES), *link, *target.libs]
 
 
 def zig_env() -> dict[str, str]:
@@ -160,7 +162,7 @@ INIT_PY = '''"""The compiled kernel of the Affine Deformers Blender extension: i
 platform.
 
 Loaded with ctypes by affine_deformers.accel.native (no Python extension module: the same files serve
-every Python). Built by tools/build_native.py from csrc/affine_kernel.c.
+every Python). Built by tools/build_native.py from csrc/affine_kernel.c and affine_solve.c.
 """
 
 import os
@@ -266,7 +268,7 @@ def main(argv: list[str] | None = None) -> None:
         platforms = [host_platform()]
     else:
         platforms = [ns.platform]
-    for path in (SOURCE, HEADER):
+    for path in (*SOURCES, *HEADERS):
         if not (ROOT / path).exists():
             raise SystemExit(f"{path} is missing")
     build(platforms, (ROOT / ns.output).resolve(), ns.jobs)

@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..core import aff3 as _aff3
+from ..core import arap as _arap_core
 from ..core import cage as _cage
 from ..core import deform as _np_kernel
 from ..core import hierarchy as _np_hierarchy
@@ -54,12 +55,14 @@ from ..core.checks import (
     unchanged,
 )
 from ..core.deform import default_threads
+from . import arap as _arap
 from . import native
 from .native import Kernel, KernelUnavailableError
 
 __all__ = [
     "ACCEL_ENV",
     "active",
+    "arap_bind",
     "backend",
     "cage_faces",
     "cage_nodes",
@@ -179,6 +182,7 @@ def warm_up() -> str:
         prefixes[0, [0, 4, 8]] = 1.0
         chain_points(pts, params, idx[None], val[None], idx[:, 0], prefixes)  # chain_points_entry
         chain_motions(params, idx[None], val[None], idx[:, 0], prefixes)  # chain_motion_entry
+        _warm_arap()  # spd_factor, arap_frame, spd_bytes, spd_free
         module = _load()
         if module is not None:
             with _state.lock:
@@ -806,6 +810,34 @@ def linear_maps(params: ArrayLike) -> FloatArray:
         return np.zeros((0, 3, 3))
     columns = vertex_motions(table, np.arange(n, dtype=np.int32)[:, None], np.ones((n, 1)))
     return np.ascontiguousarray(columns[:3].transpose(1, 2, 0))
+
+
+def arap_bind(system: _arap_core.ArapSystem, *, ordering: str | ArrayLike = "NESTED_DISSECTION"
+              ) -> _arap.CompiledArapSolver | _arap_core.NumpyArapSolver:
+    """The shape-preserving pass's solver for a bound system (`core.arap.bind_system`, MATH.md §15): the
+    compiled factor (`arap.CompiledArapSolver`, ordered and factored here, once per bind) when the
+    compiled kernel is active, else core's `NumpyArapSolver` (conjugate gradients every frame). Both
+    have `frame(motions, field, iterations=1, out=None)`, `stats` and `close()`. `ordering`:
+    'NESTED_DISSECTION', 'NATURAL' or a permutation of the vertices (the compiled factor only).
+    `arap.FactorError` (a ValueError) when the system cannot be factored."""
+    if system.n < 1:
+        raise ValueError("the shape-preserving pass needs a mesh with vertices")
+    ordering = _arap.check_ordering(ordering, system.n)
+    module = _usable()
+    if module is not None:
+        result = _entry_call("spd_factor", lambda: _arap.factor(module, _state.lock, system, ordering))
+        if result is not _FAILED:
+            return _arap.CompiledArapSolver.from_factor(module, _state.lock, system, result)
+    return _arap_core.NumpyArapSolver(system)
+
+
+def _warm_arap() -> None:
+    """arap_bind and one frame on a single triangle (the compiled pass's entries, once)."""
+    elements = _arap_core.triangle_elements(np.eye(3), np.array([[0, 1, 2]]))
+    solver = arap_bind(_arap_core.bind_system(elements, np.ones(3)))
+    if isinstance(solver, _arap.CompiledArapSolver):
+        _entry_call("arap_frame", lambda: solver.frame(np.eye(3)[:, None, :], np.eye(3)))
+    solver.close()
 
 
 def _chain_inputs(

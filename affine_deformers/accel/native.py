@@ -1,5 +1,5 @@
-"""The compiled kernel: csrc/affine_kernel.c built as one shared library per platform, loaded
-with ctypes. This module finds and loads the library and wraps each C entry in a function taking
+"""The compiled kernel: csrc/affine_kernel.c and affine_solve.c built as one shared library per platform,
+loaded with ctypes. This module finds and loads the library and wraps each C entry in a function taking
 numpy arrays (the entries `affine_deformers.accel` calls; `load()` returns them as a `Kernel`).
 
 Why C and ctypes: one binary serves every Blender from 4.2 on (it depends on neither the Python nor
@@ -46,7 +46,8 @@ __all__ = [
 EXPORTS: tuple[str, ...] = (
     "ak_abi_version", "ak_chunk", "ak_deform_points", "ak_motion_params", "ak_polar_log", "ak_node_pivot",
     "ak_psi_rows", "ak_cage_faces", "ak_cage_nodes", "ak_chain_points", "ak_chain_motion", "ak_rows_reading",
-    "ak_same_words", "ak_spin_wait",
+    "ak_same_words", "ak_spin_wait", "ak_spd_factor", "ak_spd_solve", "ak_spd_free", "ak_spd_bytes",
+    "ak_arap_frame",
 )
 #: Platform name -> the library's file suffix there.
 PLATFORMS: dict[str, str] = {
@@ -408,6 +409,79 @@ class Kernel:
             raise ValueError("a and b must be 1-D of one length")
         return bool(self._fns["ak_same_words"](_ptr(a, _U32, "a"), _ptr(b, _U32, "b"), a.shape[0]))
 
+    def spd_factor(self, indptr: Arr, indices: Arr, data: Arr, ordering: int, perm_in: Arr | None,
+                   perm_out: Arr, info: Arr) -> int | None:
+        """Factor the symmetric positive definite matrix given as a full CSR (n × n: indptr (n + 1,),
+        indices and data (nnz,), int64 / int64 / float64; sorted or not, symmetric, every index in
+        [0, n)): L Lᵀ = P A Pᵀ with P nested dissection (ordering 1), natural (0) or `perm_in` (2).
+        perm_out (n,) int64 receives P (pivot k is vertex perm_out[k]); info (8,) int64 receives
+        (status, nnz(L), supernodes, bytes, failed vertex, stored values, flops, largest front).
+        Returns the handle (free it with spd_free), or None when status is not 0 (1: out of memory,
+        2: not positive definite, 3: perm_in is not a permutation)."""
+        n = indptr.shape[0] - 1
+        if indptr.ndim != 1 or n < 1 or indices.ndim != 1 or indices.shape != data.shape:
+            raise ValueError("the matrix must be CSR: indptr (n + 1,), indices and data (nnz,), n ≥ 1")
+        if n >= 2**31 - 1:
+            raise ValueError("the factor numbers its rows with 32-bit integers: n must be below 2³¹ − 1")
+        if int(indptr[0]) != 0 or int(indptr[-1]) != indices.shape[0] or np.any(np.diff(indptr) < 0):
+            raise ValueError("indptr must rise from 0 to nnz")
+        if indices.size and (int(indices.min()) < 0 or int(indices.max()) >= n):
+            raise ValueError(f"indices must be in [0, {n})")
+        _shape(perm_out, (n,), "perm_out")
+        _shape(info, (8,), "info")
+        if ordering == 2:
+            if perm_in is None:
+                raise ValueError("ordering 2 needs perm_in")
+            _shape(perm_in, (n,), "perm_in")
+        given = perm_out if perm_in is None else perm_in
+        handle = ctypes.c_void_p()
+        self._fns["ak_spd_factor"](n, _ptr(indptr, _I64, "indptr"), _ptr(indices, _I64, "indices"),
+                                   _ptr(data, _F64, "data"), int(ordering), _ptr(given, _I64, "perm_in"),
+                                   _ptr(perm_out, _I64, "perm_out", True), _ptr(info, _I64, "info", True),
+                                   ctypes.addressof(handle))
+        return handle.value if int(info[0]) == 0 else None
+
+    def spd_solve(self, handle: int, b: Arr) -> None:
+        """b (n, k) float64 := A⁻¹ b in place, for the factor `handle` of an n × n matrix (the caller
+        keeps n: the handle does not say it)."""
+        if b.ndim != 2 or b.shape[1] < 1:
+            raise ValueError(f"b must have shape (n, k >= 1), got {b.shape}")
+        if int(self._fns["ak_spd_solve"](handle, _ptr(b, _F64, "b", True), b.shape[1])) < 0:
+            raise MemoryError("the compiled solve could not allocate its scratch memory")
+
+    def spd_free(self, handle: int) -> None:
+        self._fns["ak_spd_free"](handle)
+
+    def spd_bytes(self, handle: int) -> int:
+        """The memory the factor `handle` holds now (its frame scratch included)."""
+        return int(self._fns["ak_spd_bytes"](handle))
+
+    def arap_frame(self, handle: int, n: int, corners: Arr, grads: Arr, weights: Arr, normals: Arr,
+                   motions: Arr, field: Arr, iterations: int, out: Arr) -> None:
+        """One frame of the pass (core.arap.solve_frame) with the factor `handle` of its n × n matrix:
+        corners (E, K) int64 (K = 3 or 4; clamped to [0, n) in C), grads (E, K, 3), weights (E,),
+        normals (E, 3), motions (3 or 4, E, 3) planar columns of the blended maps, field (n, 3);
+        out (n, 3) receives the positions (iterations 0: the right-hand side instead)."""
+        if corners.ndim != 2 or corners.shape[1] not in (3, 4):
+            raise ValueError(f"corners must have shape (E, 3 or 4), got {corners.shape}")
+        E, K = corners.shape
+        if motions.ndim != 3 or motions.shape[0] not in (3, 4):
+            raise ValueError(f"motions must have shape (3 or 4, {E}, 3), got {motions.shape}")
+        for a, shape, name in ((grads, (E, K, 3), "grads"), (weights, (E,), "weights"),
+                               (normals, (E, 3), "normals"), (motions, (motions.shape[0], E, 3), "motions"),
+                               (field, (n, 3), "field"), (out, (n, 3), "out")):
+            _shape(a, shape, name)
+        if iterations < 0:
+            raise ValueError("iterations must be ≥ 0")
+        status = int(self._fns["ak_arap_frame"](
+            handle, n, E, K, _ptr(corners, _I64, "corners"), _ptr(grads, _F64, "grads"),
+            _ptr(weights, _F64, "weights"), _ptr(normals, _F64, "normals"), _ptr(motions, _F64, "motions"),
+            _ptr(field, _F64, "field"), int(iterations), _ptr(out, _F64, "out", True)))
+        if status == -1:
+            raise MemoryError("the compiled pass could not allocate its scratch memory")
+        if status < 0:
+            raise ValueError("the factor does not match the pass's size")
+
     def spin_wait(self, flag: Arr, seen: int, n: int) -> bool:
         """Busy-wait (GIL released) until flag[0] != seen (True) or for n iterations (False)."""
         _shape(flag, (1,), "flag")
@@ -447,6 +521,11 @@ _SIGNATURES: dict[str, tuple[object, list[object]]] = {
     "ak_rows_reading": (_L, [_P, _L, _P, _P, _L, _L, _P]),
     "ak_same_words": (_I, [_P, _P, _L]),
     "ak_spin_wait": (_I, [_P, _L, _L]),
+    "ak_spd_factor": (_L, [_L, _P, _P, _P, _I, _P, _P, _P, _P]),
+    "ak_spd_solve": (_L, [_P, _P, _L]),
+    "ak_spd_free": (_L, [_P]),
+    "ak_spd_bytes": (_L, [_P]),
+    "ak_arap_frame": (_L, [_P, _L, _L, _L, _P, _P, _P, _P, _P, _P, _L, _P]),
 }
 assert set(_SIGNATURES) == set(EXPORTS)
 

@@ -1036,7 +1036,8 @@ def test_calls_from_other_threads_use_numpy_while_the_kernel_warms_up(
 
 #: Every Kernel entry `affine_deformers.accel` calls through `_run` or `_entry_call`.
 ENTRIES = {"deform_points_entry", "motion_params", "polar_log", "node_pivot", "chain_points_entry",
-           "chain_motion_entry", "cage_faces", "cage_nodes", "psi_rows", "rows_reading", "same_words"}
+           "chain_motion_entry", "cage_faces", "cage_nodes", "psi_rows", "rows_reading", "same_words",
+           "spd_factor", "arap_frame"}
 
 
 def test_warm_up_runs_every_entry_once(kernel: native.Kernel, fresh_state: accel._State) -> None:

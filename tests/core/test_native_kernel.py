@@ -18,7 +18,8 @@ from affine_deformers.accel import native
 ROOT = Path(__file__).resolve().parents[2]
 
 # Every entry with numerics, on inputs that reach each form of the map: stretched and rigid (small Y)
-# controls, a lifted rotation (θ > 1.8π, the libm fix-up), ψ of random motions, a hierarchy chain.
+# controls, a lifted rotation (θ > 1.8π, the libm fix-up), ψ of random motions, a hierarchy chain, and
+# the shape-preserving pass (its factor, and a frame with an extra iteration).
 PROBE = r"""
 import hashlib, json, sys, time
 t0 = time.perf_counter()
@@ -47,6 +48,16 @@ h.update(accel.params_from_matrices(random_affine(rng, 64, log_scale=1.0, t_scal
 prefix = (np.arange(n) % 2).astype(np.int32)
 h.update(accel.chain_points(pts, params, np.stack([idx, idx[::-1]]), np.stack([val, val[::-1]]), prefix,
                             prefixes).tobytes())
+from affine_deformers.core import arap
+from tests.core.arap_rigs import bend_rig, box_bar, rig_weights
+bar, tris = box_bar(6)
+elements = arap.triangle_elements(bar, tris)
+rig = bend_rig(4.0, 2.0)
+bar_idx, bar_val = rig_weights(bar, rig)
+el_idx, el_val = rig_weights(elements.centroids, rig)
+solver = accel.arap_bind(arap.bind_system(elements, arap.anchor_weights(elements, bar_idx, bar_val)))
+h.update(solver.frame(accel.vertex_motions(rig.params, el_idx, el_val),
+                      accel.deform_points_params(bar, rig.params, bar_idx, bar_val), 2).tobytes())
 print(json.dumps({"backend": backend, "hash": h.hexdigest(), "loaded": loaded}))
 """
 
