@@ -84,6 +84,28 @@ FloatArray = NDArray[np.float64]
 ACCEL_ENV = "AFFINE_DEFORMERS_ACCEL"
 
 
+class _Seen:
+    """The keys of the last few checked calls (a bounded, insertion-ordered set): with many deformed
+    objects the calls alternate between deformers, and each keeps its checked key."""
+
+    SIZE = 64
+
+    def __init__(self) -> None:
+        self._keys: dict[Hashable, None] = {}
+
+    def __contains__(self, key: Hashable) -> bool:
+        return key is not None and key in self._keys
+
+    def add(self, key: Hashable) -> None:
+        self._keys.pop(key, None)
+        self._keys[key] = None
+        if len(self._keys) > self.SIZE:
+            del self._keys[next(iter(self._keys))]
+
+    def discard(self, key: Hashable) -> None:
+        self._keys.pop(key, None)
+
+
 class _State:
     """The compiled kernel once loaded, or why the process stays on numpy."""
 
@@ -92,9 +114,9 @@ class _State:
         self.failure: str | None = None
         self.compiled: set[str] = set()  # entries that have run once
         self.lock = threading.RLock()
-        self.checked_key: Hashable | None = None  # names checked points, indices and values
-        self.checked_weights_key: Hashable | None = None  # names checked indices and values only
-        self.checked_chain_key: Hashable | None = None  # names checked pass indices and values
+        self.checked = _Seen()  # keys naming checked points, indices and values
+        self.checked_weights = _Seen()  # keys naming checked indices and values only
+        self.checked_chain = _Seen()  # keys naming checked pass indices and values
         self.enabled = True
         self.warming: threading.Thread | None = None  # the thread running `warm_up`
         self.spin: tuple | bool | None = None  # `_spin`'s measurement (False: unavailable)
@@ -393,7 +415,7 @@ def _inputs(
     """Checked points, table, indices and values. With a key seen before, only the shapes are
     checked (the caller vouches for the contents; the kernel clamps indices, so memory stays safe)."""
     table = check_table(params, 12, "params")
-    if key is not None and key == _state.checked_key:
+    if key in _state.checked:
         pts = np.asarray(points, dtype=np.float64)
         idx = np.asarray(indices)
         val = np.asarray(values, dtype=np.float64)
@@ -405,7 +427,7 @@ def _inputs(
             or idx.shape[0] != pts.shape[0]
             or not np.issubdtype(idx.dtype, np.integer)
         ):
-            _state.checked_key = None
+            _state.checked.discard(key)
             return _inputs(points, params, indices, values, None)
     else:
         pts = check_points(points)
@@ -415,7 +437,7 @@ def _inputs(
             raise ValueError(f"indices must have shape ({pts.shape[0]}, K), got {idx.shape}")
         idx, val = check_indices(idx, values, pts.shape[0], table.shape[0])
         if key is not None:
-            _state.checked_key = key
+            _state.checked.add(key)
     return pts, table, idx, val
 
 
@@ -538,7 +560,7 @@ def _weights_inputs(
     """Checked table, indices and values (no points: `vertex_motions`). With a key of an earlier
     checked call (with or without points) only the shapes are checked, as in `_inputs`."""
     table = check_table(params, 12, "params")
-    if key is not None and key in (_state.checked_key, _state.checked_weights_key):
+    if key in _state.checked or key in _state.checked_weights:
         idx = np.asarray(indices)
         val = np.asarray(values, dtype=np.float64)
         if idx.ndim == 2 and idx.shape == val.shape and np.issubdtype(idx.dtype, np.integer):
@@ -546,7 +568,7 @@ def _weights_inputs(
     check_motion_indices(indices, values, table.shape[0])
     idx, val = check_indices(indices, values, None, table.shape[0])
     if key is not None:
-        _state.checked_weights_key = key
+        _state.checked_weights.add(key)
     return table, idx, val
 
 
@@ -805,7 +827,7 @@ def _chain_inputs(
         raise ValueError(f"prefix must be ({idx.shape[1]},) integers, got {pre.shape} {pre.dtype}")
     if len(mats) == 0:
         raise ValueError("prefixes must have at least one row (the identity)")
-    if key is None or key != _state.checked_chain_key:
+    if key not in _state.checked_chain:
         if idx.size and (idx.min() < 0 or idx.max() >= tab.shape[0]):
             raise ValueError(f"indices must be in [0, {tab.shape[0]})")
         if pre.size and (pre.min() < 0 or pre.max() >= mats.shape[0]):
@@ -813,7 +835,7 @@ def _chain_inputs(
         if not (np.isfinite(val).all() and np.isfinite(mats).all()):
             raise ValueError("values and prefixes must be finite")
         if key is not None:
-            _state.checked_chain_key = key
+            _state.checked_chain.add(key)
     if tab.shape[0] == 0:  # no factor to read (P = 0 or K = 0): the kernel still indexes row 0
         tab = np.zeros((1, 12))
     return tab, idx, val, pre, mats
@@ -848,7 +870,7 @@ def chain_points(
     a full call with the same backend; the numpy backend is core.hierarchy.chain_points. `key`: a
     hashable token naming these exact points, indices, values and prefix (as in
     `deform_points_params`): a call with the key of the previous checked call skips re-validating them."""
-    if key is not None and key == _state.checked_chain_key:
+    if key in _state.checked_chain:
         pts = np.asarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             pts = check_points(points)

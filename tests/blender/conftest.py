@@ -273,6 +273,15 @@ def reopened_positions(path: Path, object_name: str, frames, out: Path) -> dict:
 
 
 @pytest.fixture
+def asset(tmp_path_factory, bl) -> dict[str, str]:
+    """The rig asset of test_overrides.py (a probe, a cage and a bone deformer with keyed controls in a
+    collection "Rig"; its file, reference positions and render), built once per session."""
+    from tests.blender.test_overrides import build_asset  # its scripts live with the override tests
+
+    return build_asset(tmp_path_factory, bl)
+
+
+@pytest.fixture
 def bl() -> SimpleNamespace:
     """Helper functions for driving Blender in tests."""
     return SimpleNamespace(

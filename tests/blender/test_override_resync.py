@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 
-from tests.blender.test_overrides import _COMMON, _LINK, BODIES, TOLERANCE, asset  # noqa: F401 (fixture)
+from tests.blender.test_overrides import _COMMON, _LINK, TOLERANCE
 
 _SHOT = _COMMON + _LINK + """
 bpy.ops.wm.read_homefile(use_empty=True)
@@ -62,7 +62,7 @@ json.dump({{"errors": errors, "statuses": statuses, "probes": probes, "local": l
 """
 
 
-def test_a_shot_plays_the_updated_asset_after_the_override_resyncs(asset, tmp_path, bl):  # noqa: F811
+def test_a_shot_plays_the_updated_asset_after_the_override_resyncs(asset, tmp_path, bl):
     library = tmp_path / "asset.blend"
     shutil.copyfile(asset["asset"], library)  # the session's asset stays as it is for other tests
     shot, reference, out = tmp_path / "shot.blend", tmp_path / "reference.npz", tmp_path / "reopen.json"

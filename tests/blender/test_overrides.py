@@ -6,6 +6,7 @@ Cycles animation render; what cannot work on a linked mesh is refused with a mes
 
 from __future__ import annotations
 
+import inspect
 import json
 
 import bpy
@@ -15,6 +16,18 @@ import pytest
 FRAMES = (1, 12, 24)
 BODIES = ("ProbeBody", "CageBody", "BoneBody")
 TOLERANCE = 1e-6
+
+
+def pose(get):
+    """The shot's pose of the rig (`get(name)` gives the control named so): the reference positions
+    "posed_<body>_<frame>" are taken after it."""
+    get("P1").location.x -= 0.4
+    get("P1").rotation_euler.z += 0.5
+    get("Cage").location.y += 0.3
+    bone = get("Arm").pose.bones["B0"]
+    bone.rotation_mode = "QUATERNION"  # Euler on an override reloads wrongly (a Blender limit)
+    bone.rotation_quaternion = (0.9848, 0.0, 0.1736, 0.0)
+
 
 _COMMON = """
 import json, math, itertools
@@ -27,13 +40,7 @@ def positions(obj):
     co = np.empty(len(mesh.vertices) * 3, np.float32)
     mesh.vertices.foreach_get("co", co)
     return co.reshape(-1, 3)
-def pose(get):
-    get("P1").location.x -= 0.4
-    get("P1").rotation_euler.z += 0.5
-    get("Cage").location.y += 0.3
-    bone = get("Arm").pose.bones["B0"]
-    bone.rotation_mode = "QUATERNION"  # Euler on an override reloads wrongly (a Blender limit)
-    bone.rotation_quaternion = (0.9848, 0.0, 0.1736, 0.0)
+""" + inspect.getsource(pose) + """
 def render_settings(scene, out):
     scene.render.engine = "CYCLES"
     scene.cycles.samples, scene.cycles.device = 1, "CPU"
@@ -236,10 +243,10 @@ def _images(prefix) -> list[np.ndarray]:
 _built: dict[str, str] = {}  # the asset is built once per test session (a subprocess of ~10 s)
 
 
-@pytest.fixture
-def asset(tmp_path_factory, bl) -> dict[str, str]:
+def build_asset(tmp_path_factory, bl) -> dict[str, str]:
     """The asset file (saved at frame 5), the reference positions of each body at FRAMES, unposed and
-    posed (see `pose`), and a Cycles animation render of the posed asset (frames 1, 12, 23)."""
+    posed (see `pose`), and a Cycles animation render of the posed asset (frames 1, 12, 23); the
+    `asset` fixture of conftest.py."""
     if not _built:
         folder = tmp_path_factory.mktemp("asset")
         paths = {"asset": str(folder / "asset.blend"), "reference": str(folder / "reference.npz"),
