@@ -20,6 +20,7 @@ from . import (
     prefs,
     props,
     relations,
+    shape_pass,
     weight_groups,  # the weight tools' hooks around the update (hooks.py)
     weight_operators,
 )
@@ -57,6 +58,7 @@ def _upgrade_open_file() -> None:
 
 def unregister() -> None:
     handlers.unregister_handlers()
+    shape_pass.release_all()
     bpy.types.VIEW3D_MT_object.remove(panels.draw_object_menu)
     props.unregister_properties()
     for cls in reversed(CLASSES):

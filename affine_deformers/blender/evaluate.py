@@ -24,7 +24,7 @@ import traceback
 import bpy
 import numpy as np
 
-from . import binding, blend, caches, carrier, hooks, outputs, snapshot, storage
+from . import binding, blend, caches, carrier, hooks, kinds, outputs, shape_pass, snapshot, storage
 from . import bound as bound_data
 from .caches import forget
 from .params import motions_to_params
@@ -70,7 +70,7 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     error, path, bound = snap.error, snap.path, snap.bound
     output = rows = None
     if not error:
-        output, rows, error = _compute(deformer, snap)
+        output, rows, error = _compute(obj, deformer, snap)
     mesh = obj.data
     if error:
         # Zero offsets and no motions: the modifier passes its input through, wherever it stands.
@@ -88,16 +88,24 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     return status
 
 
-def _compute(deformer, snap: snapshot.Snapshot) -> tuple[np.ndarray | None, np.ndarray | None, str]:
-    """(output, rows, error) of the blend for the snapshot's path; on an error the cached result is
-    dropped, so the next update starts from a full recompute."""
+def _compute(obj: bpy.types.Object, deformer,
+             snap: snapshot.Snapshot) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    """(output, rows, error) of the blend for the snapshot's path — followed by the shape-preserving
+    pass when it is on (shape_pass.py) — ; on an error the cached result is dropped, so the next update
+    starts from a full recompute."""
     compute, finite = ((blend.blend_motions, outputs.finite_motions) if snap.path == "MOTION"
                        else (blend.blend_offsets, outputs.finite_offsets))
+    shaped = deformer.preserve_shape and kinds.get(deformer.kind).shape_pass
     error = ""
     output = rows = None
     try:
-        output, rows = compute(deformer, snap.motions, snap.bound, snap.result_state())
-    except storage.StorageError as exc:
+        if shaped:
+            field, _rows = blend.blend_motions(deformer, snap.motions, snap.bound, snap.result_state())
+            output, rows = shape_pass.apply(obj, deformer, snap.bound, field, snap.path), None
+            snap.bound.forget_result()  # the per-vertex caches must not meet the pass's output
+        else:
+            output, rows = compute(deformer, snap.motions, snap.bound, snap.result_state())
+    except (storage.StorageError, shape_pass.ShapePassError) as exc:
         error = str(exc)
     except ValueError as exc:  # core refuses to blend (e.g. a motion too degenerate for its log)
         error = f"The controls' motions cannot be blended ({exc}): the mesh shows its rest shape"

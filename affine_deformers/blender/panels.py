@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import instances, kinds, weight_operators, weight_preview
+from . import instances, kinds, shape_pass, weight_operators, weight_preview
 from .bake import AFFINE_OT_deformer_bake, AFFINE_OT_deformer_unbake, bake_state
 
 
@@ -107,7 +107,21 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         sub = col.column()
         sub.active = kind.branch_rule_active(deformer)
         sub.prop(deformer, "branch_rule")
+        if kind.shape_pass:
+            draw_shape_pass(col, obj, deformer)
         kind.draw_controls(layout, deformer, index)
+
+
+def draw_shape_pass(col: bpy.types.UILayout, obj: bpy.types.Object, deformer) -> None:
+    """Preserve Shape and its settings, with what its factor holds once built."""
+    col.prop(deformer, "preserve_shape")
+    sub = col.column()
+    sub.active = deformer.preserve_shape
+    sub.prop(deformer, "shape_iterations")
+    sub.prop(deformer, "shape_anchor")
+    built = shape_pass.summary(obj, deformer) if deformer.preserve_shape else ""
+    if built:
+        sub.label(text=built, icon="INFO")
 
 
 def draw_bake(layout: bpy.types.UILayout, deformer, index: int) -> None:

@@ -23,6 +23,7 @@ from bpy.props import (
     StringProperty,
 )
 
+from ..core import arap
 from . import kinds, nodes, storage, weight_preview
 from .kinds.base import OVERRIDABLE
 from .kinds.services import on_preview_option, on_weight_option, search_vertex_groups
@@ -122,6 +123,21 @@ class AffineDeformer(bpy.types.PropertyGroup):
                ("SHORTEST", "Shortest",
                 "Every probe or cage object motion is blended as its shortest rotation (at most 180°): "
                 "a twist flips when it passes 180°")])
+    preserve_shape: BoolProperty(
+        name="Preserve Shape", default=False, override=OVERRIDABLE, update=_on_evaluation_option,
+        description="After the blend, solve for the vertex positions whose triangles best follow the "
+                    "blended maps, the vertices nearest the controls held in place: keeps volume and "
+                    "detail under large bends and twists. The first update factors the mesh's system "
+                    "once (seconds on a large mesh); each update is then one solve")
+    shape_iterations: IntProperty(
+        name="Iterations", default=1, min=1, max=5, override=OVERRIDABLE, update=_on_evaluation_option,
+        description="Preserve Shape: each further iteration keeps the blended stretch and takes the "
+                    "rotations from the previous solve (stiffer under large bends; one solve each)")
+    shape_anchor: FloatProperty(
+        name="Anchor Strength", default=arap.ANCHOR_STRENGTH, min=0.0, soft_max=1000.0,
+        override=OVERRIDABLE, update=_on_evaluation_option,
+        description="Preserve Shape: how firmly the vertices nearest each control keep the per-vertex "
+                    "field's positions (changing it factors the system again)")
     show_viewport: BoolProperty(
         name="Viewport", get=_mirrored_getter("show_viewport"), set=_mirrored_setter("show_viewport"),
         description="Show the deformer in the viewport (mirrors the modifier's toggle)")

@@ -28,7 +28,8 @@ from .kinds import Motions
 from .kinds.base import PREVIEW, REWEIGHTS
 
 #: Deformer properties the update reads itself: their values are in `Snapshot.settings`.
-SETTINGS = ("strength", "blend_mode", "branch_rule", "bind_generation")
+SETTINGS = ("strength", "blend_mode", "branch_rule", "bind_generation", "preserve_shape", "shape_iterations",
+            "shape_anchor")
 
 #: Deformer properties an update does not read directly, and why that is safe: the common ones here,
 #: each kind's own with its properties (kinds.base.KindProperty).
@@ -72,7 +73,7 @@ class Snapshot:
 
     def result_state(self) -> tuple:
         """What a result is computed with besides the parameters (the incremental update's key)."""
-        strength, _blend, branch_rule, _generation = self.settings
+        strength, _blend, branch_rule, _generation, *_shape = self.settings
         return (self.path, strength, branch_rule, self.backend)
 
 

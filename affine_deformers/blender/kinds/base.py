@@ -225,6 +225,9 @@ class DeformerKind(ABC):
     paints_groups: ClassVar[bool] = False
     #: For a kind that does not paint groups: why not (ends the refusal of Weights → Vertex Groups).
     groups_note: ClassVar[str] = ""
+    #: Whether Preserve Shape (shape_pass.py) applies to its deformers: it needs only the per-vertex
+    #: motions and the bound weights, which every kind's update gives.
+    shape_pass: ClassVar[bool] = True
 
     @classmethod
     def properties(cls) -> dict[str, KindProperty]:
