@@ -101,7 +101,8 @@ def _compute(obj: bpy.types.Object, deformer,
     try:
         if shaped:
             field, _rows = blend.blend_motions(deformer, snap.motions, snap.bound, snap.result_state())
-            output, rows = shape_pass.apply(obj, deformer, snap.bound, field, snap.path), None
+            controls = len(snap.motions.matrices)
+            output, rows = shape_pass.apply(obj, deformer, snap.bound, controls, field, snap.path), None
             snap.bound.forget_result()  # the per-vertex caches must not meet the pass's output
         else:
             output, rows = compute(deformer, snap.motions, snap.bound, snap.result_state())

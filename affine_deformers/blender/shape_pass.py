@@ -93,9 +93,10 @@ def _digest(*arrays: np.ndarray, extra: tuple = ()) -> bytes:
     return h.digest()
 
 
-def factor_for(obj: bpy.types.Object, deformer, bound: BoundData) -> Factor:
+def factor_for(obj: bpy.types.Object, deformer, bound: BoundData, controls: int) -> Factor:
     """The factor of `deformer`'s system, built when its inputs changed (ShapePassError when it
-    cannot be)."""
+    cannot be). `controls`: the deformer's control count; bound weight columns at or past it are the
+    truncation's pooled nodes (MATH.md §12), which anchor nothing."""
     key = (obj.session_uid, deformer.uid)
     strength = float(deformer.shape_anchor)
     state = (bound.serial, strength, accel.active())
@@ -106,7 +107,6 @@ def factor_for(obj: bpy.types.Object, deformer, bound: BoundData) -> Factor:
     triangles = _triangles(obj.data)
     if not len(triangles):
         raise ShapePassError(f"'{obj.name}' has no faces: Preserve Shape needs a surface; turn it off")
-    controls = int(bound.indices.max()) if bound.pooled else None
     digest = _digest(bound.rest32, triangles, bound.indices, bound.values,
                      extra=(strength, accel.active(), controls))
     found = _factors.get(digest)
@@ -119,7 +119,7 @@ def factor_for(obj: bpy.types.Object, deformer, bound: BoundData) -> Factor:
     return found
 
 
-def _build(bound: BoundData, triangles: np.ndarray, strength: float, controls: int | None) -> Factor:
+def _build(bound: BoundData, triangles: np.ndarray, strength: float, controls: int) -> Factor:
     start = time.perf_counter()
     try:
         elements = arap.triangle_elements(bound.points, triangles)
@@ -149,12 +149,12 @@ def summary(obj: bpy.types.Object, deformer) -> str:
     return found.summary() if found is not None else ""
 
 
-def apply(obj: bpy.types.Object, deformer, bound: BoundData, motions: np.ndarray,
+def apply(obj: bpy.types.Object, deformer, bound: BoundData, controls: int, motions: np.ndarray,
           path: str) -> np.ndarray:
     """The pass on the field's per-vertex motions (4, N, 3) (blend.blend_motions' columns M e_x, M e_y,
     M e_z, t): offsets x − p (N, 3) float64 for the 'OFFSET' path, motions with the correction in their
     translations (4, N, 3) float32 for 'MOTION'. Raises ShapePassError."""
-    factor = factor_for(obj, deformer, bound)
+    factor = factor_for(obj, deformer, bound, controls)
     M = np.asarray(motions, dtype=np.float64)
     p = bound.points
     y = M[0] * p[:, :1] + M[1] * p[:, 1:2] + M[2] * p[:, 2:3] + M[3]

@@ -40,6 +40,8 @@ def _changed(value, prop):
     """Another valid value of an RNA property."""
     if prop.type == "ENUM":
         return next(item.identifier for item in prop.enum_items if item.identifier != value)
+    if prop.type == "BOOLEAN":
+        return not value
     if prop.type == "INT":
         return value + 1
     return 0.5 * value + 0.1
