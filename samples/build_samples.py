@@ -1101,6 +1101,44 @@ def build_bone_tail() -> SampleInfo:
     return SampleInfo(key_frames=[1, 21, 56, 68, 86], todo=todo)
 
 
+#: The right probe of shape_pass.blend turns the bar's right half about the middle by these angles.
+BEND_KEYS = {1: 0.0, 24: 90.0, 48: 150.0, 72: 0.0}
+
+
+def build_shape_pass() -> SampleInfo:
+    """One bar bent 90° then 150° at its middle by two probes, twice: the per-vertex field (left) and
+    with Preserve Shape (right), same weights."""
+    todo: list[str] = []
+    scene = new_scene("shape_pass", frame_end=72)
+    half_length, offset = 2.0, 2.25
+    rows = [("FIELD", "per-vertex field", -2.6, {}),
+            ("PRESERVE_SHAPE", "Preserve Shape", 2.6, {"preserve_shape": True})]
+    for method, caption, x, extra in rows:
+        bar = add_mesh_object(
+            f"Bar.{method}",
+            mesh_from_bmesh(f"Bar.{method}", box_bmesh(size=(2 * half_length, 0.55, 0.55), cuts=(48, 5, 5))),
+            checker_material(f"Bar.{method}", (0.1, 0.3, 0.75) if extra else (0.7, 0.12, 0.1),
+                             (0.95, 0.93, 0.88), scale=(3.0, 3.6, 3.6)),
+        )
+        bar.location = (x, 0.0, 0.0)
+        add_label(caption, (x, 0.0, -0.9), size=0.36, align="CENTER")
+        mark_target(bar, method)
+        left_name, right_name = f"{method}.Left", f"{method}.Right"
+        add_twist_groups(bar, left_name, right_name, half_length)
+        left = add_probe(left_name, (x - offset, 0.0, 0.0), marker_axis="Z", size=0.4)
+        right = add_probe(right_name, (x + offset, 0.0, 0.0), marker_axis="Z", size=0.4)
+        # The right half turns rigidly about the bar's middle, upwards (about −Y).
+        key_transforms(right, {f: {"location": (x + offset * math.cos(math.radians(a)), 0.0,
+                                                offset * math.sin(math.radians(a))),
+                                   "rotation_euler": (0, -a, 0)} for f, a in BEND_KEYS.items()})
+        scene.frame_set(1)
+        settings = {"blend_mode": "AFFINE_LOG", "weight_mode": "VERTEX_GROUPS", "normalize": "SUM", **extra}
+        add_deformer("probe", bar, [left, right], settings, todo)
+    add_camera((0.0, -13.0, 1.0), (0.0, 0.0, 0.8), lens=40.0)
+    add_lights()
+    return SampleInfo(key_frames=[1, 24, 48], todo=todo)
+
+
 SAMPLES: dict[str, Callable[[], SampleInfo]] = {
     "probe_bend": build_probe_bend,
     "probe_vortex": build_probe_vortex,
@@ -1108,6 +1146,7 @@ SAMPLES: dict[str, Callable[[], SampleInfo]] = {
     "comparison": build_comparison,
     "stack": build_stack,
     "bone_tail": build_bone_tail,
+    "shape_pass": build_shape_pass,
 }
 
 

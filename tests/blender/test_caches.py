@@ -25,8 +25,8 @@ NOT_CACHES = {
     "caches._clears": "the registry of clear functions itself",
     "hooks._before_object": "a registry of update hooks, filled when the modules are imported",
     "hooks._inputs_read": "a registry of update hooks, filled when the modules are imported",
-    "shape_pass._factors": "factors keyed on a digest of every input (never stale), kept through undo and "
-                           "reload so they do not factor again; bounded by FACTOR_MEMORY, freed at unregister",
+    "shape_pass._factors": "factors keyed on a digest of every input (never stale), kept through undo "
+                           "and reload so they do not factor again; bounded, freed at unregister",
 }
 
 _EMPTY_CALLS = {"dict", "list", "set", "OrderedDict", "defaultdict", "deque", "WeakValueDictionary",

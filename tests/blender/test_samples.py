@@ -30,7 +30,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES_DIR = ROOT / "samples"
-SAMPLE_NAMES = ("probe_bend", "probe_vortex", "cage_deform", "comparison", "stack", "bone_tail")
+SAMPLE_NAMES = ("probe_bend", "probe_vortex", "cage_deform", "comparison", "stack", "bone_tail", "shape_pass")
 TIMEOUT = 600
 
 # The vortex probe passes 180° between frames 39 and 40 (450° over frames 1..97).
@@ -227,6 +227,27 @@ def test_comparison_linear_collapses_where_log_blend_and_dual_quaternions_do_not
     # Dual quaternions take the short way round at ±150°: the middle turns by 180° (60° of twist left).
     flipped = rest * np.array([1.0, -1.0, -1.0])
     np.testing.assert_allclose(middle_ring(arrays, bars["DQS"], 72), flipped, atol=1e-3)
+
+
+def test_shape_pass_keeps_lengths_better_than_the_field(evaluated: tuple[dict, dict]) -> None:
+    """shape_pass.blend: at the 90° and 150° bends the Preserve Shape bar's spacing between each vertex
+    and its nearest rest neighbour changes less than the per-vertex field's (p99 and max)."""
+    summary, positions = evaluated
+    arrays = positions["shape_pass"]
+    bars = {info["method"]: target for target, info in summary["shape_pass"]["targets"].items()}
+    rest = arrays[f"{bars['FIELD']}|rest"].astype(np.float64)
+    distances = np.linalg.norm(rest[:, None, :] - rest[None, :, :], axis=2)
+    np.fill_diagonal(distances, np.inf)
+    nearest = distances.argmin(axis=1)
+    length = distances[np.arange(len(rest)), nearest]
+    for frame in (24, 48):
+        change = {}
+        for method, bar in bars.items():
+            co = arrays[f"{bar}|{frame}"].astype(np.float64)
+            change[method] = np.abs(np.linalg.norm(co - co[nearest], axis=1) / length - 1.0)
+        for q in (99.0, 100.0):
+            shaped, field = (float(np.percentile(change[m], q)) for m in ("PRESERVE_SHAPE", "FIELD"))
+            assert shaped < field, (frame, q, shaped, field)
 
 
 def test_vortex_turns_continuously_through_180_degrees(evaluated: tuple[dict, dict]) -> None:
