@@ -229,25 +229,26 @@ def test_comparison_linear_collapses_where_log_blend_and_dual_quaternions_do_not
     np.testing.assert_allclose(middle_ring(arrays, bars["DQS"], 72), flipped, atol=1e-3)
 
 
-def test_shape_pass_keeps_lengths_better_than_the_field(evaluated: tuple[dict, dict]) -> None:
-    """shape_pass.blend: at the 90° and 150° bends the Preserve Shape bar's spacing between each vertex
-    and its nearest rest neighbour changes less than the per-vertex field's (p99 and max)."""
+def test_shape_pass_bends_more_smoothly_than_the_field(evaluated: tuple[dict, dict]) -> None:
+    """shape_pass.blend: at the 90° and 150° bends the Preserve Shape bar's curvature changes less than
+    the per-vertex field's: the umbrella vector x − (mean of its 4 nearest rest neighbours) keeps its
+    length better (p99 and max), by a quarter at least (measured: 0.19 vs 0.25, 0.29 vs 0.43)."""
     summary, positions = evaluated
     arrays = positions["shape_pass"]
     bars = {info["method"]: target for target, info in summary["shape_pass"]["targets"].items()}
     rest = arrays[f"{bars['FIELD']}|rest"].astype(np.float64)
     distances = np.linalg.norm(rest[:, None, :] - rest[None, :, :], axis=2)
     np.fill_diagonal(distances, np.inf)
-    nearest = distances.argmin(axis=1)
-    length = distances[np.arange(len(rest)), nearest]
+    near = np.argsort(distances, axis=1)[:, :4]
+    before = np.linalg.norm(rest - rest[near].mean(axis=1), axis=1)
     for frame in (24, 48):
         change = {}
         for method, bar in bars.items():
             co = arrays[f"{bar}|{frame}"].astype(np.float64)
-            change[method] = np.abs(np.linalg.norm(co - co[nearest], axis=1) / length - 1.0)
+            change[method] = np.abs(np.linalg.norm(co - co[near].mean(axis=1), axis=1) - before)
         for q in (99.0, 100.0):
             shaped, field = (float(np.percentile(change[m], q)) for m in ("PRESERVE_SHAPE", "FIELD"))
-            assert shaped < field, (frame, q, shaped, field)
+            assert shaped < 0.85 * field, (frame, q, shaped, field)
 
 
 def test_vortex_turns_continuously_through_180_degrees(evaluated: tuple[dict, dict]) -> None:
