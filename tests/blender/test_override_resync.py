@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 
-from tests.blender.test_overrides import _COMMON, _LINK, TOLERANCE
+from tests.blender.test_overrides import _COMMON, _LINK, REOPEN_AND_MEASURE, TOLERANCE
 
 _SHOT = _COMMON + _LINK + """
 bpy.ops.wm.read_homefile(use_empty=True)
@@ -44,17 +44,7 @@ for frame in (1, 12, 24):
 np.savez({reference!r}, **reference)
 """
 
-_REOPEN = _COMMON + _LINK + """
-bpy.ops.wm.open_mainfile(filepath={shot!r}, load_ui=False)
-scene = bpy.context.scene
-reference = dict(np.load({reference!r}))
-errors, statuses = {{}}, {{}}
-for frame in (1, 12, 24):
-    scene.frame_set(frame)
-    for name in BODIES:
-        obj = override(name)
-        errors[f"{{name}}/{{frame}}"] = float(np.abs(positions(obj) - reference[f"{{name}}_{{frame}}"]).max())
-        statuses[f"{{name}}/{{frame}}"] = obj.affine_deformers[0].status
+_REOPEN = _COMMON + _LINK + REOPEN_AND_MEASURE + """
 body = override("ProbeBody")
 probes = [item.object.name if item.object else None for item in body.affine_deformers[0].probes]
 local = [item.object.library is None for item in body.affine_deformers[0].probes if item.object]
@@ -68,7 +58,8 @@ def test_a_shot_plays_the_updated_asset_after_the_override_resyncs(asset, tmp_pa
     shot, reference, out = tmp_path / "shot.blend", tmp_path / "reference.npz", tmp_path / "reopen.json"
     bl.run_blender(_SHOT.format(asset=str(library), shot=str(shot)))
     bl.run_blender(_UPDATE_ASSET.format(asset=str(library), reference=str(reference)))
-    bl.run_blender(_REOPEN.format(shot=str(shot), reference=str(reference), out=str(out)))
+    bl.run_blender(_REOPEN.format(shot=str(shot), reference=str(reference), out=str(out), prefix="",
+                                  label=""))
     with open(out) as file:
         result = json.load(file)
     print("shot vs updated asset:", json.dumps(result["errors"], indent=1))

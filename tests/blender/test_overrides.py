@@ -209,7 +209,9 @@ bpy.ops.wm.save_as_mainfile(filepath={shot!r})
 json.dump({{"errors": errors, "statuses": statuses}}, open({out!r}, "w"))
 """
 
-_REOPEN = _COMMON + _LINK + """
+#: Reopen the shot and measure each body against reference[f"{prefix}{name}_{frame}"] at FRAMES, into
+#: errors / statuses keyed f"{label}{name}/{frame}" (format fields: shot, reference, prefix, label).
+REOPEN_AND_MEASURE = """
 bpy.ops.wm.open_mainfile(filepath={shot!r}, load_ui=False)
 scene = bpy.context.scene
 reference = dict(np.load({reference!r}))
@@ -218,9 +220,12 @@ for frame in (1, 12, 24):
     scene.frame_set(frame)
     for name in BODIES:
         obj = override(name)
-        expected = reference[f"posed_{{name}}_{{frame}}"]
-        errors[f"reopen/{{name}}/{{frame}}"] = float(np.abs(positions(obj) - expected).max())
-        statuses[f"reopen/{{name}}/{{frame}}"] = obj.affine_deformers[0].status
+        expected = reference[f"{prefix}{{name}}_{{frame}}"]
+        errors[f"{label}{{name}}/{{frame}}"] = float(np.abs(positions(obj) - expected).max())
+        statuses[f"{label}{{name}}/{{frame}}"] = obj.affine_deformers[0].status
+"""
+
+_REOPEN = _COMMON + _LINK + REOPEN_AND_MEASURE + """
 props = {{name: [p.rna_path for p in override(name).override_library.properties] for name in BODIES}}
 json.dump({{"errors": errors, "statuses": statuses, "props": props}}, open({out!r}, "w"))
 if {with_render!r}:
@@ -267,7 +272,7 @@ def test_overridden_rigs_play_pose_reopen_and_render_as_the_asset(asset, tmp_pat
     with open(out) as file:
         made = json.load(file)
     bl.run_blender(_REOPEN.format(shot=str(shot), reference=asset["reference"], out=str(reopened),
-                                  with_render=True))
+                                  with_render=True, prefix="posed_", label="reopen/"))
     with open(reopened) as file:
         again = json.load(file)
     errors = {**made["errors"], **again["errors"]}
