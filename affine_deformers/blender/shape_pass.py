@@ -51,6 +51,10 @@ class Factor:
     solver: object  # accel.arap_bind's: frame(motions, field, iterations), stats, close()
     seconds: float  # assembly + ordering + factorisation
     loose_parts: int
+    corners: tuple[np.ndarray, ...] = ()  # the elements' corner columns, contiguous (for the gathers)
+
+    def __post_init__(self) -> None:
+        self.corners = tuple(np.ascontiguousarray(c) for c in self.elements.corners.T)
 
     def summary(self) -> str:
         stats = self.solver.stats
@@ -158,8 +162,13 @@ def apply(obj: bpy.types.Object, deformer, bound: BoundData, controls: int, moti
     M = np.asarray(motions, dtype=np.float64)
     p = bound.points
     y = M[0] * p[:, :1] + M[1] * p[:, 1:2] + M[2] * p[:, 2:3] + M[3]
-    corners = factor.elements.corners
-    targets = M[:3][:, corners].mean(axis=2)  # (3, E, 3): the mean of the corners' columns
+    # (3, E, 3): the mean of the corners' columns, from the float32 motions (a shared motion's three
+    # equal corners give exactly it back: float32 sums are exact in float64)
+    rows = np.ascontiguousarray(np.asarray(motions)[:3].transpose(1, 0, 2)).reshape(len(p), 9)
+    c0, c1, c2 = factor.corners
+    mean = (np.take(rows, c0, axis=0).astype(np.float64) + np.take(rows, c1, axis=0)
+            + np.take(rows, c2, axis=0)) / 3.0
+    targets = mean.reshape(-1, 3, 3).transpose(1, 0, 2)
     x = factor.solver.frame(targets, y, int(deformer.shape_iterations))
     if path == "OFFSET":
         return x - p
