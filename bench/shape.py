@@ -17,6 +17,7 @@ each size in `plan.s_verts`.
 
 from __future__ import annotations
 
+import importlib
 import math
 import sys
 import time
@@ -190,10 +191,26 @@ def bar_rigs(n_verts: int, have_ours: bool) -> dict[str, tuple[bpy.types.Object,
             skin_groups(cage)
             armature_modifier(cage, arm)
             cage.display_type = "WIRE"
-            native.mesh_deform(bar, cage, 5)
+            binds[label] = fmt_ms(native.mesh_deform(bar, cage, 5).bind_seconds)
         rigs[label] = (bar, arm)
     bpy.context.view_layer.update()
     return rigs
+
+
+#: Mesh Deform's bind time per row label of the last `bar_rigs`.
+binds: dict[str, str] = {}
+
+
+def factor_summary(obj: bpy.types.Object) -> str:
+    """Our deformer's Preserve Shape factor (time, memory) as its panel shows it, or ''."""
+    deformers = getattr(obj, "affine_deformers", ())
+    if not len(deformers) or not getattr(deformers[0], "preserve_shape", False):
+        return ""
+    try:
+        module = importlib.import_module(f"{ours.INNER}.blender.shape_pass")
+    except ImportError:
+        return ""
+    return module.summary(obj, deformers[0])
 
 
 def _remove(*objects: bpy.types.Object) -> None:
@@ -236,8 +253,9 @@ def part_s(plan, have_ours: bool, report) -> None:
                          "stretches less because it twists less")
     quality.notes.append("Mesh Deform on the bar follows a 72-vertex cylinder cage skinned by the same "
                          "bones with Preserve Volume; precision 5")
-    timing.notes.append("one update = re-pose the tip bone near 90° + settle; bind = the add operator "
-                        "(ours) or Mesh Deform's bind")
+    timing.notes.append("one update = re-pose the tip bone near 90° + settle; bind: Mesh Deform's bind, "
+                        "or the Preserve Shape factor (assembly, ordering, factorisation; built once at the "
+                        "first update with the option on) as our panel reports it")
     report.tables += [quality, timing]
 
 
@@ -264,7 +282,7 @@ def _bar_part(n: int, measure_quality: bool, have_ours: bool, plan, quality: Tab
             pose_tip(other, "BEND", 90.0)
         common.settle()
         samples = common.time_updates(move_tip(arm, "BEND", 90.0), bar, plan.reps, plan.warmup)
-        timing.add(f"{len(rest):,}", label, fmt_ms(samples.median), "")
+        timing.add(f"{len(rest):,}", label, fmt_ms(samples.median), binds.get(label) or factor_summary(bar))
         print(f"  {label:<48} {fmt_ms(samples.median):>9} per update at {len(rest):,}", flush=True)
 
 
