@@ -15,6 +15,7 @@ The split of that time comes from `Instrument`, which needs no cooperation from 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import re
 import sys
@@ -419,3 +420,79 @@ class Instrument:
         for key, value in stages.items():
             samples.extra.setdefault(key, []).append(value)
         self.reset()
+
+
+@contextlib.contextmanager
+def write_only_updates():
+    """Replace our update (`evaluate.run`, which every handler calls) by one that only writes a
+    constant offset per frame into each deformer's offset attribute: no control is read, nothing is
+    computed. What is left of a frame is the floor of this design — the handler's writes and
+    Blender's re-evaluation of the meshes and of our Geometry Nodes modifier — which no faster
+    computation can go below."""
+    evaluate = sys.modules[f"{INNER}.blender.evaluate"]
+    storage = sys.modules[f"{INNER}.blender.storage"]
+    real = evaluate.run
+
+    def write_only(scene: bpy.types.Scene, _depsgraph) -> None:
+        if scene is None:
+            return
+        value = 1e-4 * (scene.frame_current % 97 + 1)
+        for obj in scene.objects:
+            mesh = obj.data if obj.type == "MESH" else None
+            for deformer in getattr(obj, "affine_deformers", ()):
+                offsets = np.full((len(mesh.vertices), 3), value, dtype=np.float32)
+                storage.write_offsets_unchecked(mesh, deformer.uid, offsets)
+
+    evaluate.run = write_only
+    try:
+        yield
+    finally:
+        evaluate.run = real
+
+
+def kernel_seconds(targets: list[bpy.types.Object], reps: int = 20) -> float | None:
+    """Median seconds of our compiled per-vertex map (φ of the blended parameters, as offsets) over
+    all `targets` once, each with its own bind's weights and a moved parameter table: the kernel's
+    share of a frame with no Python around it. None without the weights or the compiled kernel."""
+    accel = sys.modules.get(f"{INNER}.accel")
+    if accel is None or not accel.active():
+        return None
+    jobs = []
+    for target in targets:
+        columns = _bind_columns(target.data)
+        if columns is None:
+            return None
+        n = len(target.data.vertices)
+        idx = np.empty((len(columns), n), np.int32)
+        val = np.empty((len(columns), n), np.float32)
+        for k, (idx_name, w_name) in enumerate(columns):
+            target.data.attributes[idx_name].data.foreach_get("value", idx[k])
+            target.data.attributes[w_name].data.foreach_get("value", val[k])
+        unused = idx < 0  # an empty slot
+        idx[unused], val[unused] = 0, 0.0
+        rows = int(idx.max()) + 1
+        table = np.zeros((rows, 12))
+        table[:, [0, 4, 8]] = 0.05  # a small turn and stretch on every control: no at-rest shortcut
+        table[:, 9:] = 0.1
+        points = np.empty(n * 3, np.float32)
+        target.data.vertices.foreach_get("co", points)
+        jobs.append((points.reshape(-1, 3).astype(np.float64), table, np.ascontiguousarray(idx.T),
+                     np.ascontiguousarray(val.T, dtype=np.float64), np.empty((n, 3))))
+    times = []
+    for _ in range(reps + 2):
+        t0 = time.perf_counter()
+        for i, (points, table, idx, val, out) in enumerate(jobs):
+            accel.deform_points_params(points, table, idx, val, out, key=("bench kernel", i))  # checked once
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times[2:]))
+
+
+BAKE_OP = "object.affine_deformer_bake"
+
+
+def bake_to_pc2(targets: list[bpy.types.Object], frames: int, directory: Path) -> None:
+    """Bake the first deformer of every target over frames 1..`frames` into a PC2 cache in
+    `directory` (the operator mutes the live deformer and adds a Mesh Cache modifier)."""
+    for target in targets:
+        call_operator(BAKE_OP, target, [target], index=0, mode="PC2", frame_start=1, frame_end=frames,
+                      filepath=str(directory / f"{target.name}.pc2"))

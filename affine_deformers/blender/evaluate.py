@@ -140,10 +140,16 @@ def blocking_error(obj: bpy.types.Object, deformer) -> str:
     return caches.errors.get((obj.session_uid, deformer.uid), "")
 
 
-def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None = None) -> list[str]:
+def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None = None,
+                    skip_disabled: bool = False) -> list[str]:
     """Evaluate every deformer of `obj`; returns their statuses. Objects in Edit Mode are left alone
     (their mesh data is not in sync). For scripts: call `bpy.context.evaluated_depsgraph_get()`
-    afterwards to see the written offsets in the evaluated mesh."""
+    afterwards to see the written offsets in the evaluated mesh.
+
+    `skip_disabled` (the handlers' updates): a deformer whose modifier is disabled in `depsgraph`'s
+    mode (the Viewport or Render toggle; a baked deformer is both) keeps its last output and costs
+    nothing, as a disabled modifier does; enabling it again is a depsgraph update, which evaluates
+    it, and its signature (caches.signatures) says whether the kept output is still right."""
     if depsgraph is None:
         depsgraph = bpy.context.evaluated_depsgraph_get()
     if obj.mode == "EDIT":
@@ -155,6 +161,9 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
     hooks.run_before_object(obj)  # e.g. renamed controls' groups, the weight preview (weight_groups.py)
     statuses = []
     for deformer in obj.affine_deformers:
+        if skip_disabled and disabled(obj, deformer, depsgraph):
+            statuses.append(deformer.status)
+            continue
         try:
             statuses.append(evaluate_deformer(obj, deformer, depsgraph))
         except Exception as exc:  # never let bad data take the handler (or Blender) down
@@ -172,6 +181,17 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
                 traceback.print_exc()
             statuses.append(message)
     return statuses
+
+
+def disabled(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> bool:
+    """Whether the deformer's modifier exists and is disabled in `depsgraph`'s mode (a missing
+    modifier is not: the update reports it)."""
+    if obj.type != "MESH":
+        return False
+    mod = outputs.modifier(obj, deformer.uid)
+    if mod is None:
+        return False
+    return not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport)
 
 
 def evaluate_all(scene: bpy.types.Scene | None = None, depsgraph: bpy.types.Depsgraph | None = None) -> None:
@@ -194,7 +214,7 @@ def run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None) -> None:
         shown = _shown_elsewhere(scene, depsgraph)
         for obj in scene.objects:
             if len(obj.affine_deformers) and not shown(obj):
-                evaluate_object(obj, depsgraph)
+                evaluate_object(obj, depsgraph, skip_disabled=True)
     except Exception:
         traceback.print_exc()
     finally:

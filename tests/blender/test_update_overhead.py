@@ -423,3 +423,35 @@ def test_probe_rows_are_memoised_per_backend(bl, installed, monkeypatch):
     monkeypatch.setattr(accel._state, "enabled", True)
     kinds._rows.clear()
     assert frames() == compiled
+
+
+def test_a_disabled_deformer_costs_nothing_and_catches_up_when_enabled(bl, installed, monkeypatch):
+    """As a disabled built-in modifier: the handlers skip a deformer whose modifier is off in the
+    viewport (a baked crowd, a deformer muted for speed), and enabling it again shows the shape of the
+    controls' current poses, moved while it was off."""
+    evaluate = importlib.import_module(f"{installed.package}.blender.evaluate")
+    target, probes, deformer = _rig(bl)
+    rest = bl.rest_positions(target)
+    calls = []
+    real = evaluate.evaluate_deformer
+    monkeypatch.setattr(evaluate, "evaluate_deformer", lambda o, d, g: calls.append(d.uid) or real(o, d, g))
+    deformer.show_viewport = False
+    bpy.context.view_layer.update()
+    for step in range(3):
+        probes[step].location.z += 0.3
+        probes[step].rotation_euler.x += 0.5
+        bpy.context.view_layer.update()
+    assert calls == []
+    assert np.array_equal(bl.evaluated_positions(target), rest)  # Blender skips the disabled modifier
+    deformer.show_viewport = True
+    bpy.context.view_layer.update()
+    assert calls and deformer.status == ""
+    shown = bl.evaluated_positions(target)
+    assert np.abs(shown - rest).max() > 0.05
+    kept = bl.stored_offsets(target, deformer)
+    np.testing.assert_array_equal(kept, bl.recomputed_offsets(target, deformer))
+    # Disabled in the viewport only: a render's update still evaluates it.
+    deformer.show_viewport = False
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    assert evaluate.disabled(target, deformer, depsgraph)
+    assert deformer.show_render
