@@ -451,9 +451,10 @@ def write_only_updates():
 
 
 def kernel_seconds(targets: list[bpy.types.Object], reps: int = 20) -> float | None:
-    """Median seconds of our compiled per-vertex map (φ of the blended parameters, as offsets) over
-    all `targets` once, each with its own bind's weights and a moved parameter table: the kernel's
-    share of a frame with no Python around it. None without the weights or the compiled kernel."""
+    """Median seconds of our compiled per-vertex map (φ of the blended parameters) over all `targets`
+    once, each with its own bind's weights and a rigid motion of every control (the (m) rigs' probes
+    turn and shift): the kernel's share of a frame with no Python around it. None without the
+    weights or the compiled kernel."""
     accel = sys.modules.get(f"{INNER}.accel")
     if accel is None or not accel.active():
         return None
@@ -471,9 +472,9 @@ def kernel_seconds(targets: list[bpy.types.Object], reps: int = 20) -> float | N
         unused = idx < 0  # an empty slot
         idx[unused], val[unused] = 0, 0.0
         rows = int(idx.max()) + 1
-        table = np.zeros((rows, 12))
-        table[:, [0, 4, 8]] = 0.05  # a small turn and stretch on every control: no at-rest shortcut
-        table[:, 9:] = 0.1
+        table = np.zeros((rows, 12))  # (ω, u, Y): a turn and a shift, rigid as the keyed probes' wiggles
+        table[:, :3] = (0.2, -0.1, 0.15)
+        table[:, 3:6] = (0.05, 0.02, -0.03)
         points = np.empty(n * 3, np.float32)
         target.data.vertices.foreach_get("co", points)
         jobs.append((points.reshape(-1, 3).astype(np.float64), table, np.ascontiguousarray(idx.T),
