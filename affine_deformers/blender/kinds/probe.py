@@ -63,10 +63,18 @@ def pool_coefficients(deformer) -> np.ndarray:
     weight scales s (core.weights.pool_weights, MATH.md §12): where every probe is equally far, the
     untruncated weights are in proportion to the scales, and so is the pooled mix."""
     scales = np.empty(len(deformer.probes), dtype=np.float32)
-    if len(scales):
-        deformer.probes.foreach_get("weight_scale", scales)
-        return weights.pool_weights(scales.astype(np.float64))
-    return np.zeros(0)
+    if not len(scales):
+        return np.zeros(0)
+    deformer.probes.foreach_get("weight_scale", scales)
+    key = scales.tobytes()  # per update otherwise: a few small numpy calls on cold caches
+    found = _pools.get(key)
+    if found is None:
+        found = weights.pool_weights(scales.astype(np.float64))
+        found.flags.writeable = False  # shared between updates
+        if len(_pools) >= ROW_MEMO_SIZE:
+            _pools.clear()
+        _pools[key] = found
+    return found
 
 
 def rest_matrices(deformer) -> np.ndarray:
@@ -293,6 +301,7 @@ def _forget(_key: caches.Key | None) -> None:
     """The per-probe memos are keyed on their inputs, so shared by all deformers: any forget drops them."""
     _rows.clear()
     _rest_inverses.clear()
+    _pools.clear()
 
 
 @dataclass(frozen=True)
@@ -377,6 +386,9 @@ def _probe_rows(target_world: np.ndarray, worlds: np.ndarray, channels: list[tup
             out.append(_ProbeRow(matrices[i], False, modes[i], rotations[i], frames[i], pivot))
     return out
 
+
+#: Pool coefficients (`pool_coefficients`) keyed on the probes' weight scales' bits (recomputable).
+_pools: dict[bytes, np.ndarray] = {}
 
 #: Inverses of stored rest matrices' 3×3 parts, keyed on their bits (recomputable; cleared when full).
 _rest_inverses: dict[bytes, tuple[np.ndarray, bool]] = {}
