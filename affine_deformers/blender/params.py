@@ -97,6 +97,56 @@ def motions_to_params(motions: Motions, branch_rule: str) -> np.ndarray:
     return params
 
 
+def prefetch(items: list[tuple[Motions, str]]) -> None:
+    """Fill the parameter memo for the rows of several deformers' motions ((motions, branch rule)
+    each), the rows that miss it computed in one batch per branch treatment: the later
+    `motions_to_params` of each deformer finds them (every row is computed on its own, so the batch
+    gives each the bits it would get alone). Rows whose ψ fails are left to that call, which names
+    the control."""
+    groups: dict[bool, list[tuple[Motions, list[int], list[tuple]]]] = {False: [], True: []}
+    for motions, branch_rule in items:
+        m = len(motions.matrices)
+        if m == 0 or motions.params is not None or motions.chain is not None:
+            continue
+        lift = branch_rule == "CHANNELS" and motions.turns is not None and len(motions.turns.modes) == m
+        if lift and motions.turns.references is not None:
+            continue
+        keys = _param_keys(motions, lift)
+        missing = [i for i, key in enumerate(keys) if key not in _param_rows]
+        if missing:
+            groups[lift].append((motions, missing, keys))
+    for lift, entries in groups.items():
+        if not entries:
+            continue
+        stacked = _stacked_rows(entries, lift)
+        try:
+            rows = _params_of_rows(stacked, np.arange(len(stacked.matrices)), lift)
+        except ValueError:
+            continue
+        keys = [keys[i] for _, missing, keys in entries for i in missing]
+        if len(_param_rows) + len(keys) > PARAM_MEMO_SIZE:
+            _param_rows.clear()
+        for key, row in zip(keys, rows, strict=True):
+            _param_rows[key] = row.copy()
+
+
+def _stacked_rows(entries: list[tuple[Motions, list[int], list[tuple]]], lift: bool) -> Motions:
+    """The rows `missing` of each entry's motions as one Motions (with their channel turns when
+    `lift`)."""
+    matrices = np.concatenate([motions.matrices[missing] for motions, missing, _ in entries])
+    at_rest = np.concatenate([motions.at_rest[missing] for motions, missing, _ in entries])
+    turns = None
+    if lift:
+        parts = [(motions.turns, missing) for motions, missing, _ in entries]
+        turns = ChannelTurns([t.rest_modes[i] for t, missing in parts for i in missing],
+                             np.concatenate([t.rest_rotations[missing] for t, missing in parts]),
+                             [t.modes[i] for t, missing in parts for i in missing],
+                             np.concatenate([t.rotations[missing] for t, missing in parts]),
+                             np.concatenate([t.frames[missing] for t, missing in parts]),
+                             np.concatenate([t.pivots[missing] for t, missing in parts]))
+    return Motions(matrices, at_rest, turns=turns)
+
+
 def chain_params(motions: Motions, branch_rule: str) -> np.ndarray:
     """Blend parameters (m, 12) of the local motions of a hierarchy (Motions.chain, MATH.md §14):
     ψ(L_i) as `motions_to_params` gives it (exactly zero at rest, memoised per row), the rotation

@@ -455,3 +455,60 @@ def test_a_disabled_deformer_costs_nothing_and_catches_up_when_enabled(bl, insta
     depsgraph = bpy.context.evaluated_depsgraph_get()
     assert evaluate.disabled(target, deformer, depsgraph)
     assert deformer.show_render
+
+
+def test_an_update_of_many_deformed_objects_shares_their_probes_numerics(bl, installed, monkeypatch):
+    """One update of several deformed objects computes the rows of all their moved probes in one batch
+    and their parameters in one batch per branch treatment (evaluate._prefetch), and every object gets
+    bit for bit the offsets it gets evaluated alone; a deformer with a bad probe reports it and leaves
+    the others alone."""
+    kinds = importlib.import_module(f"{installed.package}.blender.kinds.probe")
+    params = importlib.import_module(f"{installed.package}.blender.params")
+    rng = np.random.default_rng(3)
+    rigs = []
+    layouts = [("CHANNELS", ["XYZ", "QUATERNION", "AXIS_ANGLE"]), ("SHORTEST", ["ZXY", "XYZ"]),
+               ("CHANNELS", ["XYZ", "XYZ", "YZX", "XYZ"])]
+    for n, (rule, modes) in enumerate(layouts):
+        target = bl.grid_cube(cuts=4, name=f"Body{n}")
+        target.location = (4.0 * n, 0.0, 0.0)
+        target.rotation_euler = (0.2 * n, 0.0, 0.3)
+        target.scale = (1.0, 1.0 + 0.5 * n, 1.0)
+        probes = [bl.empty(f"P{n}{i}", (4.0 * n + rng.uniform(-1, 1), *rng.uniform(-1, 1, 2)))
+                  for i in range(len(modes))]
+        for probe, mode in zip(probes, modes, strict=True):
+            probe.rotation_mode = mode
+        deformer = bl.add_probe_deformer(target, probes, radius=1.5, weight_mode="FALLOFF")
+        deformer.branch_rule = rule
+        rigs.append((target, probes, deformer))
+    bad_target = bl.grid_cube(cuts=4, name="Bad")
+    bad_target.location = (-4.0, 0.0, 0.0)
+    bad_probe = bl.empty("BadProbe", (-4.0, 0.0, 1.0))
+    bad = bl.add_probe_deformer(bad_target, [bad_probe], radius=1.5, weight_mode="FALLOFF")
+    bpy.context.view_layer.update()
+
+    batches, param_batches = [], []
+    real_rows, real_params = kinds._probe_rows, params._params_of_rows
+    monkeypatch.setattr(kinds, "_probe_rows", lambda *a: batches.append(len(a[1])) or real_rows(*a))
+    monkeypatch.setattr(params, "_params_of_rows",
+                        lambda m, r, *a: param_batches.append(len(r)) or real_params(m, r, *a))
+    for _target, probes, _deformer in rigs:
+        for probe in probes:
+            probe.location.z += rng.uniform(0.1, 0.4)
+            if probe.rotation_mode == "QUATERNION":
+                probe.rotation_quaternion = (0.6, 0.2, 0.7, 0.3)
+            elif probe.rotation_mode == "AXIS_ANGLE":
+                probe.rotation_axis_angle = (9.0, 0.2, 0.3, 1.0)
+            else:
+                probe.rotation_euler = tuple(rng.uniform(-7.0, 7.0, 3))  # past full turns: lifted branches
+    bad_probe.scale.x = -1.0  # mirrored: its deformer reports it
+    bpy.context.view_layer.update()
+    moved = sum(len(probes) for _t, probes, _d in rigs)
+    assert batches == [moved + 1], "every moved probe, the bad one too, in one batch"
+    assert len(param_batches) == 2, "one batch per branch treatment (lifted, shortest)"
+    assert "mirrored" in bad.status
+    shown = [bl.stored_offsets(target, deformer) for target, _p, deformer in rigs]
+    assert all(deformer.status == "" for _t, _p, deformer in rigs)
+    for (target, _probes, deformer), offsets in zip(rigs, shown, strict=True):
+        assert np.abs(offsets).max() > 0.05
+        alone = bl.recomputed_offsets(target, deformer)  # every cache dropped, this object alone
+        assert offsets.tobytes() == alone.tobytes(), target.name

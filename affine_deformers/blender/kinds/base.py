@@ -269,6 +269,16 @@ class DeformerKind(ABC):
         """The controls' motions now, read from the evaluated `depsgraph`; never raises for bad input
         (an invalid control is `Motions.invalid` with a message)."""
 
+    def prefetch(self, pairs: list[tuple[bpy.types.Object, object]],
+                 depsgraph: bpy.types.Depsgraph) -> list[tuple[object, Motions]]:
+        """Optional: read the motions of several (object, deformer) pairs of this kind at once, ahead
+        of the update's `current_motions` calls (which then return them), sharing work between
+        objects; returns (deformer, motions) of those read. Never raises for bad input."""
+        return []
+
+    def drop_prefetched(self) -> None:  # noqa: B027 (optional)
+        """Forget what `prefetch` read (the end of the update)."""
+
     @abstractmethod
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
         """The objects the target must be evaluated with (never `obj` itself)."""

@@ -44,7 +44,7 @@ from .transforms import (
     inverse3,
     local_matrix,
     local_solve,
-    local_solves,
+    local_solves_rows,
     motion_problem,
     ordered_matmul,
     relative_motion,
@@ -155,81 +155,34 @@ class ProbeKind(DeformerKind):
         return indices, values, warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
-        probes = deformer.probes
-        m = len(probes)
-        rests = rest_matrices(deformer)
-        rest_modes = [item.rest_rotation_mode for item in probes]
-        flat = np.empty(m * 4, dtype=np.float32)
-        if m:
-            probes.foreach_get("rest_rotation", flat)
-        rest_rotations = flat.reshape(-1, 4).astype(np.float64)
-        target_world = world_matrix(obj, depsgraph)
-        if not finite_transform(target_world):
-            return Motions.invalid(m, f"'{obj.name}' has a non-finite transform (NaN or infinity): the mesh "
-                                   "shows its rest shape")
-        # Everything the probes share in one bytes object, which caches its hash: each probe's key
-        # holds it plus its index, instead of hashing its own copies of the rest data per update.
-        shared = b"".join((target_world.tobytes(), rests.tobytes(), flat.tobytes(),
-                           "\0".join(rest_modes).encode()))
-        backend = accel.active()  # the compiled and numpy polar splits of the frames differ by ~1e-15
-        rows: list[_ProbeRow | None] = []
-        misses: list[tuple[int, tuple, np.ndarray, tuple, str, tuple]] = []
-        problem = ""
-        # Probes the modifier does not name are evaluated because they are enabled (relations.py);
-        # each is checked, so a visibility change not synced yet is an error, not a stale pose.
-        stale = StaleControls(obj, storage.offset_name(deformer.uid), depsgraph, bool(m))
-        for i, item in enumerate(probes):
-            probe = item.object
-            if probe is None:
-                problem = (f"Probe '{item.name or '?'}' was deleted or unassigned: remove it from the "
-                           "deformer or pick another object")
-            elif not in_a_scene(probe):
-                problem = (f"Probe '{probe.name}' is not in any scene (deleted?): remove it from the "
-                           "deformer or link it back")
-            elif probe == obj:  # kept here too: a message set when it was picked must not be wiped
-                problem = f"'{obj.name}' cannot be a probe of itself: pick another object for probe {i + 1}"
-            if problem:
-                break
-            evaluated = probe.evaluated_get(depsgraph)
-            if stale.stale(probe, evaluated):
-                problem = (f"Probe '{probe.name}' is not evaluated (it is disabled in viewports or "
-                           "renders, and the deformer is off there): enable the deformer, or show the "
-                           "probe")
-                break
-            world = np.array(evaluated.matrix_world, dtype=np.float64)
-            mode = evaluated.rotation_mode
-            channels = rotation_channels(evaluated, mode)
-            scale = (*evaluated.scale, *evaluated.delta_scale)
-            key = (shared, i, world.tobytes(), mode, _bits(channels + scale), backend)
-            row = _rows.get(key)
-            if row is None:
-                misses.append((i, key, world, channels, mode, scale))
-            rows.append(row)
-        if misses:
-            # The probes that moved, in one batch: every row is computed on its own (same bits alone).
-            index = [i for i, *_ in misses]
-            computed = _probe_rows(target_world, np.stack([miss[2] for miss in misses]),
-                                   [miss[3] for miss in misses], [miss[4] for miss in misses],
-                                   [miss[5] for miss in misses], rests[index], [rest_modes[i] for i in index],
-                                   rest_rotations[index])
-            if len(_rows) + len(misses) > ROW_MEMO_SIZE:
-                _rows.clear()
-            for (i, key, *_), row in zip(misses, computed, strict=True):
-                _rows[key] = rows[i] = row
-        for i, row in enumerate(rows):  # the first probe in order with a problem names it
-            if row.error:
-                return Motions.invalid(m, row.error.format(probe=probes[i].object.name, target=obj.name))
-        if problem:
-            return Motions.invalid(m, problem)
-        if m == 0:
-            return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool),
-                           turns=ChannelTurns(rest_modes, rest_rotations, [], rest_rotations.copy(),
-                                              np.zeros((0, 3, 3)), np.zeros((0, 3))))
-        turns = ChannelTurns(rest_modes, rest_rotations, [r.mode for r in rows],
-                             np.array([r.rotation for r in rows], dtype=np.float64),
-                             np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
-        return Motions(np.stack([r.matrix for r in rows]), np.array([r.at_rest for r in rows]), turns=turns,
-                       pool=pool_coefficients(deformer))
+        found = _prefetched.pop((obj.session_uid, deformer.uid), None)
+        if found is not None and found[0] is depsgraph:
+            return found[1]
+        reading = _read(obj, deformer, depsgraph)
+        if isinstance(reading, Motions):
+            return reading
+        _fill([reading])
+        return _finish(reading)
+
+    def prefetch(self, pairs: list[tuple[bpy.types.Object, object]],
+                 depsgraph: bpy.types.Depsgraph) -> list[tuple[object, Motions]]:
+        """Read every listed deformer's probes and compute the rows of all that moved in one batch
+        (`_fill`): on a scene of many deformed objects the per-row numpy work is shared instead of
+        repeated per object. The motions wait for `current_motions` of the same update (same
+        `depsgraph`) and are dropped by `drop_prefetched`; returns (deformer, motions) of those read."""
+        readings = [r for r in (_read(obj, deformer, depsgraph) for obj, deformer in pairs)
+                    if isinstance(r, _Reading)]
+        _fill(readings)
+        out = []
+        for reading in readings:
+            motions = _finish(reading)
+            if not motions.error:
+                _prefetched[(reading.obj.session_uid, reading.deformer.uid)] = (depsgraph, motions)
+                out.append((reading.deformer, motions))
+        return out
+
+    def drop_prefetched(self) -> None:
+        _prefetched.clear()
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
         """The selected Empties; none selected: one new Empty at the mesh's origin."""
@@ -302,6 +255,7 @@ def _forget(_key: caches.Key | None) -> None:
     _rows.clear()
     _rest_inverses.clear()
     _pools.clear()
+    _prefetched.clear()
 
 
 @dataclass(frozen=True)
@@ -335,11 +289,131 @@ def _bits(values: tuple[float, ...]) -> bytes:
     return struct.pack(f"{len(values)}d", *values)
 
 
+@dataclass
+class _Reading:
+    """One deformer's probes as read for an update, before the rows that missed the memo are
+    computed (`_fill`) and the motions assembled (`_finish`). Lives for one update only."""
+
+    obj: bpy.types.Object
+    deformer: object
+    target_world: np.ndarray
+    rests: np.ndarray  # (m, 4, 4) float32
+    rest_modes: list[str]
+    rest_rotations: np.ndarray  # (m, 4)
+    rows: list[_ProbeRow | None]
+    misses: list[tuple[int, tuple, np.ndarray, tuple, str, tuple]]
+    problem: str
+
+
+#: Motions read by `ProbeKind.prefetch`, by (object session uid, deformer uid): (depsgraph, motions).
+_prefetched: dict[tuple[int, str], tuple[bpy.types.Depsgraph, Motions]] = {}
+
+
+def _read(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions | _Reading:
+    """Read the probes of `deformer` from the evaluated `depsgraph` and look their rows up in the
+    memo; Motions at once when the target itself cannot be read."""
+    probes = deformer.probes
+    m = len(probes)
+    rests = rest_matrices(deformer)
+    rest_modes = [item.rest_rotation_mode for item in probes]
+    flat = np.empty(m * 4, dtype=np.float32)
+    if m:
+        probes.foreach_get("rest_rotation", flat)
+    rest_rotations = flat.reshape(-1, 4).astype(np.float64)
+    target_world = world_matrix(obj, depsgraph)
+    if not finite_transform(target_world):
+        return Motions.invalid(m, f"'{obj.name}' has a non-finite transform (NaN or infinity): the mesh "
+                               "shows its rest shape")
+    # Everything the probes share in one bytes object, which caches its hash: each probe's key
+    # holds it plus its index, instead of hashing its own copies of the rest data per update.
+    shared = b"".join((target_world.tobytes(), rests.tobytes(), flat.tobytes(),
+                       "\0".join(rest_modes).encode()))
+    backend = accel.active()  # the compiled and numpy polar splits of the frames differ by ~1e-15
+    rows: list[_ProbeRow | None] = []
+    misses: list[tuple[int, tuple, np.ndarray, tuple, str, tuple]] = []
+    problem = ""
+    # Probes the modifier does not name are evaluated because they are enabled (relations.py);
+    # each is checked, so a visibility change not synced yet is an error, not a stale pose.
+    stale = StaleControls(obj, storage.offset_name(deformer.uid), depsgraph, bool(m))
+    for i, item in enumerate(probes):
+        probe = item.object
+        if probe is None:
+            problem = (f"Probe '{item.name or '?'}' was deleted or unassigned: remove it from the "
+                       "deformer or pick another object")
+        elif not in_a_scene(probe):
+            problem = (f"Probe '{probe.name}' is not in any scene (deleted?): remove it from the "
+                       "deformer or link it back")
+        elif probe == obj:  # kept here too: a message set when it was picked must not be wiped
+            problem = f"'{obj.name}' cannot be a probe of itself: pick another object for probe {i + 1}"
+        if problem:
+            break
+        evaluated = probe.evaluated_get(depsgraph)
+        if stale.stale(probe, evaluated):
+            problem = (f"Probe '{probe.name}' is not evaluated (it is disabled in viewports or "
+                       "renders, and the deformer is off there): enable the deformer, or show the "
+                       "probe")
+            break
+        world = np.array(evaluated.matrix_world, dtype=np.float64)
+        mode = evaluated.rotation_mode
+        channels = rotation_channels(evaluated, mode)
+        scale = (*evaluated.scale, *evaluated.delta_scale)
+        key = (shared, i, world.tobytes(), mode, _bits(channels + scale), backend)
+        row = _rows.get(key)
+        if row is None:
+            misses.append((i, key, world, channels, mode, scale))
+        rows.append(row)
+    return _Reading(obj, deformer, target_world, rests, rest_modes, rest_rotations, rows, misses, problem)
+
+
+def _fill(readings: list[_Reading]) -> None:
+    """Compute the rows that missed the memo, of all `readings` in one batch (every row is computed
+    on its own against its own target: the same bits alone or in any batch), into the readings and
+    the memo."""
+    misses = [(reading, miss) for reading in readings for miss in reading.misses]
+    if not misses:
+        return
+    computed = _probe_rows(np.stack([reading.target_world for reading, _ in misses]),
+                           np.stack([miss[2] for _, miss in misses]), [miss[3] for _, miss in misses],
+                           [miss[4] for _, miss in misses], [miss[5] for _, miss in misses],
+                           np.stack([reading.rests[miss[0]] for reading, miss in misses]),
+                           [reading.rest_modes[miss[0]] for reading, miss in misses],
+                           np.stack([reading.rest_rotations[miss[0]] for reading, miss in misses]))
+    if len(_rows) + len(misses) > ROW_MEMO_SIZE:
+        _rows.clear()
+    for (reading, (i, key, *_)), row in zip(misses, computed, strict=True):
+        _rows[key] = reading.rows[i] = row
+    for reading in readings:
+        reading.misses = []
+
+
+def _finish(reading: _Reading) -> Motions:
+    """The motions of a reading whose rows are all known."""
+    obj, deformer, rows = reading.obj, reading.deformer, reading.rows
+    m = len(deformer.probes)
+    for i, row in enumerate(rows):  # the first probe in order with a problem names it
+        if row.error:
+            return Motions.invalid(m, row.error.format(probe=deformer.probes[i].object.name, target=obj.name))
+    if reading.problem:
+        return Motions.invalid(m, reading.problem)
+    rest_modes, rest_rotations = reading.rest_modes, reading.rest_rotations
+    if m == 0:
+        return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool),
+                       turns=ChannelTurns(rest_modes, rest_rotations, [], rest_rotations.copy(),
+                                          np.zeros((0, 3, 3)), np.zeros((0, 3))))
+    turns = ChannelTurns(rest_modes, rest_rotations, [r.mode for r in rows],
+                         np.array([r.rotation for r in rows], dtype=np.float64),
+                         np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
+    return Motions(np.stack([r.matrix for r in rows]), np.array([r.at_rest for r in rows]), turns=turns,
+                   pool=pool_coefficients(deformer))
+
+
 def _probe_rows(target_world: np.ndarray, worlds: np.ndarray, channels: list[tuple[float, ...]],
                 modes: list[str], scales: list[tuple[float, ...]], rests: np.ndarray, rest_modes: list[str],
                 rest_rotations: np.ndarray) -> list[_ProbeRow]:
     """`_probe_row` of n probes at once (worlds (n, 4, 4) float64, rests (n, 4, 4) float32, the other
     arguments one entry per probe), in a few stacked numpy calls instead of a few dozen per probe.
+    `target_world`: the target's world matrix (4, 4), or one per probe (n, 4, 4) when the probes of
+    several deformers are computed together (`_fill`).
 
     Every row is computed on its own (stacked products and SVDs run matrix by matrix, the rest is
     elementwise), so a probe gets the same bits in any batch, alone included. C = target⁻¹ · world
@@ -348,14 +422,12 @@ def _probe_rows(target_world: np.ndarray, worlds: np.ndarray, channels: list[tup
     (non-finite transform, singular rest, a motion outside Aff+(3)) and a target scaled to zero go
     through `_probe_row`, which words the message."""
     n = len(worlds)
+    targets = np.broadcast_to(target_world, (n, 4, 4)) if np.ndim(target_world) == 2 else target_world
     with np.errstate(all="ignore"):
         finite = (np.abs(worlds) < MAX_COORDINATE).all(axis=(1, 2))
-        try:
-            current, solved = local_solves(target_world, worlds if finite.all()
-                                           else np.where(finite[:, None, None], worlds, 0.0))
-        except np.linalg.LinAlgError:
-            finite[:] = False  # the target is singular: every probe gets its message
-            current, solved = np.zeros((n, 4, 4), dtype=np.float32), np.zeros((n, 3, 4))
+        current, solved, solvable = local_solves_rows(targets, worlds if finite.all()
+                                                      else np.where(finite[:, None, None], worlds, 0.0))
+        finite &= solvable  # a target scaled to zero: its probes get their message from `_probe_row`
         rotations = [tuple(float(c) for c in ch) + (0.0,) * (4 - len(ch)) for ch in channels]
         rotation_array = np.array(rotations)
         frames = frame_rotations(solved[:, :, :3], modes, rotation_array, np.array(scales, dtype=np.float64))
@@ -376,7 +448,7 @@ def _probe_rows(target_world: np.ndarray, worlds: np.ndarray, channels: list[tup
     identity = np.eye(4)
     for i in range(n):
         if not finite[i] or not (at_rest[i] or motion_ok[i]):
-            out.append(_probe_row(target_world, worlds[i], channels[i], modes[i], scales[i], rests[i],
+            out.append(_probe_row(targets[i], worlds[i], channels[i], modes[i], scales[i], rests[i],
                                   rest_modes[i], rest_rotations[i]))
             continue
         pivot = current[i, :3, 3].astype(np.float64)

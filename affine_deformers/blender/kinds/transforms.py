@@ -93,6 +93,38 @@ def local_solves(target_world: np.ndarray, control_worlds: np.ndarray) -> tuple[
     return out.astype(np.float32), solved
 
 
+def local_solves_rows(targets: np.ndarray,
+                      control_worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`local_solves` of n controls, each against its own target's world matrix (targets (n, 4, 4)):
+    (C (n, 4, 4) float32, solved (n, 3, 4) float64, solvable (n,) bool). The same elementwise
+    products as `local_solves`, so each C has the bits `local_matrix` gives it alone; each distinct
+    target is inverted once. A row whose target is singular is not solvable (its values are
+    meaningless), instead of the LinAlgError `local_solves` raises."""
+    n = len(control_worlds)
+    inverses = np.empty((n, 3, 3))
+    solvable = np.ones(n, dtype=bool)
+    found: dict[bytes, np.ndarray | None] = {}
+    for i, target in enumerate(targets):
+        key = target.tobytes()
+        if key not in found:
+            try:
+                found[key] = inverse3(target[:3, :3])
+            except np.linalg.LinAlgError:
+                found[key] = None
+        inverse = found[key]
+        if inverse is None:
+            inverses[i], solvable[i] = np.eye(3), False
+        else:
+            inverses[i] = inverse
+    rhs = control_worlds[:, :3, :].copy()
+    rhs[:, :, 3] -= targets[:, :3, 3]
+    solved = ordered_matmul(inverses, rhs)
+    out = np.zeros((n, 4, 4), dtype=np.float64)
+    out[:, :3, :] = solved
+    out[:, 3, 3] = 1.0
+    return out.astype(np.float32), solved, solvable
+
+
 def frame_rotations(linear: np.ndarray, modes: list[str], channels: np.ndarray,
                     scales: np.ndarray) -> np.ndarray:
     """`frame_rotation` of n controls at once (linear (n, 3, 3), channels (n, 4), scales (n, 6)),
