@@ -103,21 +103,21 @@ def prefetch(items: list[tuple[Motions, str]]) -> None:
     `motions_to_params` of each deformer finds them (every row is computed on its own, so the batch
     gives each the bits it would get alone). Rows whose ψ fails are left to that call, which names
     the control."""
-    groups: dict[bool, list[tuple[Motions, list[int], list[tuple]]]] = {False: [], True: []}
+    # (lift, lifted to given references) -> entries
+    groups: dict[tuple[bool, bool], list[tuple[Motions, list[int], list[tuple]]]] = {}
     for motions, branch_rule in items:
+        if motions.chain is not None:
+            motions = _chain_motions(motions)
         m = len(motions.matrices)
-        if m == 0 or motions.params is not None or motions.chain is not None:
+        if m == 0 or motions.params is not None:
             continue
         lift = branch_rule == "CHANNELS" and motions.turns is not None and len(motions.turns.modes) == m
-        if lift and motions.turns.references is not None:
-            continue
         keys = _param_keys(motions, lift)
         missing = [i for i, key in enumerate(keys) if key not in _param_rows]
         if missing:
-            groups[lift].append((motions, missing, keys))
-    for lift, entries in groups.items():
-        if not entries:
-            continue
+            given = lift and motions.turns.references is not None
+            groups.setdefault((lift, given), []).append((motions, missing, keys))
+    for (lift, _given), entries in groups.items():
         stacked = _stacked_rows(entries, lift)
         try:
             rows = _params_of_rows(stacked, np.arange(len(stacked.matrices)), lift)
@@ -138,12 +138,15 @@ def _stacked_rows(entries: list[tuple[Motions, list[int], list[tuple]]], lift: b
     turns = None
     if lift:
         parts = [(motions.turns, missing) for motions, missing, _ in entries]
+        given = parts[0][0].references is not None  # the same for every entry of a group
+        references = np.concatenate([t.references[missing] for t, missing in parts]) if given else None
         turns = ChannelTurns([t.rest_modes[i] for t, missing in parts for i in missing],
                              np.concatenate([t.rest_rotations[missing] for t, missing in parts]),
                              [t.modes[i] for t, missing in parts for i in missing],
                              np.concatenate([t.rotations[missing] for t, missing in parts]),
                              np.concatenate([t.frames[missing] for t, missing in parts]),
-                             np.concatenate([t.pivots[missing] for t, missing in parts]))
+                             np.concatenate([t.pivots[missing] for t, missing in parts]),
+                             references)
     return Motions(matrices, at_rest, turns=turns)
 
 
@@ -151,6 +154,12 @@ def chain_params(motions: Motions, branch_rule: str) -> np.ndarray:
     """Blend parameters (m, 12) of the local motions of a hierarchy (Motions.chain, MATH.md §14):
     ψ(L_i) as `motions_to_params` gives it (exactly zero at rest, memoised per row), the rotation
     log lifted with 'CHANNELS' to the branch nearest the control's own turn about its rest pivot."""
+    return motions_to_params(_chain_motions(motions), branch_rule)
+
+
+def _chain_motions(motions: Motions) -> Motions:
+    """The local motions of `motions.chain` as Motions, their reference rotation vectors (if any) as
+    the turns: what `chain_params` blends."""
     chain = motions.chain
     m = len(chain.locals)
     turns = None
@@ -159,7 +168,7 @@ def chain_params(motions: Motions, branch_rule: str) -> np.ndarray:
         unused = np.zeros((m, 4))
         turns = ChannelTurns(modes, unused, modes, unused, np.broadcast_to(np.eye(3), (m, 3, 3)),
                              chain.pivots, chain.references)
-    return motions_to_params(Motions(chain.locals, chain.at_rest, turns=turns), branch_rule)
+    return Motions(chain.locals, chain.at_rest, turns=turns)
 
 
 def _param_keys(motions: Motions, lift: bool) -> list[tuple]:

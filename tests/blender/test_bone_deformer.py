@@ -731,3 +731,48 @@ def test_pooled_bone_weight_follows_the_bones_tree(bl, installed):
     deformer.blend_mode = "LINEAR"
     bpy.context.view_layer.update()
     assert deformer.status == "" and np.abs(bl.evaluated_positions(tube) - rest).max() > 0.05
+
+
+def test_an_update_of_many_bone_deformed_objects_matches_each_alone_bit_for_bit(bl, installed, monkeypatch):
+    """One update of several bone-deformed objects computes all their moved bones in one batch and their
+    parameters in one batch per branch treatment (evaluate._prefetch, kinds.bone's prefetch); each
+    object gets bit for bit the offsets it gets evaluated alone, and a deformer naming a bone its
+    armature lost reports it without touching the others."""
+    import importlib
+
+    bone = importlib.import_module(f"{installed.package}.blender.kinds.bone")
+    rng = np.random.default_rng(7)
+    rigs = []
+    for n, rule in enumerate(("CHANNELS", "SHORTEST", "CHANNELS", "CHANNELS")):
+        bar, arm, _native, deformer = _rig(bl, heads=(0.0, 1.0, 2.0, 3.0, 4.0), width=1.5)
+        for obj in (bar, arm):
+            obj.location = (0.0, 3.0 * n, 0.5 * n)
+            obj.rotation_euler = (0.0, 0.0, 0.4 * n)
+        deformer.branch_rule = rule
+        for pose_bone in arm.pose.bones:
+            pose_bone.rotation_mode = ("XYZ", "QUATERNION", "AXIS_ANGLE", "ZXY")[n]
+        rigs.append((bar, arm, deformer))
+    bpy.context.view_layer.update()
+    batches = []
+    real = bone._bone_rows
+    monkeypatch.setattr(bone, "_bone_rows", lambda *a: batches.append(len(a[2])) or real(*a))
+    for _bar_obj, arm, _deformer in rigs:
+        for pose_bone in arm.pose.bones:
+            if pose_bone.rotation_mode == "QUATERNION":
+                pose_bone.rotation_quaternion = tuple(rng.normal(size=4))
+            elif pose_bone.rotation_mode == "AXIS_ANGLE":
+                pose_bone.rotation_axis_angle = (float(rng.uniform(-9.0, 9.0)), *rng.normal(size=3))
+            else:
+                pose_bone.rotation_euler = tuple(rng.uniform(-4.0, 4.0, 3))  # past 180° too
+            pose_bone.scale = tuple(rng.uniform(0.7, 1.4, 3))
+    lost = rigs[3][1]
+    lost.data.bones["B3"].name = "Gone"  # its deformer still names B3
+    bpy.context.view_layer.update()
+    assert batches == [15], "in one batch: every bone read, the lost rig's up to the missing one"
+    assert "no bone named 'B3'" in rigs[3][2].status
+    for bar, _arm, deformer in rigs[:3]:
+        assert deformer.status == ""
+        shown = bl.stored_offsets(bar, deformer)
+        assert np.abs(shown).max() > 0.05
+        alone = bl.recomputed_offsets(bar, deformer)
+        assert shown.tobytes() == alone.tobytes(), bar.name

@@ -111,6 +111,24 @@ def _pool_scales(deformer) -> np.ndarray:
     return scales.astype(np.float64)
 
 
+#: core.hierarchy.pool_mix keyed on the parents' and scales' bits: per update otherwise, for a result
+#: that changes only with the bone list or a weight scale. Bounded like `_rows`.
+_pool_mixes: dict[bytes, np.ndarray] = {}
+
+
+def _pool_mix(parents: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """`hierarchy.pool_mix(parents, scales)`, memoised (read-only: shared between updates)."""
+    key = parents.astype(np.int64).tobytes() + scales.tobytes()
+    found = _pool_mixes.get(key)
+    if found is None:
+        found = hierarchy.pool_mix(parents, scales)
+        found.flags.writeable = False
+        if len(_pool_mixes) >= ROW_MEMO_SIZE:
+            _pool_mixes.clear()
+        _pool_mixes[key] = found
+    return found
+
+
 def armature_problem(target: bpy.types.Object, armature: bpy.types.Object | None) -> str:
     """Why `armature` cannot drive `target` ('' when it can)."""
     if armature is None:
@@ -199,6 +217,107 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
     return _BoneRow(matrix, False, unturned, turn, head)
 
 
+@dataclass
+class _Reading:
+    """One deformer's bones as read for an update, before the rows that missed the memo are computed
+    (`_fill`) and the motions assembled (`_finish`). Lives for one update only."""
+
+    obj: bpy.types.Object
+    deformer: object
+    armature: bpy.types.Object
+    frame: np.ndarray  # P = target_world⁻¹ · armature_world
+    frame_inverse: np.ndarray
+    pose: object  # the evaluated armature's pose
+    rows: dict[str, _BoneRow | None]
+    misses: list[tuple]
+    missing: str  # a bone the armature does not have ('' when none)
+
+
+#: Motions read by `BoneKind.prefetch`, by (object session uid, deformer uid): (depsgraph, motions).
+_prefetched: dict[tuple[int, str], tuple[bpy.types.Depsgraph, Motions]] = {}
+
+
+def _read(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions | _Reading:
+    """Read the deformer's bones from the evaluated `depsgraph` and look their rows up in the memo;
+    Motions at once for a problem with the armature or the objects' transforms."""
+    m = len(deformer.bones)
+    armature = deformer.armature
+    problem = armature_problem(obj, armature)
+    if problem:
+        return Motions.invalid(m, f"{problem}: the mesh shows its input")
+    try:
+        frame = _frame_matrix(obj, armature, depsgraph)
+        frame_inverse = _inverse_affine(frame)
+    except np.linalg.LinAlgError:
+        return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' is scaled to zero: the "
+                               "mesh shows its input")
+    if not finite_transform(frame):
+        return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' has a non-finite "
+                               "transform: the mesh shows its input")
+    evaluated = armature.evaluated_get(depsgraph)
+    if StaleControls(obj, storage.offset_name(deformer.uid), depsgraph, True).stale(armature, evaluated):
+        return Motions.invalid(m, f"Armature '{armature.name}' is not evaluated (it is disabled in "
+                               "viewports or renders, and the deformer is off there): enable the "
+                               "deformer, or enable the armature and hide it with the eye icon")
+    pose = evaluated.pose
+    rows: dict[str, _BoneRow | None] = {}
+    misses: list[tuple] = []
+    missing = ""
+    for item in deformer.bones:
+        if not _chain_rows(item.name, pose, frame, rows, misses):
+            missing = item.name
+            break
+    return _Reading(obj, deformer, armature, frame, frame_inverse, pose, rows, misses, missing)
+
+
+def _fill(readings: list[_Reading]) -> None:
+    """Compute the bones that missed the memo, of all `readings` in one batch (every row on its own,
+    against its own deformer's frame: the same bits alone or in any batch), into the readings and
+    the memo."""
+    misses = [(reading, miss) for reading in readings for miss in reading.misses]
+    if not misses:
+        return
+    computed = _bone_rows(np.stack([reading.frame for reading, _ in misses]),
+                          np.stack([reading.frame_inverse for reading, _ in misses]),
+                          np.stack([miss[2] for _, miss in misses]),
+                          np.stack([miss[3] for _, miss in misses]), [miss[4] for _, miss in misses],
+                          [miss[5] for _, miss in misses])
+    if len(_rows) + len(misses) > ROW_MEMO_SIZE:
+        _rows.clear()
+    for (reading, (name, key, *_)), row in zip(misses, computed, strict=True):
+        _rows[key] = reading.rows[name] = row
+    for reading in readings:
+        reading.misses = []
+
+
+def _finish(reading: _Reading) -> Motions:
+    """The motions of a reading whose rows are all known."""
+    deformer, armature, rows = reading.deformer, reading.armature, reading.rows
+    m = len(deformer.bones)
+    # The first problem in the order the chains were walked; replace, not format: a bone name may
+    # hold braces.
+    for name, row in rows.items():
+        if row.error:
+            message = row.error.replace("{armature}", armature.name).replace("{bone}", name)
+            return Motions.invalid(m, message)
+    if reading.missing:
+        return Motions.invalid(m, f"Armature '{armature.name}' has no bone named '{reading.missing}' "
+                               "(renamed or deleted?): rename it back, remove it from the deformer or rebind")
+    chosen = [rows[item.name] for item in deformer.bones]
+    if m == 0:
+        return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool))
+    matrices = np.stack([r.matrix for r in chosen])
+    chain = _hierarchy([item.name for item in deformer.bones], reading.pose, rows, matrices)
+    if deformer.branch_rule == "CHANNELS" and not np.all(np.isfinite(chain.references)):
+        bad = deformer.bones[int(np.flatnonzero(~np.isfinite(chain.references).all(axis=1))[0])].name
+        return Motions.invalid(m, f"The rotation channels of bone '{bad}' (or of a parent) cannot be "
+                               "unwrapped (non-finite or too many turns): the mesh shows its input")
+    if deformer.branch_rule != "CHANNELS":
+        chain.references = chain.pivots = None
+    return Motions(matrices, np.array([r.at_rest for r in chosen]), chain=chain,
+                   pool=_pool_mix(chain.parents, _pool_scales(deformer)))
+
+
 def _bone_rows(frame_matrix: np.ndarray, frame_inverse: np.ndarray, poses: np.ndarray, rests: np.ndarray,
                modes: list[str], channels: list[tuple[float, ...]]) -> list[_BoneRow]:
     """`_bone_row` of n pose bones at once (poses, rests (n, 4, 4) float64), in a few stacked numpy
@@ -207,14 +326,17 @@ def _bone_rows(frame_matrix: np.ndarray, frame_inverse: np.ndarray, poses: np.nd
     problem (non-finite pose, zero-length rest, a motion outside Aff+(3)) go through `_bone_row`,
     which words the message; a turn whose channels cannot be unwrapped is NaN, as there."""
     n = len(poses)
+    # One frame for all rows, or each row its own deformer's (`_fill`): the same elementwise products.
+    P = np.broadcast_to(frame_matrix, (n, 4, 4)) if np.ndim(frame_matrix) == 2 else frame_matrix
+    P_inv = np.broadcast_to(frame_inverse, (n, 4, 4)) if np.ndim(frame_inverse) == 2 else frame_inverse
     rotations = [tuple(float(c) for c in ch) + (0.0,) * (4 - len(ch)) for ch in channels]
     rotation_array = np.array(rotations)
     identities = np.array([identity_channels(mode) for mode in modes])
     euler = np.array([mode not in ("QUATERNION", "AXIS_ANGLE") for mode in modes])
     with np.errstate(all="ignore"):
-        rested = ordered_matmul(frame_matrix, rests)
+        rested = ordered_matmul(P, rests)
         finite = ((np.abs(poses) < MAX_COORDINATE).all(axis=(1, 2))
-                  & (np.abs(ordered_matmul(frame_matrix, poses)) < MAX_COORDINATE).all(axis=(1, 2)))
+                  & (np.abs(ordered_matmul(P, poses)) < MAX_COORDINATE).all(axis=(1, 2)))
         inverses = [_rest_inverse(rest) for rest in rests]
         local = ordered_matmul(poses, np.stack([inverse for inverse, _ in inverses]))
         frames = np.stack([_rest_frame(r) for r in rested])
@@ -228,7 +350,7 @@ def _bone_rows(frame_matrix: np.ndarray, frame_inverse: np.ndarray, poses: np.nd
         same = np.float32(rotation_array) == np.float32(identities)
         unturned = same[:, :3].all(axis=1) & (euler | same[:, 3])
         at_rest = unturned & (np.abs(local - np.eye(4)).reshape(n, 16).max(axis=1) <= AT_REST_TOL)
-        matrices = ordered_matmul(ordered_matmul(frame_matrix, local), frame_inverse)
+        matrices = ordered_matmul(ordered_matmul(P, local), P_inv)
         matrices[:, 3] = (0.0, 0.0, 0.0, 1.0)
         motion_ok = ((np.abs(matrices) < MAX_COORDINATE).all(axis=(1, 2))
                      & (np.linalg.det(matrices[:, :3, :3]) > 0.0))
@@ -236,7 +358,7 @@ def _bone_rows(frame_matrix: np.ndarray, frame_inverse: np.ndarray, poses: np.nd
     identity = np.eye(4)
     for i in range(n):
         if not (finite[i] and inverses[i][1] and (at_rest[i] or motion_ok[i])):
-            out.append(_bone_row(frame_matrix, frame_inverse, poses[i], rests[i], modes[i], channels[i]))
+            out.append(_bone_row(P[i], P_inv[i], poses[i], rests[i], modes[i], channels[i]))
             continue
         head = rested[i, :3, 3].copy()
         if at_rest[i]:
@@ -388,64 +510,32 @@ class BoneKind(DeformerKind):
         return indices, values, warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
-        m = len(deformer.bones)
-        armature = deformer.armature
-        problem = armature_problem(obj, armature)
-        if problem:
-            return Motions.invalid(m, f"{problem}: the mesh shows its input")
-        try:
-            frame = _frame_matrix(obj, armature, depsgraph)
-            frame_inverse = _inverse_affine(frame)
-        except np.linalg.LinAlgError:
-            return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' is scaled to zero: the "
-                                   "mesh shows its input")
-        if not finite_transform(frame):
-            return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' has a non-finite "
-                                   "transform: the mesh shows its input")
-        evaluated = armature.evaluated_get(depsgraph)
-        if StaleControls(obj, storage.offset_name(deformer.uid), depsgraph, True).stale(armature, evaluated):
-            return Motions.invalid(m, f"Armature '{armature.name}' is not evaluated (it is disabled in "
-                                   "viewports or renders, and the deformer is off there): enable the "
-                                   "deformer, or enable the armature and hide it with the eye icon")
-        pose = evaluated.pose
-        rows: dict[str, _BoneRow | None] = {}
-        misses: list[tuple] = []
-        missing = ""
-        for item in deformer.bones:
-            if not _chain_rows(item.name, pose, frame, rows, misses):
-                missing = item.name
-                break
-        if misses:
-            # The bones that moved, in one batch: every row is computed on its own (same bits alone).
-            computed = _bone_rows(frame, frame_inverse, np.stack([miss[2] for miss in misses]),
-                                  np.stack([miss[3] for miss in misses]), [miss[4] for miss in misses],
-                                  [miss[5] for miss in misses])
-            if len(_rows) + len(misses) > ROW_MEMO_SIZE:
-                _rows.clear()
-            for (name, key, *_), row in zip(misses, computed, strict=True):
-                _rows[key] = rows[name] = row
-        # The first problem in the order the chains were walked; replace, not format: a bone name may
-        # hold braces.
-        for name, row in rows.items():
-            if row.error:
-                message = row.error.replace("{armature}", armature.name).replace("{bone}", name)
-                return Motions.invalid(m, message)
-        if missing:
-            return Motions.invalid(m, f"Armature '{armature.name}' has no bone named '{missing}' (renamed "
-                                   "or deleted?): rename it back, remove it from the deformer or rebind")
-        chosen = [rows[item.name] for item in deformer.bones]
-        if m == 0:
-            return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool))
-        matrices = np.stack([r.matrix for r in chosen])
-        chain = _hierarchy([item.name for item in deformer.bones], pose, rows, matrices)
-        if deformer.branch_rule == "CHANNELS" and not np.all(np.isfinite(chain.references)):
-            bad = deformer.bones[int(np.flatnonzero(~np.isfinite(chain.references).all(axis=1))[0])].name
-            return Motions.invalid(m, f"The rotation channels of bone '{bad}' (or of a parent) cannot be "
-                                   "unwrapped (non-finite or too many turns): the mesh shows its input")
-        if deformer.branch_rule != "CHANNELS":
-            chain.references = chain.pivots = None
-        return Motions(matrices, np.array([r.at_rest for r in chosen]), chain=chain,
-                       pool=hierarchy.pool_mix(chain.parents, _pool_scales(deformer)))
+        found = _prefetched.pop((obj.session_uid, deformer.uid), None)
+        if found is not None and found[0] is depsgraph:
+            return found[1]
+        reading = _read(obj, deformer, depsgraph)
+        if isinstance(reading, Motions):
+            return reading
+        _fill([reading])
+        return _finish(reading)
+
+    def prefetch(self, pairs: list[tuple[bpy.types.Object, object]],
+                 depsgraph: bpy.types.Depsgraph) -> list[tuple[object, Motions]]:
+        """Read every listed deformer's bones and compute the rows of all that moved in one batch
+        (`_fill`), as kinds.probe does; the motions wait for `current_motions` of the same update."""
+        readings = [r for r in (_read(obj, deformer, depsgraph) for obj, deformer in pairs)
+                    if isinstance(r, _Reading)]
+        _fill(readings)
+        out = []
+        for reading in readings:
+            motions = _finish(reading)
+            if not motions.error:
+                _prefetched[(reading.obj.session_uid, reading.deformer.uid)] = (depsgraph, motions)
+                out.append((reading.deformer, motions))
+        return out
+
+    def drop_prefetched(self) -> None:
+        _prefetched.clear()
 
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
         armature = deformer.armature
@@ -499,6 +589,8 @@ def _forget(_key: caches.Key | None) -> None:
     _rows.clear()
     _rest_frames.clear()
     _rest_inverses.clear()
+    _prefetched.clear()
+    _pool_mixes.clear()
 
 
 def _frame_matrix(obj: bpy.types.Object, armature: bpy.types.Object,
