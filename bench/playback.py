@@ -299,3 +299,45 @@ def part_m(plan, have_ours: bool, report) -> None:
             f"({fmt_ratio(mine.median, hook_s.median)})"
             + (f"; a handler that only writes: {fmt_ms(floor_s.median)} "
                f"({fmt_ratio(floor_s.median, hook_s.median)})" if floor_s is not None else "") + ".")
+    _part_m_bones(plan, have_ours, report)
+
+
+def _part_m_bones(plan, have_ours: bool, report) -> None:
+    """(m) the crowd as characters: each of the objects skinned by its own armature (a chain of
+    `plan.m_probes` bones, keyed), our bone deformer vs the Armature modifier with Preserve Volume."""
+    count, n_target, m, frames = plan.m_objects, plan.m_verts, plan.m_probes, plan.p_frames
+
+    def scene(ours_rig: bool) -> list:
+        targets = []
+        for i in range(count):
+            target = common.sphere_object(f"Target.{i:02d}", n_target)
+            arm = native.bone_chain(target, m, with_modifier=not ours_rig, preserve_volume=True)
+            target.location = arm.location = (3.0 * i, 0.0, 0.0)
+            if ours_rig:
+                ours.bone_rig(target, arm, lambda _i: None)
+            _key_pose_bones(arm, frames)
+            targets.append(target)
+        return targets
+
+    rows = []
+    if have_ours and ours.operator_exists(ours.BONE_OP):
+        ours_row = _row("ours: many characters", lambda: scene(True), frames, report)
+        rows.append((f"Affine bones (ours), {m} per object", ours_row))
+    native_label = f"Armature ×{m} bones per object, Preserve Volume"
+    rows.append((native_label, _row("Armature: many characters", lambda: scene(False), frames, report)))
+    t = Table(f"(m) playback: {count} objects of ~{n_target:,} vertices, each skinned by its own armature "
+              f"({m} keyed bones), {frames} frames",
+              ["method", "per frame", "frames/s", "ours ÷ native", "check"])
+    mine = rows[0][1] if len(rows) == 2 else None
+    for label, s in rows:
+        if s is None:
+            continue
+        ratio = fmt_ratio(mine.median, s.median) if mine is not None and label == native_label else "1.00×"
+        t.add(label, fmt_ms(s.median), f"{1.0 / s.median:.1f}", ratio, f"{s.stale} stale" if s.stale else "")
+    t.notes.append("as above, the controls are each armature's keyed pose bones; ratio: ours ÷ Armature")
+    report.tables.append(t)
+    native_s = dict(rows).get(native_label)
+    if mine is not None and native_s is not None:
+        report.summary.append(f"(m) {count} characters of ~{n_target:,} vertices, {m} keyed bones each: ours "
+                              f"{fmt_ms(mine.median)} per frame, Armature (Preserve Volume) "
+                              f"{fmt_ms(native_s.median)} ({fmt_ratio(mine.median, native_s.median)}).")

@@ -15,7 +15,8 @@ handler and Blender's re-evaluation included) — median of `--reps` repetitions
   (m) many deformed objects: playback of 10 objects of ~5k vertices with 4 keyed probes each, ours
       vs the same rigs built with Hooks; with the floor of this design (a handler that only writes,
       our modifier and Blender's re-evaluation left), the same rigs baked to PC2, and our compiled
-      per-vertex map alone;
+      per-vertex map alone; and 10 characters each skinned by its own armature, ours vs the Armature
+      modifier (Preserve Volume);
   (s) shape preservation: a bar bent 90° / 180° and twisted 270° by two bones, Suzanne's cage pulled:
       volume, edge distortion, roughness and update time, ours vs Armature (Preserve Volume) and Mesh
       Deform.
