@@ -349,3 +349,13 @@ def test_renaming_targets_controls_and_modifiers_changes_nothing(asset, bl, tmp_
     assert_plays_as(body_positions(bl, renamed), reference, "posed_")
     save_and_reopen(tmp_path / "renamed.blend")
     assert_plays_as(body_positions(bl, renamed), reference, "posed_")
+
+
+def test_every_operator_of_ours_is_undoable_from_the_interface(installed):
+    """The interface pushes an undo step after an operator whose bl_options hold UNDO (the tests here
+    push them by hand): every operator of ours has it, so Ctrl+Z after any of them in the UI restores
+    what these tests restore."""
+    ours = [name for name in dir(bpy.types) if "_OT_affine_" in name]  # registered as <MODULE>_OT_<name>
+    assert len(ours) >= 14
+    missing = [name for name in ours if not {"REGISTER", "UNDO"} <= set(getattr(bpy.types, name).bl_options)]
+    assert missing == []
