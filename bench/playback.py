@@ -260,15 +260,8 @@ def part_m(plan, have_ours: bool, report) -> None:
         if ours.operator_exists(ours.BAKE_OP):
             rows.append((baked_label, _row("baked: many objects", ours_baked, frames, report)))
     rows.append((hook_label, _row("Hooks: many objects", hook_rigs, frames, report)))
-    t = Table(f"(m) playback: {count} objects of ~{n_target:,} vertices, {m} keyed probes each, "
-              f"{frames} frames", ["method", "per frame", "frames/s", "ours ÷ native", "check"])
-    mine = rows[0][1] if rows and rows[0][0].startswith("Affine") else None
-    for label, s in rows:
-        if s is None:
-            continue
-        native_row = mine is not None and label == hook_label
-        ratio = fmt_ratio(mine.median, s.median) if native_row else "1.00×" if s is mine else "—"
-        t.add(label, fmt_ms(s.median), f"{1.0 / s.median:.1f}", ratio, f"{s.stale} stale" if s.stale else "")
+    t, mine = _playback_table(f"(m) playback: {count} objects of ~{n_target:,} vertices, {m} keyed probes "
+                              f"each, {frames} frames", rows, hook_label)
     t.notes.append("one frame = frame_set + settle with every object's probes keyed; ratio: ours ÷ Hooks")
     floor_s = dict(rows).get(floor_label)
     hook_s = dict(rows).get(hook_label)
@@ -302,6 +295,21 @@ def part_m(plan, have_ours: bool, report) -> None:
     _part_m_bones(plan, have_ours, report)
 
 
+def _playback_table(title: str, rows: list[tuple[str, Samples | None]], native_label: str
+                    ) -> tuple[Table, Samples | None]:
+    """The table of (label, samples) rows, ours first (its label starts with 'Affine'): the native row
+    gets ours ÷ native, ours 1.00×, the others (floors, variants of ours) a dash. Returns (table, ours)."""
+    t = Table(title, ["method", "per frame", "frames/s", "ours ÷ native", "check"])
+    mine = rows[0][1] if rows and rows[0][0].startswith("Affine") else None
+    for label, s in rows:
+        if s is None:
+            continue
+        native_row = mine is not None and label == native_label
+        ratio = fmt_ratio(mine.median, s.median) if native_row else "1.00×" if s is mine else "—"
+        t.add(label, fmt_ms(s.median), f"{1.0 / s.median:.1f}", ratio, f"{s.stale} stale" if s.stale else "")
+    return t, mine
+
+
 def _part_m_bones(plan, have_ours: bool, report) -> None:
     """(m) the crowd as characters: each of the objects skinned by its own armature (a chain of
     `plan.m_probes` bones, keyed), our bone deformer vs the Armature modifier with Preserve Volume."""
@@ -325,15 +333,8 @@ def _part_m_bones(plan, have_ours: bool, report) -> None:
         rows.append((f"Affine bones (ours), {m} per object", ours_row))
     native_label = f"Armature ×{m} bones per object, Preserve Volume"
     rows.append((native_label, _row("Armature: many characters", lambda: scene(False), frames, report)))
-    t = Table(f"(m) playback: {count} objects of ~{n_target:,} vertices, each skinned by its own armature "
-              f"({m} keyed bones), {frames} frames",
-              ["method", "per frame", "frames/s", "ours ÷ native", "check"])
-    mine = rows[0][1] if len(rows) == 2 else None
-    for label, s in rows:
-        if s is None:
-            continue
-        ratio = fmt_ratio(mine.median, s.median) if mine is not None and label == native_label else "1.00×"
-        t.add(label, fmt_ms(s.median), f"{1.0 / s.median:.1f}", ratio, f"{s.stale} stale" if s.stale else "")
+    t, mine = _playback_table(f"(m) playback: {count} objects of ~{n_target:,} vertices, each skinned by its "
+                              f"own armature ({m} keyed bones), {frames} frames", rows, native_label)
     t.notes.append("as above, the controls are each armature's keyed pose bones; ratio: ours ÷ Armature")
     report.tables.append(t)
     native_s = dict(rows).get(native_label)

@@ -54,6 +54,7 @@ from .base import (
     ignored_note,
     single_selected,
 )
+from .batching import Batch, BatchedKind, keep_rows
 from .bone_tools import DEFAULT_INFLUENCES, deform_bones
 from .services import control_picker, on_preview_option
 from .transforms import (
@@ -233,10 +234,6 @@ class _Reading:
     missing: str  # a bone the armature does not have ('' when none)
 
 
-#: Motions read by `BoneKind.prefetch`, by (object session uid, deformer uid): (depsgraph, motions).
-_prefetched: dict[tuple[int, str], tuple[bpy.types.Depsgraph, Motions]] = {}
-
-
 def _read(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions | _Reading:
     """Read the deformer's bones from the evaluated `depsgraph` and look their rows up in the memo;
     Motions at once for a problem with the armature or the objects' transforms."""
@@ -282,12 +279,7 @@ def _fill(readings: list[_Reading]) -> None:
                           np.stack([miss[2] for _, miss in misses]),
                           np.stack([miss[3] for _, miss in misses]), [miss[4] for _, miss in misses],
                           [miss[5] for _, miss in misses])
-    if len(_rows) + len(misses) > ROW_MEMO_SIZE:
-        _rows.clear()
-    for (reading, (name, key, *_)), row in zip(misses, computed, strict=True):
-        _rows[key] = reading.rows[name] = row
-    for reading in readings:
-        reading.misses = []
+    keep_rows(_rows, ROW_MEMO_SIZE, misses, computed)
 
 
 def _finish(reading: _Reading) -> Motions:
@@ -316,6 +308,9 @@ def _finish(reading: _Reading) -> Motions:
         chain.references = chain.pivots = None
     return Motions(matrices, np.array([r.at_rest for r in chosen]), chain=chain,
                    pool=_pool_mix(chain.parents, _pool_scales(deformer)))
+
+
+_batch = Batch(_read, _fill, _finish)
 
 
 def _bone_rows(frame_matrix: np.ndarray, frame_inverse: np.ndarray, poses: np.ndarray, rests: np.ndarray,
@@ -397,8 +392,10 @@ def _rest_inverse(rest: np.ndarray) -> tuple[np.ndarray, bool]:
     return found
 
 
-class BoneKind(DeformerKind):
+class BoneKind(BatchedKind, DeformerKind):
     """An Armature object's pose bones (all deform bones, or a chosen set) drive the mesh."""
+
+    batch = _batch
 
     id = bone_tools.BONE
     label = "Bone"
@@ -509,33 +506,6 @@ class BoneKind(DeformerKind):
                            "or choose distance weights")
         return indices, values, warning
 
-    def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
-        found = _prefetched.pop((obj.session_uid, deformer.uid), None)
-        if found is not None and found[0] is depsgraph:
-            return found[1]
-        reading = _read(obj, deformer, depsgraph)
-        if isinstance(reading, Motions):
-            return reading
-        _fill([reading])
-        return _finish(reading)
-
-    def prefetch(self, pairs: list[tuple[bpy.types.Object, object]],
-                 depsgraph: bpy.types.Depsgraph) -> list[tuple[object, Motions]]:
-        """Read every listed deformer's bones and compute the rows of all that moved in one batch
-        (`_fill`), as kinds.probe does; the motions wait for `current_motions` of the same update."""
-        readings = [r for r in (_read(obj, deformer, depsgraph) for obj, deformer in pairs)
-                    if isinstance(r, _Reading)]
-        _fill(readings)
-        out = []
-        for reading in readings:
-            motions = _finish(reading)
-            if not motions.error:
-                _prefetched[(reading.obj.session_uid, reading.deformer.uid)] = (depsgraph, motions)
-                out.append((reading.deformer, motions))
-        return out
-
-    def drop_prefetched(self) -> None:
-        _prefetched.clear()
 
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
         armature = deformer.armature
@@ -589,7 +559,7 @@ def _forget(_key: caches.Key | None) -> None:
     _rows.clear()
     _rest_frames.clear()
     _rest_inverses.clear()
-    _prefetched.clear()
+    _batch.drop()
     _pool_mixes.clear()
 
 

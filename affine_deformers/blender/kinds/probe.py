@@ -32,6 +32,7 @@ from .base import (
     Motions,
     ignored_note,
 )
+from .batching import Batch, BatchedKind, keep_rows
 from .probe_tools import group_names, new_probe, probe_label, selected_probes
 from .services import on_preview_option
 from .transforms import (
@@ -85,7 +86,7 @@ def rest_matrices(deformer) -> np.ndarray:
     return flat.reshape(-1, 4, 4)
 
 
-class ProbeKind(DeformerKind):
+class ProbeKind(BatchedKind, DeformerKind):
     """Probes: any objects (normally Empties) whose motion drives the mesh."""
 
     id = probe_tools.PROBE
@@ -153,36 +154,6 @@ class ProbeKind(DeformerKind):
                 warning = ("No vertex group named " + ", ".join(f"'{n}'" for n in missing)
                            + ": paint one per probe, named after it (those probes have no influence)")
         return indices, values, warning
-
-    def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
-        found = _prefetched.pop((obj.session_uid, deformer.uid), None)
-        if found is not None and found[0] is depsgraph:
-            return found[1]
-        reading = _read(obj, deformer, depsgraph)
-        if isinstance(reading, Motions):
-            return reading
-        _fill([reading])
-        return _finish(reading)
-
-    def prefetch(self, pairs: list[tuple[bpy.types.Object, object]],
-                 depsgraph: bpy.types.Depsgraph) -> list[tuple[object, Motions]]:
-        """Read every listed deformer's probes and compute the rows of all that moved in one batch
-        (`_fill`): on a scene of many deformed objects the per-row numpy work is shared instead of
-        repeated per object. The motions wait for `current_motions` of the same update (same
-        `depsgraph`) and are dropped by `drop_prefetched`; returns (deformer, motions) of those read."""
-        readings = [r for r in (_read(obj, deformer, depsgraph) for obj, deformer in pairs)
-                    if isinstance(r, _Reading)]
-        _fill(readings)
-        out = []
-        for reading in readings:
-            motions = _finish(reading)
-            if not motions.error:
-                _prefetched[(reading.obj.session_uid, reading.deformer.uid)] = (depsgraph, motions)
-                out.append((reading.deformer, motions))
-        return out
-
-    def drop_prefetched(self) -> None:
-        _prefetched.clear()
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
         """The selected Empties; none selected: one new Empty at the mesh's origin."""
@@ -255,7 +226,7 @@ def _forget(_key: caches.Key | None) -> None:
     _rows.clear()
     _rest_inverses.clear()
     _pools.clear()
-    _prefetched.clear()
+    _batch.drop()
 
 
 @dataclass(frozen=True)
@@ -303,10 +274,6 @@ class _Reading:
     rows: list[_ProbeRow | None]
     misses: list[tuple[int, tuple, np.ndarray, tuple, str, tuple]]
     problem: str
-
-
-#: Motions read by `ProbeKind.prefetch`, by (object session uid, deformer uid): (depsgraph, motions).
-_prefetched: dict[tuple[int, str], tuple[bpy.types.Depsgraph, Motions]] = {}
 
 
 def _read(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions | _Reading:
@@ -378,12 +345,7 @@ def _fill(readings: list[_Reading]) -> None:
                            np.stack([reading.rests[miss[0]] for reading, miss in misses]),
                            [reading.rest_modes[miss[0]] for reading, miss in misses],
                            np.stack([reading.rest_rotations[miss[0]] for reading, miss in misses]))
-    if len(_rows) + len(misses) > ROW_MEMO_SIZE:
-        _rows.clear()
-    for (reading, (i, key, *_)), row in zip(misses, computed, strict=True):
-        _rows[key] = reading.rows[i] = row
-    for reading in readings:
-        reading.misses = []
+    keep_rows(_rows, ROW_MEMO_SIZE, misses, computed)
 
 
 def _finish(reading: _Reading) -> Motions:
@@ -405,6 +367,9 @@ def _finish(reading: _Reading) -> Motions:
                          np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
     return Motions(np.stack([r.matrix for r in rows]), np.array([r.at_rest for r in rows]), turns=turns,
                    pool=pool_coefficients(deformer))
+
+
+_batch = ProbeKind.batch = Batch(_read, _fill, _finish)
 
 
 def _probe_rows(target_world: np.ndarray, worlds: np.ndarray, channels: list[tuple[float, ...]],
