@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import traceback
+from collections.abc import Container
 
 import bpy
 import numpy as np
@@ -142,13 +143,14 @@ def blocking_error(obj: bpy.types.Object, deformer) -> str:
 
 
 def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None = None,
-                    skip_disabled: bool = False) -> list[str]:
+                    skip: Container[tuple[int, str]] = ()) -> list[str]:
     """Evaluate every deformer of `obj`; returns their statuses. Objects in Edit Mode are left alone
     (their mesh data is not in sync). For scripts: call `bpy.context.evaluated_depsgraph_get()`
     afterwards to see the written offsets in the evaluated mesh.
 
-    `skip_disabled` (the handlers' updates): a deformer whose modifier is disabled in `depsgraph`'s
-    mode (the Viewport or Render toggle; a baked deformer is both) keeps its last output and costs
+    `skip`: (object session uid, deformer uid) of deformers left as they are. The handlers' updates
+    (`run`) skip those whose modifier is disabled in `depsgraph`'s mode (`disabled`: the Viewport or
+    Render toggle; a baked deformer has both off): such a deformer keeps its last output and costs
     nothing, as a disabled modifier does; enabling it again is a depsgraph update, which evaluates
     it, and its signature (caches.signatures) says whether the kept output is still right."""
     if depsgraph is None:
@@ -162,7 +164,7 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
     hooks.run_before_object(obj)  # e.g. renamed controls' groups, the weight preview (weight_groups.py)
     statuses = []
     for deformer in obj.affine_deformers:
-        if skip_disabled and disabled(obj, deformer, depsgraph):
+        if (obj.session_uid, deformer.uid) in skip:
             statuses.append(deformer.status)
             continue
         try:
@@ -214,9 +216,11 @@ def run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None) -> None:
     try:
         shown = _shown_elsewhere(scene, depsgraph)
         objects = [obj for obj in scene.objects if len(obj.affine_deformers) and not shown(obj)]
-        _prefetch(objects, depsgraph)
+        off = {(obj.session_uid, deformer.uid) for obj in objects for deformer in obj.affine_deformers
+               if disabled(obj, deformer, depsgraph)}
+        _prefetch(objects, depsgraph, off)
         for obj in objects:
-            evaluate_object(obj, depsgraph, skip_disabled=True)
+            evaluate_object(obj, depsgraph, skip=off)
     except Exception:
         traceback.print_exc()
     finally:
@@ -224,7 +228,8 @@ def run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None) -> None:
         _busy = False
 
 
-def _prefetch(objects: list[bpy.types.Object], depsgraph: bpy.types.Depsgraph) -> None:
+def _prefetch(objects: list[bpy.types.Object], depsgraph: bpy.types.Depsgraph,
+              off: Container[tuple[int, str]]) -> None:
     """Read the controls of every deformer this update evaluates, kind by kind in one batch
     (DeformerKind.prefetch), and fill the parameter memo for all of them at once (params.prefetch):
     with many deformed objects the per-control numpy work is shared instead of repeated per object.
@@ -237,7 +242,7 @@ def _prefetch(objects: list[bpy.types.Object], depsgraph: bpy.types.Depsgraph) -
                 continue
             for deformer in obj.affine_deformers:
                 if (deformer.is_bound and kinds.get(deformer.kind) is not None
-                        and not disabled(obj, deformer, depsgraph)):
+                        and (obj.session_uid, deformer.uid) not in off):
                     by_kind.setdefault(deformer.kind, []).append((obj, deformer))
         if sum(len(pairs) for pairs in by_kind.values()) < 2:
             return
