@@ -188,13 +188,14 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
 
 def disabled(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> bool:
     """Whether the deformer's modifier exists and is disabled in `depsgraph`'s mode (a missing
-    modifier is not: the update reports it)."""
-    if obj.type != "MESH":
+    modifier is not: the update reports it). Never raises (a failure counts as enabled: the
+    update's own checks then speak)."""
+    try:
+        mod = outputs.modifier(obj, deformer.uid) if obj.type == "MESH" else None
+        return mod is not None and not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport)
+    except Exception:
+        traceback.print_exc()
         return False
-    mod = outputs.modifier(obj, deformer.uid)
-    if mod is None:
-        return False
-    return not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport)
 
 
 def evaluate_all(scene: bpy.types.Scene | None = None, depsgraph: bpy.types.Depsgraph | None = None) -> None:
