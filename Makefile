@@ -13,8 +13,8 @@ NATIVE_INPUTS := csrc/affine_kernel.c csrc/affine_solve.c csrc/affine_kernel.h c
 	tools/build_native.py \
 	affine_deformers/accel/native.py blender_manifest.toml
 
-.PHONY: all demo test test-core test-blender bench build release lint venv venv-lts native native-all \
-	samples clean
+.PHONY: all demo test test-core test-blender bench pipeline build release lint venv venv-lts native \
+	native-all samples clean
 
 all: test
 
@@ -84,6 +84,12 @@ test-blender: build
 
 bench: build
 	$(PY) bench/run.py --markdown docs/benchmarks.md
+
+# The pipeline matrix of issue 47 (tests/blender/test_pipeline_matrix.py) into docs/pipeline.md: the
+# same test `make test` runs, told where to write its tables; it fails when a cell is wrong.
+pipeline: build
+	AFFINE_PIPELINE_MARKDOWN=$(abspath docs/pipeline.md) $(PY) -m pytest tests/blender/test_pipeline_matrix.py \
+		-q -p no:cacheprovider
 
 lint: venv
 	$(PY) -m ruff check .

@@ -425,12 +425,14 @@ class Instrument:
 @contextlib.contextmanager
 def write_only_updates():
     """Replace our update (`evaluate.run`, which every handler calls) by one that only writes a
-    constant offset per frame into each deformer's offset attribute: no control is read, nothing is
+    constant offset per frame into each deformer's offset attribute, and the frame stamp (frame_check.py):
+    no control is read, nothing is
     computed. What is left of a frame is the floor of this design — the handler's writes and
     Blender's re-evaluation of the meshes and of our Geometry Nodes modifier — which no faster
     computation can go below."""
     evaluate = sys.modules[f"{INNER}.blender.evaluate"]
     storage = sys.modules[f"{INNER}.blender.storage"]
+    frame_check = sys.modules[f"{INNER}.blender.frame_check"]
     real = evaluate.run
 
     def write_only(scene: bpy.types.Scene, _depsgraph) -> None:
@@ -442,6 +444,8 @@ def write_only_updates():
             for deformer in getattr(obj, "affine_deformers", ()):
                 offsets = np.full((len(mesh.vertices), 3), value, dtype=np.float32)
                 storage.write_offsets_unchecked(mesh, deformer.uid, offsets)
+                # the frame check's stamp, as every real update writes it (frame_check.py)
+                storage.write_frame(mesh, deformer.uid, frame_check.scene_time(scene))
 
     evaluate.run = write_only
     try:

@@ -34,7 +34,7 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
-from . import binding, carrier, evaluate, nodes, relations, storage
+from . import binding, carrier, carrier_input, evaluate, nodes, relations, storage
 from .addressing import DeformerIndexed, active_target
 from .bake_targets import TARGETS, BakeError, default_filepath, remove_artifacts, resolve_cache_path
 from .pc2 import PC2Error
@@ -110,7 +110,7 @@ def _modifiers_above(obj: bpy.types.Object, modifier: bpy.types.Modifier) -> lis
     for mod in obj.modifiers:
         if mod == modifier:
             break
-        if mod.show_viewport or mod.show_render:
+        if (mod.show_viewport or mod.show_render) and not carrier_input.is_input_modifier(mod):
             names.append(mod.name)
     return names
 

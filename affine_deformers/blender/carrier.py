@@ -5,9 +5,13 @@ target object becomes a local override, but its mesh stays linked: its attribute
 (writes to linked and override meshes are silently dropped by Blender, and Mesh data is not
 overridable, so nothing written there would be saved either). The per-frame output of such a target
 goes to a **carrier**: a hidden local mesh object in no scene, one point per target vertex, holding
-the same offset / motion attributes the mesh would. Our modifier names it on the group's "Output
-Carrier" input (modifier inputs are overridable, so the pointer is saved with the override) and
-reads the attributes from it by point index (nodes.py, version 4). Local targets never get one.
+the same offset / motion attributes the mesh would. An input modifier per deformer, first in the
+stack (carrier_input.py), copies them onto the mesh's points before any other modifier runs, so a
+Mirror, Subdivision, Array… before ours carries them as in the asset; our modifier then reads the
+geometry's own attributes, as on a local target. Shots saved by the previous version named the
+carrier on our modifier itself (nodes.py, version 4: read by point index, which tore the mesh after
+a modifier that changes the points): `ensure` moves them to the input modifier. Local targets never
+get a carrier.
 
 The bind data (weights, rest data) stay on the linked mesh, read-only: everything that would rewrite
 them (bind, re-weight, apply, paint) is refused on such a target (addressing.target_problem).
@@ -17,15 +21,16 @@ the hierarchy is overridden Blender points them at the controls' overrides and s
 overridden while the add-on was disabled (or by an older version) still names the linked controls:
 `remap_controls` points them at the override of the same control in the same hierarchy.
 
-An asset saved by an older version has a version-3 group, linked and read-only, without the carrier
-input: the target cannot follow its controls in the shot, and `problem` says what to do.
+An asset saved by a version before 0.2 (a group of version 1 or 2, linked and read-only) has no
+motion inputs: its modifier cannot apply what the input modifier copies, and `problem` says what to
+do. Groups of version 3 on work.
 """
 
 from __future__ import annotations
 
 import bpy
 
-from . import binding, kinds, nodes, outputs
+from . import binding, carrier_input, kinds, nodes, outputs, storage
 from .addressing import library_name
 
 MARK = "affine_deformers_carrier"  # custom property on the carrier objects we own
@@ -41,15 +46,6 @@ def needs_carrier(obj: bpy.types.Object) -> bool:
     return mesh.library is not None or mesh.override_library is not None
 
 
-def _our_modifiers(obj: bpy.types.Object) -> list[bpy.types.NodesModifier]:
-    mods = []
-    for deformer in obj.affine_deformers:
-        mod = outputs.modifier(obj, deformer.uid) if deformer.uid else None
-        if mod is not None:
-            mods.append(mod)
-    return mods
-
-
 def problem(obj: bpy.types.Object, deformer) -> str:
     """Why deformer `deformer` of `obj` (linked, or needing a carrier) cannot follow its controls
     here, or ''."""
@@ -57,10 +53,11 @@ def problem(obj: bpy.types.Object, deformer) -> str:
     if mod is not None and not (mod.show_viewport or mod.show_render):
         return ""  # muted (e.g. baked in the asset: a Mesh Cache plays instead): nothing is stale
     if obj.library is not None:  # nothing of it is local: no carrier can be named on its modifier
-        return (f"'{obj.name}' is linked from '{library_name(obj)}' without a library override: it shows "
-                "the shape saved in that file. Make a library override (Object ▸ Library Override ▸ "
+        return (f"'{obj.name}' is linked from '{library_name(obj)}' without a library override: its "
+                "deformation cannot update here (an animated one shows its input at frames other than "
+                "the one that file was saved at). Make a library override (Object ▸ Library Override ▸ "
                 "Make) to animate it, or bake it in that file")
-    if mod is None or nodes.has_carrier_input(mod):
+    if mod is None or nodes.has_motion_inputs(mod):
         return ""
     group = mod.node_group
     return (f"'{obj.name}' uses the node group '{group.name}' saved in '{library_name(group)}' by an older "
@@ -70,40 +67,48 @@ def problem(obj: bpy.types.Object, deformer) -> str:
 
 
 def ensure(obj: bpy.types.Object, create: bool = True) -> bpy.types.Object | None:
-    """The carrier of `obj` (made when missing and `create`), with one point per vertex of its mesh,
-    named on every modifier of ours on `obj` that has the input; None when there is none."""
-    mods = [mod for mod in _our_modifiers(obj) if nodes.has_carrier_input(mod)]
+    """The carrier of `obj`, with one point per vertex of its mesh, named on the input modifier of
+    every deformer of `obj` (carrier_input.py) — made, resized and set up when missing and `create`;
+    without `create` nothing is changed, and None is returned unless all is in place (a render frame
+    may create no ID and edit no stack). None when `obj` has no modifier of ours."""
+    mods = {storage.offset_name(d.uid): mod for d in obj.affine_deformers if d.uid
+            for mod in [outputs.modifier(obj, d.uid)] if mod is not None}
     if not mods:
         return None
-    found = next((c for c in map(nodes.carrier_of, mods) if c is not None), None)
-    if found is not None and _shared(found, obj, mods):
+    inputs = [m for m in obj.modifiers if carrier_input.offset_of(m) in mods]
+    found = next((c for c in map(nodes.carrier_of, inputs + list(mods.values())) if c is not None), None)
+    if found is not None and _shared(found, obj):
         found = None  # a copy of the object (Shift+D of an override) names its original's carrier
+    count = len(obj.data.vertices)
+    if not create:
+        ready = (found is not None and found.library is None and found.type == "MESH" and found.get(MARK)
+                 and len(found.data.vertices) == count and len(inputs) == len(mods)
+                 and all(nodes.carrier_of(m) == found for m in inputs))
+        return found if ready else None
     if found is None or found.library is not None or found.type != "MESH" or not found.get(MARK):
-        if not create:
-            return None
         name = NAME.format(obj.name)
         found = bpy.data.objects.new(name, bpy.data.meshes.new(name))
         found[MARK] = True
-    count = len(obj.data.vertices)
     if len(found.data.vertices) != count:
-        if not create:
-            return None
         old = found.data
         mesh = bpy.data.meshes.new(old.name)
         mesh.vertices.add(count)  # the points' positions are never read, only their attributes
         found.data = mesh
         if old.users == 0:
             bpy.data.meshes.remove(old)
-    for mod in mods:
-        nodes.set_carrier(mod, found)
+    carrier_input.remove_stale(obj, set(mods))
+    for offset_attr, mod in mods.items():
+        carrier_input.ensure_modifier(obj, offset_attr, found, mod.name)
+        nodes.set_carrier(mod, None)  # read the geometry's own attributes, which the input copied
     return found
 
 
-def _shared(found: bpy.types.Object, obj: bpy.types.Object, mods: list) -> bool:
+def _shared(found: bpy.types.Object, obj: bpy.types.Object) -> bool:
     """Whether another object with deformers names `found` on a modifier too (a copy of `obj`; the
     bake's stand-in, which has no deformers, reads it on purpose). Its users are the modifiers naming
     it, so the scan runs only when it has more users than `obj` has naming modifiers."""
-    if found.users <= sum(nodes.carrier_of(mod) == found for mod in mods):
+    own = sum(nodes.carrier_of(mod) == found for mod in obj.modifiers if mod.type == "NODES")
+    if found.users <= own:
         return False
     return any(nodes.carrier_of(mod) == found for other in bpy.data.objects
                if other != obj and len(other.affine_deformers)

@@ -25,7 +25,19 @@ from collections.abc import Container
 import bpy
 import numpy as np
 
-from . import binding, blend, caches, carrier, hooks, kinds, outputs, shape_pass, snapshot, storage
+from . import (
+    binding,
+    blend,
+    caches,
+    carrier,
+    frame_check,
+    hooks,
+    kinds,
+    outputs,
+    shape_pass,
+    snapshot,
+    storage,
+)
 from . import bound as bound_data
 from .caches import forget
 from .params import motions_to_params
@@ -67,7 +79,9 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     hooks.run_inputs_read(obj, deformer, snap, depsgraph)  # e.g. the controls' states (weight_groups.py)
     key = (obj.session_uid, deformer.uid)
     signature = snap.signature()
+    create = depsgraph.mode != "RENDER"  # no ID is made during a render frame (on_render_start makes them)
     if caches.signatures.get(key) == signature:
+        _stamp(obj, deformer, depsgraph, create)  # the same output may be right at a new frame
         return deformer.status
     error, path, bound = snap.error, snap.path, snap.bound
     output = rows = None
@@ -80,8 +94,8 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         cached = bound_data.cached(obj, deformer)
         if cached is not None:
             cached.written = cached.motions_written = None  # written below without them
-    create = depsgraph.mode != "RENDER"  # no ID is made during a render frame (on_render_start makes them)
     _write(carrier.output_mesh(obj, create), deformer.uid, path, output, rows, None if error else bound)
+    _stamp(obj, deformer, depsgraph, create)
     warning = snap.motions.warning if snap.motions is not None else ""
     status = error or "; ".join(m for m in (warning, deformer.bind_warning) if m)
     set_status(deformer, status)
@@ -135,6 +149,19 @@ def _write(mesh: bpy.types.Mesh | None, uid: str, path: str, output: np.ndarray,
     if storage.remove_output(mesh, uid, keep="OFFSET") and bound is not None:
         bound.motions_written = None
     outputs.write_offsets(mesh, uid, output, rows, bound)
+
+
+def _stamp(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph, create: bool) -> None:
+    """Stamp the deformer's output with the scene time it is right for (frame_check.py): the
+    depsgraph's time, or "every frame" when nothing it depends on changes with time."""
+    mesh = carrier.output_mesh(obj, create)
+    if mesh is None or mesh.library is not None or mesh.override_library is not None:
+        return
+    kind = kinds.get(deformer.kind)
+    controls = kind.controls(obj, deformer) if kind is not None else []
+    value = (frame_check.STAMP_ALWAYS if frame_check.right_at_every_frame(obj, controls)
+             else frame_check.scene_time(depsgraph.scene))
+    frame_check.stamp(mesh, deformer.uid, value)
 
 
 def blocking_error(obj: bpy.types.Object, deformer) -> str:

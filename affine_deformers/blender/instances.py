@@ -1,7 +1,8 @@
 """Linked rigs that are only instanced (a collection linked from an asset file and shown by an Empty,
 without a library override): nothing of them is local, so no per-frame output can be written for them
-(carrier.py needs a local override to name its carrier on), and their meshes show the shape saved in
-the asset file while the linked controls play. They are found here so the artist is told what to do:
+(carrier.py needs a local override to name its carrier on): their meshes show the shape saved in the
+asset file at the frame it was saved at and, when the rig is animated, their modifiers' input at other
+frames (frame_check.py), while the linked controls play. They are found here so the artist is told what to do:
 the console at file load and render start, the panel of the instancing Empty."""
 
 from __future__ import annotations
@@ -31,9 +32,9 @@ def instance_message(obj: bpy.types.Object) -> str:
         return ""
     names = ", ".join(f"'{o.name}'" for o in found[:4]) + (", …" if len(found) > 4 else "")
     return (f"'{obj.name}' instances '{collection.name}' from '{library_name(collection)}': {names} carry "
-            "affine deformers, which cannot update in a linked instance and show the shape saved in that "
-            "file. Make a library override (Object ▸ Library Override ▸ Make) to animate them, or bake "
-            "them in that file")
+            "affine deformers, which cannot update in a linked instance (an animated one shows its input "
+            "at frames other than the one that file was saved at). Make a library override (Object ▸ "
+            "Library Override ▸ Make) to animate them, or bake them in that file")
 
 
 def report(scene: bpy.types.Scene | None) -> list[str]:

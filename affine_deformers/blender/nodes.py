@@ -32,6 +32,15 @@ local target (no carrier) gets exactly the version-3 result. Groups of older ver
 before) are upgraded in place by `upgrade_group`: the inputs are added and the nodes rebuilt;
 modifiers keep their values. A group linked from a library is read-only and is never upgraded: it
 is used as it is (see carrier.py for what a version-3 group linked into a shot means).
+
+Version 5 checks the frame (frame_check.py): the update stamps its output with the scene time it
+was computed for, as a FLOAT point attribute `.affdef_<uid>_frame` (the name derived from the
+offset input's by two Replace String nodes, so no modifier needs a new input), or with
+`STAMP_ALWAYS` when the output is right at every frame. The group compares the stamp with Scene
+Time's frame; when they differ (a file opened where the add-on does not run, at another frame than
+it was saved at) it passes its input through and, where Blender has the Warning node (4.4 on),
+raises a warning on the modifier saying what to do. A missing stamp (output of an older version)
+is trusted as before.
 """
 
 from __future__ import annotations
@@ -39,13 +48,17 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from . import caches
+from . import caches, frame_check
 
 GROUP_NAME = "AffineDeformer"
 GROUP_MARK = "affine_deformers_group"  # custom property identifying our group (value = version)
-GROUP_VERSION = 4
-#: 1: Geometry + Offset Attribute; 2: + Cage and Probes; 3: + Motion X/Y/Z/T; 4: + Output Carrier
-KNOWN_VERSIONS = (1, 2, 3, 4)
+GROUP_VERSION = 5
+#: 1: Geometry + Offset Attribute; 2: + Cage and Probes; 3: + Motion X/Y/Z/T; 4: + Output Carrier;
+#: 5: the frame check (no new input)
+KNOWN_VERSIONS = (1, 2, 3, 4, 5)
+#: Set on a group built with the Warning node (Blender 4.4 on): a group built by an older Blender
+#: (the samples are saved by 4.2) is rebuilt where the node exists, so the warning shows there.
+WARNS_MARK = "affine_deformers_warns"
 OFFSET_SOCKET = "Offset Attribute"
 CAGE_SOCKET = "Cage"
 PROBES_SOCKET = "Probes"
@@ -153,6 +166,7 @@ def is_current(ng: bpy.types.NodeTree | None) -> bool:
 
 def _has_managed_inputs(ng: bpy.types.NodeTree, identifiers: dict[tuple[str, str], str]) -> bool:
     return (ng.get(GROUP_MARK) == GROUP_VERSION
+            and bool(ng.get(WARNS_MARK)) == frame_check.HAS_WARNING_NODE
             and all((name, kind) in identifiers for name, kind, _ in _MANAGED_INPUTS))
 
 
@@ -170,6 +184,7 @@ def upgrade_group(ng: bpy.types.NodeTree) -> bool:
             socket.hide_in_modifier = True  # managed by the add-on: a hand-picked value would go stale
     _build_nodes(ng)
     ng[GROUP_MARK] = GROUP_VERSION
+    ng[WARNS_MARK] = frame_check.HAS_WARNING_NODE
     return True
 
 
@@ -186,7 +201,7 @@ def _build_nodes(ng: bpy.types.NodeTree) -> None:
     nodes.clear()
     group_in = nodes.new("NodeGroupInput")
     group_out = nodes.new("NodeGroupOutput")
-    group_in.location, group_out.location = (-1100, 0), (900, 0)
+    group_in.location, group_out.location = (-1100, 0), (1300, 0)
     info = nodes.new("GeometryNodeObjectInfo")
     info.transform_space = "ORIGINAL"  # positions of the carrier do not matter, only its attributes
     info.location = (-900, -900)
@@ -206,13 +221,28 @@ def _build_nodes(ng: bpy.types.NodeTree) -> None:
     index.location = (-900, -1200)
     own = _build_chain(ng, group_in, None, None, 0)
     sampled = _build_chain(ng, group_in, info.outputs["Geometry"], index.outputs[0], -1400)
-    switch = nodes.new("GeometryNodeSwitch")
-    switch.input_type = "GEOMETRY"
-    switch.location = (700, 0)
-    links.new(has_points.outputs[0], switch.inputs["Switch"])
-    links.new(own, switch.inputs["False"])
-    links.new(sampled, switch.inputs["True"])
-    links.new(switch.outputs[0], group_out.inputs[0])
+    on_carrier = has_points.outputs[0]
+    deformed = _switch(ng, "GEOMETRY", on_carrier, own, sampled, (700, 0))
+    stamp_name = frame_check.stamp_name_socket(ng, group_in.outputs[OFFSET_SOCKET], (-900, 500))
+    own_stale = frame_check.stale_socket(ng, group_in.outputs[0], stamp_name, (-500, 700))
+    carrier_stale = frame_check.stale_socket(ng, info.outputs["Geometry"], stamp_name, (-500, 900))
+    stale = _switch(ng, "BOOLEAN", on_carrier, own_stale, carrier_stale, (100, 700))
+    shown = frame_check.pass_through_when_stale(ng, stale, group_in.outputs[0], deformed, (900, 300))
+    links.new(shown, group_out.inputs[0])
+
+
+def _switch(ng: bpy.types.NodeTree, input_type: str, condition: bpy.types.NodeSocket,
+            false: bpy.types.NodeSocket, true: bpy.types.NodeSocket,
+            location: tuple[float, float]) -> bpy.types.NodeSocket:
+    """A Switch node of `input_type` giving `true` when `condition`, else `false` (lazy: only the
+    chosen input is evaluated)."""
+    node = ng.nodes.new("GeometryNodeSwitch")
+    node.input_type = input_type
+    node.location = location
+    ng.links.new(condition, node.inputs["Switch"])
+    ng.links.new(false, node.inputs["False"])
+    ng.links.new(true, node.inputs["True"])
+    return node.outputs[0]
 
 
 def _read_vector(ng: bpy.types.NodeTree, name: bpy.types.NodeSocket, carrier: bpy.types.NodeSocket | None,
@@ -396,15 +426,17 @@ def set_controls(mod: bpy.types.NodesModifier, cage: bpy.types.Object | None,
     return changed
 
 
-def has_carrier_input(mod: bpy.types.NodesModifier) -> bool:
-    """Whether our modifier's group has the carrier input (version 4 on; a group linked from an asset
-    saved by an older version has not, and cannot be upgraded here)."""
+def has_motion_inputs(mod: bpy.types.NodesModifier) -> bool:
+    """Whether our modifier's group applies motions (version 3 on; a group linked from an asset saved
+    by an older version may not, and cannot be upgraded here)."""
     ng = mod.node_group
-    return ng is not None and _input_identifier(ng, CARRIER_SOCKET, "NodeSocketObject") is not None
+    return ng is not None and all(_input_identifier(ng, name, "NodeSocketString") is not None
+                                  for name in MOTION_SOCKETS)
 
 
 def carrier_of(mod: bpy.types.NodesModifier) -> bpy.types.Object | None:
-    """The object named on our modifier's carrier input (None: none, or no such input)."""
+    """The object named on the carrier input of a modifier of ours (the deformer's, or its input
+    modifier: carrier_input.py); None: none, or no such input."""
     ng = mod.node_group
     identifier = _input_identifier(ng, CARRIER_SOCKET, "NodeSocketObject") if ng is not None else None
     value = mod.get(identifier) if identifier else None
@@ -412,7 +444,8 @@ def carrier_of(mod: bpy.types.NodesModifier) -> bpy.types.Object | None:
 
 
 def set_carrier(mod: bpy.types.NodesModifier, carrier: bpy.types.Object | None) -> bool:
-    """Name `carrier` on our modifier's carrier input; False when its group has none."""
+    """Name `carrier` (None: nothing) on the carrier input of a modifier of ours; False when its group
+    has none."""
     ng = mod.node_group
     identifier = _input_identifier(ng, CARRIER_SOCKET, "NodeSocketObject") if ng is not None else None
     if identifier is None:

@@ -12,7 +12,7 @@ import bpy
 import numpy as np
 
 from .. import accel
-from . import caches, nodes, storage
+from . import caches, carrier_input, nodes, storage
 from .bound import BoundData
 
 
@@ -69,7 +69,8 @@ def output_path(obj: bpy.types.Object, deformer, rest32: np.ndarray,
     for other in obj.modifiers:
         if other == mod:
             break
-        if other.show_viewport or other.show_render:
+        # An override's input modifiers (carrier_input.py) only copy outputs: the positions stay.
+        if (other.show_viewport or other.show_render) and not carrier_input.is_input_modifier(other):
             before.append(other)
     if not before and keys_keep_rest(obj.data, rest32):
         return "OFFSET", ""

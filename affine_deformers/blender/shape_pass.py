@@ -36,6 +36,10 @@ from .. import accel
 from ..core import arap
 from . import caches
 from .bound import BoundData
+from .validation import settings_problem
+
+#: The deformer settings the pass reads (Iterations: `apply`; Anchor Strength: `factor_for`).
+SETTINGS = ("shape_iterations", "shape_anchor")
 
 
 class ShapePassError(Exception):
@@ -157,7 +161,12 @@ def apply(obj: bpy.types.Object, deformer, bound: BoundData, controls: int, moti
           path: str) -> np.ndarray:
     """The pass on the field's per-vertex motions (4, N, 3) (blend.blend_motions' columns M e_x, M e_y,
     M e_z, t): offsets x − p (N, 3) float64 for the 'OFFSET' path, motions with the correction in their
-    translations (4, N, 3) float32 for 'MOTION'. Raises ShapePassError."""
+    translations (4, N, 3) float32 for 'MOTION'. Raises ShapePassError, also naming a setting of the
+    pass that is not a finite number in its range (validation.py: NaN passes the interface's clamp, a
+    script or a damaged file bypasses it)."""
+    problem = settings_problem(deformer, SETTINGS)
+    if problem:
+        raise ShapePassError(problem)
     factor = factor_for(obj, deformer, bound, controls)
     M = np.asarray(motions, dtype=np.float64)
     p = bound.points

@@ -11,6 +11,11 @@ data, the output path, the deformer's settings and the kernel backend — into a
 
 Every property of a deformer item is either read into the snapshot or declared below with the reason
 it does not need to be (tests/blender/test_structure.py changes each one and checks).
+
+A setting that is not a finite number in its range (validation.py; a script or a damaged file
+bypasses the interface's clamp) is the snapshot's error, naming it: Strength here, the settings the
+weights read (Radius, Exponent, Max Influences, each control's Weight Scale) by the kind when it
+reads its controls, Preserve Shape's by the pass (shape_pass.py); the mesh then shows its input.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from . import kinds, outputs, storage
 from .bound import BoundData
 from .kinds import Motions
 from .kinds.base import PREVIEW, REWEIGHTS
+from .validation import settings_problem
 
 #: Deformer properties the update reads itself: their values are in `Snapshot.settings`.
 SETTINGS = ("strength", "blend_mode", "branch_rule", "bind_generation", "preserve_shape", "shape_iterations",
@@ -105,6 +111,8 @@ def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Sna
     error = precheck(obj, deformer, mod)
     motions = bound = None
     path = "OFFSET"
+    if not error:  # the blend scales every weight by it; a kind checks the settings its weights read
+        error = settings_problem(deformer, ("strength",))
     if not error:
         motions = kinds.get(deformer.kind).current_motions(obj, deformer, depsgraph)
         error = motions.error

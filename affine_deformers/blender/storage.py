@@ -20,6 +20,8 @@ import zlib
 import bpy
 import numpy as np
 
+from .validation import MAX_WEIGHT, values_problem
+
 
 class StorageError(Exception):
     """Bind data on the mesh is missing or inconsistent (the message says what to do)."""
@@ -49,6 +51,11 @@ def offset_name(uid: str) -> str:
 
 
 MOTION_SUFFIXES = ("mx", "my", "mz", "mt")
+
+
+def frame_name(uid: str) -> str:
+    """The attribute holding the scene time deformer `uid`'s output was computed for (frame_check.py)."""
+    return f".affdef_{uid}_frame"
 
 
 def motion_names(uid: str) -> tuple[str, str, str, str]:
@@ -179,6 +186,9 @@ def remove_all(mesh: bpy.types.Mesh, uid: str) -> None:
     """Remove every attribute of deformer `uid`, its output included: the mesh shows the rest shape."""
     remove_bind_data(mesh, uid)
     remove_output(mesh, uid)
+    stamp = mesh.attributes.get(frame_name(uid))
+    if stamp is not None:
+        mesh.attributes.remove(stamp)
     mesh.update_tag()
 
 
@@ -229,28 +239,43 @@ def write_weights(mesh: bpy.types.Mesh, uid: str, indices: np.ndarray, values: n
 
 
 def read_weights(mesh: bpy.types.Mesh, uid: str, n_controls: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sparse weights (indices (N, K) int32, values (N, K) float64) checked against `n_controls`."""
+    """Sparse weights (indices (N, K) int32, values (N, K) float64) checked as bind data: each
+    column a pair of POINT attributes (INT, FLOAT), every index in [0, n_controls), every weight a
+    finite number in [0, validation.MAX_WEIGHT]; StorageError naming the damaged attribute."""
     n = len(mesh.vertices)
     columns_i, columns_w = [], []
     k = 0
     while (a_i := mesh.attributes.get(index_name(uid, k))) is not None:
         a_w = mesh.attributes.get(weight_name(uid, k))
-        if a_w is None or a_i.data_type != "INT" or a_w.data_type != "FLOAT" or a_i.domain != "POINT":
-            raise StorageError("weight attributes are damaged: rebind the deformer")
+        problem = _column_problem(a_i, "INT") or (f"'{weight_name(uid, k)}' is missing" if a_w is None
+                                                  else _column_problem(a_w, "FLOAT"))
+        if problem:
+            raise StorageError(f"weight attributes are damaged ({problem}): rebind the deformer")
         column_i = np.empty(n, dtype=np.int32)
         column_w = np.empty(n, dtype=np.float32)
         a_i.data.foreach_get("value", column_i)
         a_w.data.foreach_get("value", column_w)
+        problem = values_problem(f"'{index_name(uid, k)}'", column_i, 0, max(n_controls, 1) - 1, "vertex")
+        if problem:
+            raise StorageError(f"weights refer to controls that no longer exist ({problem}): "
+                               "rebind the deformer")
+        problem = values_problem(f"'{weight_name(uid, k)}'", column_w, 0.0, MAX_WEIGHT, "vertex")
+        if problem:
+            raise StorageError(f"weight attributes are damaged ({problem}): rebind the deformer")
         columns_i.append(column_i)
         columns_w.append(column_w)
         k += 1
     if k == 0:
         raise StorageError("no bind data on the mesh: rebind the deformer")
-    indices = np.stack(columns_i, axis=1)
-    values = np.stack(columns_w, axis=1).astype(np.float64)
-    if indices.size and (indices.min() < 0 or indices.max() >= max(n_controls, 1)):
-        raise StorageError("weights refer to controls that no longer exist: rebind the deformer")
-    return indices, values
+    return np.stack(columns_i, axis=1), np.stack(columns_w, axis=1).astype(np.float64)
+
+
+def _column_problem(attribute: bpy.types.Attribute, data_type: str) -> str:
+    """Why a stored weight column's attribute is not of `data_type` on the POINT domain ('' if it is)."""
+    if attribute.data_type == data_type and attribute.domain == "POINT":
+        return ""
+    return (f"'{attribute.name}' is {attribute.data_type} on the {attribute.domain} domain, not "
+            f"{data_type} on POINT")
 
 
 def read_offsets(mesh: bpy.types.Mesh, uid: str) -> np.ndarray | None:
@@ -306,6 +331,13 @@ def write_motions(mesh: bpy.types.Mesh, uid: str, motions: np.ndarray) -> None:
         raise StorageError(f"motions must be C-contiguous float32 of shape {shape}")
     for column, name in zip(motions, motion_names(uid), strict=True):
         _point_attribute(mesh, name, "FLOAT_VECTOR").data.foreach_set("vector", column.reshape(-1))
+    mesh.update_tag()
+
+
+def write_frame(mesh: bpy.types.Mesh, uid: str, value: float) -> None:
+    """Write `value` at every point of deformer `uid`'s frame stamp (frame_check.py) and tag the mesh."""
+    _point_attribute(mesh, frame_name(uid), "FLOAT").data.foreach_set(
+        "value", np.full(len(mesh.vertices), value, dtype=np.float32))
     mesh.update_tag()
 
 

@@ -247,3 +247,105 @@ def test_an_unexpected_exception_is_contained(bl, rig, installed, monkeypatch):
     probes[0].location.x = 0.2
     assert np.abs(bl.evaluated_positions(target) - rest).max() > 0.05
     assert deformer.status == ""
+
+
+# --------------------------------------------- settings and stored data a script or a damaged file set (#47)
+
+
+def _deforms(bl, target, rest, deformer):
+    assert np.abs(bl.evaluated_positions(target) - rest).max() > 0.05
+    assert deformer.status == ""
+
+
+@pytest.mark.parametrize("way", ["interface", "ID property"])
+def test_a_nan_weight_scale_is_named_with_its_value(bl, rig, capfd, way):
+    """Was 'Internal error (ValueError …)' and a traceback."""
+    target, _probes, deformer, rest = rig
+    item = deformer.probes[0]
+    if way == "interface":
+        item.weight_scale = float("nan")  # NaN passes the interface's clamp
+    else:
+        item["weight_scale"] = float("nan")
+        bpy.context.scene.frame_set(2)
+    _assert_intact(bl, target, rest)
+    assert deformer.status == ("Probe 'Alpha': Weight Scale is nan (must be a finite number from 0 to "
+                               "1e+06): the mesh shows its input")
+    assert "Traceback" not in capfd.readouterr().err
+    item.weight_scale = 1.0
+    _deforms(bl, target, rest, deformer)
+
+
+def test_preserve_shape_settings_are_named_with_their_value(bl, rig):
+    """Anchor Strength NaN was 'strength must be ≥ 0'; Iterations written past its range would have
+    run 2³¹ − 1 solves."""
+    target, _probes, deformer, rest = rig
+    deformer.preserve_shape = True
+    _deforms(bl, target, rest, deformer)
+    deformer.shape_anchor = float("nan")
+    _assert_intact(bl, target, rest)
+    assert deformer.status == ("Anchor Strength is nan (must be a finite number from 0 to 1e+06): the mesh "
+                               "shows its input")
+    deformer.shape_anchor = 100.0
+    _deforms(bl, target, rest, deformer)
+    deformer["shape_iterations"] = 2**31 - 1  # a script or a damaged file: no clamp
+    bpy.context.scene.frame_set(2)
+    _assert_intact(bl, target, rest)
+    assert deformer.status == "Iterations 2147483647 is out of range (1 to 5): the mesh shows its input"
+    deformer.shape_iterations = 1
+    _deforms(bl, target, rest, deformer)
+
+
+@pytest.mark.parametrize("how", ["location", "scale"])
+def test_a_probe_far_away_is_out_of_range_not_non_finite(bl, rig, how):
+    target, probes, deformer, rest = rig
+    if how == "location":
+        probes[0].location.x = 1e30
+    else:
+        probes[0].scale.x = 1e30
+    _assert_intact(bl, target, rest)
+    assert deformer.status == ("Probe 'Alpha' has a transform out of range (an entry of 1e+30; entries must "
+                               "stay below 1e+30 in magnitude): the mesh shows its rest shape")
+    probes[0].location.x, probes[0].scale.x = 0.0, 1.0
+    _deforms(bl, target, rest, deformer)
+
+
+@pytest.mark.parametrize("way", ["interface", "ID property"])
+def test_a_stored_rest_matrix_sent_far_away_is_named_and_the_mesh_keeps_its_input(bl, rig, way):
+    """Was: the mesh flung 1e30 away, no status."""
+    target, _probes, deformer, rest = rig
+    item = deformer.probes[0]
+    stored = list(item.rest_matrix)
+    if way == "interface":
+        item.rest_matrix = [1e30 if i == 3 else v for i, v in enumerate(stored)]  # its x translation
+    else:
+        item["rest_matrix"][3] = 1e30
+    bpy.context.scene.frame_set(2)
+    _assert_intact(bl, target, rest)
+    assert deformer.status == ("Probe 'Alpha': Rest Matrix has an entry of 1e+30, out of range (entries must "
+                               "stay below 1e+30 in magnitude): the mesh shows its rest shape; rebind the "
+                               "deformer")
+    assert item.state == "INVALID"
+    item.rest_matrix = stored  # no update callback: the next frame change reads it
+    bpy.context.scene.frame_set(3)
+    _deforms(bl, target, rest, deformer)
+
+
+def test_a_stored_rest_matrix_mirrored_against_its_probe_is_named(bl, rig):
+    target, _probes, deformer, rest = rig
+    item = deformer.probes[0]
+    item.rest_matrix = [-v if i == 0 else v for i, v in enumerate(item.rest_matrix)]
+    bpy.context.scene.frame_set(2)
+    _assert_intact(bl, target, rest)
+    assert deformer.status == ("Probe 'Alpha' is mirrored relative to its Rest Matrix (determinant -1, "
+                               "now 1): the mesh shows its rest shape")
+
+
+def test_a_probe_mirrored_at_bind_still_drives_the_mesh(bl):
+    """A probe's rest may be mirrored (an Empty scaled by −1, as mirrored rigs are): its motion is not."""
+    target = bl.uv_sphere(segments=24, rings=12)
+    probe = bl.empty("Mirrored", (0.0, 0.0, 1.0))
+    probe.scale.x = -1.0
+    deformer = bl.add_probe_deformer(target, [probe, bl.empty("Other", (0.0, 0.0, -1.0))])
+    rest = bl.rest_positions(target).copy()
+    probe.location.x = 0.3
+    _deforms(bl, target, rest, deformer)

@@ -416,38 +416,57 @@ def test_a_copied_modifier_on_a_curve_is_removed_with_a_message(bl, capfd):
 
 _OLD_ASSET = _COMMON + _LINK + """
 bpy.ops.wm.open_mainfile(filepath={asset!r}, load_ui=False)
-group = next(ng for ng in bpy.data.node_groups if ng.get("affine_deformers_group") == 4)
-carrier_input = next(item for item in group.interface.items_tree if item.name == "Output Carrier")
-group.interface.remove(carrier_input)  # what an asset saved by version-3 add-ons holds
-group["affine_deformers_group"] = 3
+group = next(ng for ng in bpy.data.node_groups if ng.get("affine_deformers_group") == 5)
+for item in [item for item in group.interface.items_tree if item.name in {dropped!r}]:
+    group.interface.remove(item)  # what an asset saved by an older add-on holds
+group["affine_deformers_group"] = {version!r}
 bpy.ops.wm.save_as_mainfile(filepath={old!r})
 bpy.ops.wm.read_homefile(use_empty=True)
 link_and_override({old!r})
 bpy.context.scene.frame_set(12)
-print("STATUS", override("ProbeBody").affine_deformers[0].status)
+reference = dict(np.load({reference!r}))
+body = override("ProbeBody")
+error = float(np.abs(positions(body) - reference["ProbeBody_12"]).max())
+print("STATUS", body.affine_deformers[0].status)
+print("FIRST", error)
 bpy.ops.wm.save_as_mainfile(filepath={shot!r})
 bpy.ops.wm.open_mainfile(filepath={old!r}, load_ui=False)  # opened with this version: upgraded
 bpy.ops.wm.save_mainfile()
 bpy.ops.wm.open_mainfile(filepath={shot!r}, load_ui=False)
 bpy.context.scene.frame_set(12)
-reference = dict(np.load({reference!r}))
 body = override("ProbeBody")
 error = float(np.abs(positions(body) - reference["ProbeBody_12"]).max())
 print("AFTER", error, repr(body.affine_deformers[0].status))
 """
 
 
-def test_an_asset_saved_by_an_older_version_says_to_resave_it(asset, tmp_path, bl):
+def _old_asset(asset, tmp_path, bl, version: int, dropped: tuple[str, ...]) -> tuple[list[str], str]:
     proc = bl.run_blender(_OLD_ASSET.format(asset=asset["asset"], old=str(tmp_path / "old.blend"),
-                                            shot=str(tmp_path / "shot.blend"), reference=asset["reference"]))
-    status = next(line for line in proc.stdout.splitlines() if line.startswith("STATUS"))
+                                            shot=str(tmp_path / "shot.blend"), reference=asset["reference"],
+                                            version=version, dropped=dropped))
+    lines = proc.stdout.splitlines()
+    after = next(line for line in lines if line.startswith("AFTER")).split()
+    assert float(after[1]) <= TOLERANCE and after[2] == "''", after
+    return lines, next(line for line in lines if line.startswith("STATUS"))
+
+
+def test_an_asset_saved_by_version_3_plays_in_an_override(asset, tmp_path, bl):
+    """A group without the carrier input (0.2 before overrides) applies what the input modifier copies."""
+    lines, status = _old_asset(asset, tmp_path, bl, 3, ("Output Carrier",))
+    assert status == "STATUS ", status
+    first = next(line for line in lines if line.startswith("FIRST")).split()
+    assert float(first[1]) <= TOLERANCE, first
+
+
+def test_an_asset_saved_by_an_older_version_says_to_resave_it(asset, tmp_path, bl):
+    """A group without motion inputs (0.1) cannot apply them: the status says to resave the asset."""
+    lines, status = _old_asset(asset, tmp_path, bl, 2, ("Output Carrier", "Motion X", "Motion Y", "Motion Z",
+                                                        "Motion T"))
     assert "open and save the asset file once with this version of Affine Deformers" in status, status
     assert "or bake it there" in status and "old.blend" in status, status
-    printed = [line for line in proc.stdout.splitlines()
+    printed = [line for line in lines
                if line.startswith("Affine Deformers: ProbeBody") and "older version" in line]
-    assert len(printed) == 1, proc.stdout  # the console says it once, not at every update
-    after = next(line for line in proc.stdout.splitlines() if line.startswith("AFTER")).split()
-    assert float(after[1]) <= TOLERANCE and after[2] == "''", after
+    assert len(printed) == 1, lines  # the console says it once, not at every update
 
 
 _TWO = _COMMON + _LINK + """
@@ -632,7 +651,7 @@ if hasattr(bpy.types.Object, "affine_deformers"):
         body = override(name)
         with bpy.context.temp_override(active_object=body, object=body, selected_objects=[body]):
             assert bpy.ops.object.affine_deformer_unbake(index=0) == {{"FINISHED"}}
-        assert [m.type for m in body.modifiers] == ["NODES"], body.modifiers[:]
+        assert [m.type for m in body.modifiers] == ["NODES", "NODES"], body.modifiers[:]  # input, ours
     print("UNBAKED", json.dumps(errors()))
 """
 
@@ -641,7 +660,9 @@ def test_pc2_bake_on_an_override_plays_without_the_addon_and_unbakes_after_reope
                                                                                   installed):
     shot = str(tmp_path / "shot.blend")
     proc = bl.run_blender(_BAKE_SHOT.format(asset=asset["asset"], folder=str(tmp_path), shot=shot))
-    assert "STACK ProbeBody [('MESH_CACHE', True), ('NODES', False)]" in proc.stdout, proc.stdout
+    # The override's input modifier (carrier_input.py) stays first; the cache takes our modifier's place.
+    assert "STACK ProbeBody [('NODES', True), ('MESH_CACHE', True), ('NODES', False)]" in proc.stdout, \
+        proc.stdout
     plain = bl.run_blender(_BAKED_PLAY.format(enable="", addon=installed.addon, shot=shot,
                                               reference=asset["reference"]))
     baked = _printed(plain, "BAKED")
@@ -673,3 +694,44 @@ def test_a_linked_object_in_the_scene_says_to_override_or_bake(asset, bl):
         assert "Library Override" in status and "bake it" in status, status
         printed = [line for line in proc.stdout.splitlines() if line.startswith(f"Affine Deformers: {name} ")]
         assert len(printed) == 1, proc.stdout  # once, not at every frame
+
+
+_PREVIOUS_SHOT = _COMMON + _LINK + """
+bpy.ops.wm.read_homefile(use_empty=True)
+link_and_override({asset!r})
+bpy.context.scene.frame_set(12)
+nodes = __import__({package!r} + ".blender.nodes", fromlist=["nodes"])
+for name in BODIES:  # what a shot saved by 0.2.0 holds: the carrier named on our modifier itself
+    body = override(name)
+    inputs = [m for m in body.modifiers if m.name.endswith(" Input")]
+    assert len(inputs) == 1 and body.modifiers[0] == inputs[0], body.modifiers[:]
+    found = nodes.carrier_of(inputs[0])
+    body.modifiers.remove(inputs[0])
+    nodes.set_carrier(body.modifiers[-1], found)
+bpy.ops.wm.save_as_mainfile(filepath={shot!r})
+bpy.ops.wm.open_mainfile(filepath={shot!r}, load_ui=False)
+stacks = {{name: [(m.name, m.type, nodes.carrier_of(m) is not None) for m in override(name).modifiers]
+          for name in BODIES}}
+print("STACKS", json.dumps(stacks))
+reference = dict(np.load({reference!r}))
+errors = {{}}
+for frame in (1, 12, 24):
+    bpy.context.scene.frame_set(frame)
+    for name in BODIES:
+        expected = reference[f"{{name}}_{{frame}}"]
+        errors[f"{{name}}/{{frame}}"] = float(np.abs(positions(override(name)) - expected).max())
+print("ERRORS", json.dumps(errors))
+"""
+
+
+def test_a_shot_saved_by_the_previous_version_gets_its_input_modifiers_at_load(asset, tmp_path, bl,
+                                                                               installed):
+    """0.2.0 named the carrier on our modifier (read by point index, torn after a Mirror): at load the
+    carrier moves to an input modifier first in the stack (carrier_input.py) and the shot plays as before."""
+    proc = bl.run_blender(_PREVIOUS_SHOT.format(asset=asset["asset"], reference=asset["reference"],
+                                                shot=str(tmp_path / "shot.blend"), package=installed.package))
+    for name, stack in _printed(proc, "STACKS").items():
+        assert [entry[1:] for entry in stack] == [["NODES", True], ["NODES", False]], (name, stack)
+        assert stack[0][0].endswith(" Input"), stack
+    errors = _printed(proc, "ERRORS")
+    assert max(errors.values()) <= TOLERANCE, errors

@@ -460,7 +460,7 @@ def test_a_file_saved_by_0_1_0_opens_and_deforms_as_before(bl, tmp_path):
     """)
     got = dict(np.load(out))
     assert str(got["status"]) == ";"
-    assert int(got["version"]) == 4, "the node group is upgraded on load"
+    assert int(got["version"]) == 5, "the node group is upgraded on load"
     for name, positions in expected.items():
         assert np.abs(got[name] - positions).max() < 1e-6, name
     assert np.abs(expected["Bar_10"] - expected["Bar_1"]).max() > 1.0, "the fixture deforms"

@@ -40,6 +40,7 @@ from bpy.props import CollectionProperty, IntProperty, PointerProperty
 
 from ...core import hierarchy, unwrap
 from .. import caches, storage
+from ..validation import coordinates_problem, stored_array
 from . import armature_convert, bone_tools
 from .base import (
     INTERFACE,
@@ -67,8 +68,9 @@ from .transforms import (
     motion_problem,
     ordered_matmul,
     rotation_channels,
+    transform_problem,
 )
-from .weighting import control_weights, draw_weight_options
+from .weighting import control_weights, draw_weight_options, weight_settings_problem
 
 REST_SEGMENTS = "bone_rest_segments"  # ID property: (m, 2, 3) float64 heads and tails, target space
 #: A bone whose pose matrix differs from its rest by at most this (relative to the bone's scale of
@@ -76,6 +78,27 @@ REST_SEGMENTS = "bone_rest_segments"  # ID property: (m, 2, 3) float64 heads and
 AT_REST_TOL = 1e-6
 
 _IDENTITY_CHANNELS = {"QUATERNION": (1.0, 0.0, 0.0, 0.0), "AXIS_ANGLE": (0.0, 0.0, 1.0, 0.0)}
+
+
+def settings_problem(deformer) -> str:
+    """The first weight setting of `deformer` or of a bone (its Weight Scale) that is refused, with
+    what the update does ('' when none; kinds/weighting.py `weight_settings_problem`)."""
+    bones = deformer.bones
+    return weight_settings_problem(deformer, bones, lambda i: f"Bone '{bones[i].name}'")
+
+
+def stored_segments(deformer) -> tuple[np.ndarray | None, str]:
+    """(the bones' stored rest segments (m, 2, 3) — heads, tails in the target's space —, '') or
+    (None, what is damaged: not a float array of 6 values per bone, or a coordinate that is not
+    finite or not below MAX_COORDINATE in magnitude)."""
+    stored, problem = stored_array(deformer, REST_SEGMENTS, integer=False)
+    if not problem and stored.size != 6 * len(deformer.bones):
+        problem = f"'{REST_SEGMENTS}' holds {stored.size} values for {len(deformer.bones)} bones (6 each)"
+    if not problem:
+        problem = coordinates_problem(f"'{REST_SEGMENTS}'", stored)
+    if problem:
+        return None, f"The bone deformer's rest data is damaged ({problem})"
+    return stored.reshape(-1, 2, 3), ""
 
 
 def identity_channels(mode: str) -> tuple[float, float, float, float]:
@@ -187,9 +210,10 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
     rotation = tuple(float(c) for c in channels) + (0.0,) * (4 - len(channels))
     rested = ordered_matmul(frame_matrix, rest)
     head = rested[:3, 3].copy()
-    if not (finite_transform(pose) and finite_transform(ordered_matmul(frame_matrix, pose))):
+    reason = transform_problem(pose, "pose") or transform_problem(ordered_matmul(frame_matrix, pose), "pose")
+    if reason:
         return _BoneRow(identity, False, False, np.zeros(3), np.zeros(3),
-                        "Bone '{bone}' has a non-finite pose (NaN or infinity): the mesh shows its input")
+                        "Bone '{bone}' " + reason + ": the mesh shows its input")
     try:
         with np.errstate(all="ignore"):
             local = ordered_matmul(pose, _inverse_affine(rest))
@@ -211,7 +235,7 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
     with np.errstate(all="ignore"):
         matrix = ordered_matmul(ordered_matmul(frame_matrix, local), frame_inverse)
     matrix[3] = (0.0, 0.0, 0.0, 1.0)
-    reason = motion_problem(matrix, "has a non-finite pose (NaN or infinity)")
+    reason = motion_problem(matrix, "pose")
     if reason:
         return _BoneRow(identity, False, unturned, turn, head,
                         "Bone '{bone}' " + reason + ": the mesh shows its input")
@@ -249,8 +273,14 @@ def _read(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Mo
         return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' is scaled to zero: the "
                                "mesh shows its input")
     if not finite_transform(frame):
-        return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' has a non-finite "
-                               "transform: the mesh shows its input")
+        return Motions.invalid(m, f"'{obj.name}' or armature '{armature.name}' {transform_problem(frame)}: "
+                               "the mesh shows its input")
+    problem = settings_problem(deformer)
+    if problem:
+        return Motions.invalid(m, problem)
+    _segments, problem = stored_segments(deformer)  # read by re-weighting: damage shows at once too
+    if problem:
+        return Motions.invalid(m, f"{problem}: the mesh shows its input; rebind the deformer")
     evaluated = armature.evaluated_get(depsgraph)
     if StaleControls(obj, storage.offset_name(deformer.uid), depsgraph, True).stale(armature, evaluated):
         return Motions.invalid(m, f"Armature '{armature.name}' is not evaluated (it is disabled in "
@@ -482,11 +512,13 @@ class BoneKind(BatchedKind, DeformerKind):
 
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        problem = settings_problem(deformer)
+        if problem:
+            raise BindError(problem)
         names = [item.name for item in deformer.bones]
-        stored = np.asarray(deformer.get(REST_SEGMENTS, ()), dtype=np.float64)
-        if stored.size != 6 * len(names):
-            raise BindError("The bone deformer's rest data is damaged: rebind it")
-        segments = stored.reshape(-1, 2, 3)
+        segments, problem = stored_segments(deformer)
+        if problem:
+            raise BindError(f"{problem}: rebind the deformer")
         heads, tails = segments[:, 0], segments[:, 1]
         scales = np.array([item.weight_scale for item in deformer.bones], dtype=np.float64)
         # Weight the truncation pools (near ties of more bones than Max Influences) goes to a point on

@@ -73,6 +73,15 @@ from ...core.cage import (
 from ...core.cage import pool as cage_pool
 from ...core.cage.harmonic import harmonic_weights, node_matrices_linear
 from .. import caches, nodes, storage
+from ..validation import (
+    MAX_WEIGHT,
+    channels_problem,
+    coordinates_problem,
+    rest_matrix_problem,
+    settings_problem,
+    stored_array,
+    values_problem,
+)
 from .base import (
     IDENTITY16,
     OVERRIDABLE,
@@ -94,9 +103,11 @@ from .transforms import (
     control_evaluated,
     finite_transform,
     local_matrix,
+    motion_problem,
     reference_rotvecs,
     relative_motion,
     rotation_channels,
+    transform_problem,
     want_resync,
     world_matrix,
 )
@@ -190,6 +201,16 @@ def pool_mixes(deformer) -> np.ndarray:
     return mixes
 
 
+def cage_settings_problem(deformer) -> str:
+    """The first refused setting that the cage's weights read (validation.py), with what the update
+    does; '' when none. Exponent and Max Influences shape the 'INVERSE_DISTANCE' weights, and the
+    Exponent their pooled nodes at every update (`pool_mixes`) while they are the stored ones;
+    'HARMONIC' weights read neither."""
+    if weight_mode(deformer) == "INVERSE_DISTANCE" or (deformer.is_bound and not bound_with_nodes(deformer)):
+        return settings_problem(deformer, ("exponent", "max_influences"))
+    return ""
+
+
 def bound_with_nodes(deformer) -> bool:
     """Whether the stored weights are 'HARMONIC' ones (grid nodes are the controls)."""
     return all(key in deformer for key in NODE_KEYS)
@@ -202,10 +223,17 @@ def node_data(obj: bpy.types.Object, deformer, n_faces: int) -> NodeBind:
     cached = _node_data.get(key)
     if cached is not None and cached[0] == deformer.bind_generation and cached[1].weights.shape[1] == n_faces:
         return cached[1]
-    points = np.asarray(deformer[NODE_POINTS], dtype=np.float64)
-    weights = np.asarray(deformer[NODE_WEIGHTS], dtype=np.float64)
-    if points.ndim != 1 or points.size % 3 or weights.size != (points.size // 3) * n_faces:
-        raise BindError("The cage bind data is damaged: rebind the deformer")
+    points, problem = stored_array(deformer, NODE_POINTS, integer=False)
+    if not problem:
+        weights, problem = stored_array(deformer, NODE_WEIGHTS, integer=False)
+    if not problem and (points.size % 3 or weights.size != (points.size // 3) * n_faces):
+        problem = (f"'{NODE_POINTS}' and '{NODE_WEIGHTS}' hold {points.size} and {weights.size} values "
+                   f"for {n_faces} faces")
+    if not problem:
+        problem = (coordinates_problem(f"'{NODE_POINTS}'", points)
+                   or values_problem(f"'{NODE_WEIGHTS}'", weights, 0.0, MAX_WEIGHT))
+    if problem:
+        raise BindError(damaged(problem))
     points = points.reshape(-1, 3)
     weights = weights.reshape(len(points), n_faces)
     total = weights.sum(axis=1, keepdims=True)
@@ -215,6 +243,28 @@ def node_data(obj: bpy.types.Object, deformer, n_faces: int) -> NodeBind:
     bind = NodeBind(points, weights, {})
     _node_data[key] = (deformer.bind_generation, bind)
     return bind
+
+
+def damaged(problem: str) -> str:
+    """The status of a cage deformer whose bind data is damaged (`problem` says how)."""
+    return f"The cage bind data is damaged ({problem}): rebind the deformer"
+
+
+def _stored_cage_arrays(deformer) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The stored rest cage (V·3,) float64 and its loop arrays (int32), each checked for its type and
+    the points for finite, bounded coordinates; BindError naming what is damaged."""
+    arrays = []
+    for key in BIND_KEYS:
+        array, problem = stored_array(deformer, key, integer=key != REST_POINTS)
+        if problem:
+            raise BindError(damaged(problem))
+        arrays.append(array)
+    points = arrays[0]
+    problem = (f"'{REST_POINTS}' holds {points.size} values, not 3 per vertex" if points.size % 3
+               else coordinates_problem(f"'{REST_POINTS}'", points))
+    if problem:
+        raise BindError(damaged(problem))
+    return arrays[0], arrays[1], arrays[2], arrays[3]
 
 
 class CageUnavailableError(Exception):
@@ -309,10 +359,7 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
     the bind data is missing or damaged."""
     if any(key not in deformer for key in BIND_KEYS):
         raise BindError("The cage bind data is missing: rebind the deformer")
-    points = np.asarray(deformer[REST_POINTS], dtype=np.float64)
-    loops, start, total = (np.asarray(deformer[key], dtype=np.int32) for key in BIND_KEYS[1:])
-    if points.ndim != 1 or points.size % 3:
-        raise BindError("The cage bind data is damaged: rebind the deformer")
+    points, loops, start, total = _stored_cage_arrays(deformer)
     points = points.reshape(-1, 3)
     # Validated once per distinct topology (every update reads it), and kept with the derived arrays
     # it caches (corner triples, fans), which then need not be rebuilt per update either.
@@ -321,8 +368,9 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
     if topology is None:
         try:
             topology = CageTopology.from_arrays(loops, start, total, len(points))
-        except ValueError:
-            raise BindError("The cage bind data is damaged: rebind the deformer") from None
+        except ValueError as exc:
+            raise BindError(damaged(f"its faces, '{LOOP_VERTICES}', '{LOOP_START}', '{LOOP_TOTAL}': {exc}")
+                            ) from None
         _topologies[key] = topology
         while len(_topologies) > _TOPOLOGIES_KEPT:
             _topologies.pop(next(iter(_topologies)))
@@ -461,9 +509,10 @@ class CageKind(DeformerKind):
             raise BindError(f"'{obj.name}' has a zero scale: fix its transform before binding") from None
         except CageUnavailableError as exc:
             raise BindError(str(exc)) from None
-        det = np.linalg.det(matrix[:3, :3].astype(np.float64))
-        if not (np.all(np.isfinite(matrix)) and np.isfinite(det) and det != 0.0):
-            raise BindError(f"Cage '{cage.name}' has a zero scale or a non-finite transform: fix it first")
+        reason = transform_problem(matrix)  # a rest the update would refuse as damaged
+        det = np.linalg.det(matrix[:3, :3].astype(np.float64)) if not reason else 0.0
+        if reason or det == 0.0:
+            raise BindError(f"Cage '{cage.name}' {reason or 'has a zero scale'}: fix it first")
         try:
             topology = state.topology()
         except ValueError as exc:
@@ -488,6 +537,9 @@ class CageKind(DeformerKind):
         (core.cage.harmonic.harmonic_weights), the nodes' face weights stored on the deformer;
         'INVERSE_DISTANCE': inverse distance^exponent to each face polygon, half-space ramp,
         continuous top-K, rows summing to 1 (core.cage.cage_weights)."""
+        problem = cage_settings_problem(deformer)
+        if problem:
+            raise BindError(problem)
         points, topology, *_ = rest_cage(deformer)
         _node_data.pop((obj.session_uid, deformer.uid), None)
         if weight_mode(deformer) == "HARMONIC":
@@ -509,7 +561,7 @@ class CageKind(DeformerKind):
             return Motions.invalid(0, str(exc))
         F = topology.n_faces
         cage = deformer.cage
-        problem = cage_problem(obj, cage)
+        problem = cage_problem(obj, cage) or cage_settings_problem(deformer)
         if problem:
             return Motions.invalid(F, problem)
         try:
@@ -522,26 +574,14 @@ class CageKind(DeformerKind):
             return Motions.invalid(
                 F, f"Cage '{cage.name}' changed topology since bind ({len(rest)} → {len(state.points)} "
                    f"vertices, {F} → {len(state.loop_total)} faces): the mesh shows its rest shape; rebind")
-        try:
-            target_world = world_matrix(obj, depsgraph)
-            if not finite_transform(target_world):
-                return Motions.invalid(F, f"'{obj.name}' has a non-finite transform (NaN or infinity): the "
-                                          "mesh shows its rest shape")
-            matrix = local_matrix(target_world, state.matrix_world)
-        except np.linalg.LinAlgError:
-            return Motions.invalid(F, f"'{obj.name}' is scaled to zero: the mesh shows its rest shape")
-        stored = rest_matrix(deformer)
-        outer = None
-        if not np.array_equal(matrix, stored):
-            try:
-                with np.errstate(all="ignore"):
-                    outer = relative_motion(matrix.astype(np.float64), stored.astype(np.float64))
-                aff3.validate_affine(outer)
-            except (np.linalg.LinAlgError, ValueError):
-                return Motions.invalid(F, f"Cage '{cage.name}' is scaled to zero, mirrored or non-finite "
-                                          "as an object: the mesh shows its rest shape")
+        placed = _object_motion(obj, deformer, cage, state, depsgraph)
+        if isinstance(placed, str):
+            return Motions.invalid(F, placed)
+        target_world, matrix, stored, outer = placed
         try:
             outer, reference, pivot = _outer_branch(deformer, cage, depsgraph, target_world, matrix, outer)
+        except BindError as exc:  # its stored rest rotation is damaged
+            return Motions.invalid(F, str(exc))
         except ValueError as exc:
             return Motions.invalid(F, f"The motion of cage '{cage.name}' cannot be blended ({exc}): the "
                                       "mesh shows its rest shape")
@@ -585,6 +625,39 @@ class CageKind(DeformerKind):
                                    pool=pool)
 
 
+def _object_motion(obj: bpy.types.Object, deformer, cage: bpy.types.Object, state: CageState,
+                   depsgraph: bpy.types.Depsgraph
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None] | str:
+    """(target world matrix, C = target_world⁻¹ · cage_world (float32), the stored C_rest (float32),
+    G = C · C_rest⁻¹ or None when C = C_rest), or the status when they cannot be used: a target or
+    cage transform that is not finite or out of range, a target scaled to zero, a damaged stored rest
+    matrix (Cage Rest Matrix), or a motion G outside Aff+(3) or out of range."""
+    passes = "the mesh shows its rest shape"
+    target_world = world_matrix(obj, depsgraph)
+    for who, world in ((f"'{obj.name}'", target_world), (f"Cage '{cage.name}'", state.matrix_world)):
+        if not finite_transform(world):
+            return f"{who} {transform_problem(world)}: {passes}"
+    try:
+        matrix = local_matrix(target_world, state.matrix_world)
+    except np.linalg.LinAlgError:
+        return f"'{obj.name}' is scaled to zero: {passes}"
+    stored = rest_matrix(deformer)
+    damaged = rest_matrix_problem("Cage Rest Matrix", stored)
+    if damaged:
+        return f"{damaged}: {passes}; rebind the deformer"
+    if np.array_equal(matrix, stored):
+        return target_world, matrix, stored, None
+    try:
+        with np.errstate(all="ignore"):
+            outer = relative_motion(matrix.astype(np.float64), stored.astype(np.float64))
+    except np.linalg.LinAlgError:
+        return f"Cage '{cage.name}' is scaled to zero as an object: {passes}"
+    reason = motion_problem(outer)
+    if reason:
+        return f"Cage '{cage.name}' {reason} as an object: {passes}"
+    return target_world, matrix, stored, outer
+
+
 def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph, target_world: np.ndarray,
                   matrix: np.ndarray, outer: np.ndarray | None
                   ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
@@ -594,13 +667,17 @@ def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgra
     channels stored at bind. The reference is the cage's own turn since bind read from its rotation
     channels (transforms.reference_rotvecs, in the target's space), the pivot its current origin in the
     target's space. A cage back at its rest matrix after whole turns (its channels differ) gets
-    G = identity so that the turns still count. ValueError when the channels cannot be unwrapped.
+    G = identity so that the turns still count. ValueError when the channels cannot be unwrapped;
+    BindError when the stored rest channels (Cage Rest Rotation) are damaged.
     """
     strength = deformer.strength
     if deformer.branch_rule != "CHANNELS" or strength in (0.0, 1.0) or not has_rest_channels(deformer):
         return outer, None, None
     evaluated = cage.evaluated_get(depsgraph)
     rest_mode, rest_channels = deformer.cage_rest_rotation_mode, tuple(deformer.cage_rest_rotation)
+    damaged = channels_problem("Cage Rest Rotation", rest_channels)
+    if damaged:
+        raise BindError(f"{damaged}: the mesh shows its rest shape; rebind the deformer")
     mode, channels = evaluated.rotation_mode, rotation_channels(evaluated)
     if outer is None:
         if mode == rest_mode and np.array_equal(np.float32(channels), np.float32(rest_channels)):

@@ -19,6 +19,7 @@ from bpy.props import CollectionProperty, IntProperty
 from ... import accel
 from ...core import weights
 from .. import caches, storage
+from ..validation import channels_problem, channels_usable, rest_matrices_usable, rest_matrix_problem, shown
 from . import probe_tools
 from .base import (
     INTERFACE,
@@ -50,9 +51,10 @@ from .transforms import (
     ordered_matmul,
     relative_motion,
     rotation_channels,
+    transform_problem,
     world_matrix,
 )
-from .weighting import control_weights, draw_weight_options
+from .weighting import control_weights, draw_weight_options, weight_settings_problem
 
 #: Max Influences of a new probe deformer (core.weights.PROBE_INFLUENCES; the property's default, 4,
 #: stays for files of 0.1.0).
@@ -76,6 +78,13 @@ def pool_coefficients(deformer) -> np.ndarray:
             _pools.clear()
         _pools[key] = found
     return found
+
+
+def settings_problem(deformer) -> str:
+    """The first weight setting of `deformer` or of a probe (its Weight Scale) that is refused, with
+    what the update does ('' when none; kinds/weighting.py `weight_settings_problem`)."""
+    probes = deformer.probes
+    return weight_settings_problem(deformer, probes, lambda i: f"Probe '{probe_label(probes[i])}'")
 
 
 def rest_matrices(deformer) -> np.ndarray:
@@ -127,9 +136,11 @@ class ProbeKind(BatchedKind, DeformerKind):
                 if not probe.users_scene:
                     raise BindError(f"Probe '{probe.name}' is not in any scene: link it back or remove it")
                 rest = local_matrix(target_world, world_matrix(probe, depsgraph))
-                if not np.all(np.isfinite(rest)) or np.linalg.det(rest[:3, :3].astype(np.float64)) == 0.0:
-                    raise BindError(f"Probe '{probe.name}' has a zero scale or a non-finite transform: "
-                                    "fix it before binding")
+                reason = transform_problem(rest)  # a rest the update would refuse as damaged
+                if not reason and np.linalg.det(rest[:3, :3].astype(np.float64)) == 0.0:
+                    reason = "has a zero scale"
+                if reason:
+                    raise BindError(f"Probe '{probe.name}' {reason}: fix it before binding")
                 rests.append(rest)
         except np.linalg.LinAlgError:
             raise BindError(f"'{obj.name}' has a zero scale: fix its transform before binding") from None
@@ -142,6 +153,9 @@ class ProbeKind(BatchedKind, DeformerKind):
 
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        problem = settings_problem(deformer)
+        if problem:
+            raise BindError(problem)
         rests = rest_matrices(deformer).astype(np.float64)
         scales = np.array([item.weight_scale for item in deformer.probes], dtype=np.float64)
         names = group_names(obj, deformer)  # a renamed probe keeps its painted group
@@ -289,8 +303,11 @@ def _read(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Mo
     rest_rotations = flat.reshape(-1, 4).astype(np.float64)
     target_world = world_matrix(obj, depsgraph)
     if not finite_transform(target_world):
-        return Motions.invalid(m, f"'{obj.name}' has a non-finite transform (NaN or infinity): the mesh "
-                               "shows its rest shape")
+        return Motions.invalid(m, f"'{obj.name}' {transform_problem(target_world)}: the mesh shows its "
+                               "rest shape")
+    problem = settings_problem(deformer)
+    if problem:
+        return Motions.invalid(m, problem)
     # Everything the probes share in one bytes object, which caches its hash: each probe's key
     # holds it plus its index, instead of hashing its own copies of the rest data per update.
     shared = b"".join((target_world.tobytes(), rests.tobytes(), flat.tobytes(),
@@ -409,6 +426,8 @@ def _probe_rows(target_world: np.ndarray, worlds: np.ndarray, channels: list[tup
         matrices[:, 3, 3] = 1.0
         motion_ok = ((np.abs(matrices) < MAX_COORDINATE).all(axis=(1, 2)) & (np.linalg.det(lin) > 0.0)
                      & np.array([ok for _, ok in inverses]))
+        # else `_probe_row` says why
+        finite &= rest_matrices_usable(rests, mirrored=True) & channels_usable(rest_rotations)
     out = []
     identity = np.eye(4)
     for i in range(n):
@@ -455,10 +474,14 @@ def _probe_row(target_world: np.ndarray, world: np.ndarray, channels: tuple[floa
     (*scale, *delta_scale), and its rest matrix (float32) and channels."""
     identity = np.eye(4)
     rotation = tuple(float(c) for c in channels) + (0.0,) * (4 - len(channels))
+    damaged = (rest_matrix_problem("Probe '{probe}': Rest Matrix", rest, mirrored=True)
+               or channels_problem("Probe '{probe}': Rest Rotation", rest_rotation.tolist()))
+    if damaged:
+        return _ProbeRow(identity, False, mode, rotation, np.eye(3), np.zeros(3),
+                         damaged + ": the mesh shows its rest shape; rebind the deformer")
     if not finite_transform(world):
         return _ProbeRow(identity, False, mode, rotation, np.eye(3), np.zeros(3),
-                         "Probe '{probe}' has a non-finite transform (NaN or infinity): the mesh shows its "
-                         "rest shape")
+                         "Probe '{probe}' " + transform_problem(world) + ": the mesh shows its rest shape")
     try:
         current, solved = local_solve(target_world, world)
     except np.linalg.LinAlgError:
@@ -477,6 +500,11 @@ def _probe_row(target_world: np.ndarray, world: np.ndarray, channels: tuple[floa
         return _ProbeRow(identity, False, mode, rotation, frame, pivot,
                          "Probe '{probe}' has a singular rest matrix: rebind")
     reason = motion_problem(matrix)
+    if reason.startswith("is mirrored"):
+        dets = [float(np.linalg.det(m[:3, :3].astype(np.float64))) for m in (rest, current)]
+        if dets[0] < 0.0:  # the rest is the mirrored one (an Empty scaled by −1 at bind, or damaged)
+            reason = (f"is mirrored relative to its Rest Matrix (determinant {shown(dets[0])}, now "
+                      f"{shown(dets[1])})")
     if reason:
         return _ProbeRow(identity, False, mode, rotation, frame, pivot,
                          "Probe '{probe}' " + reason + ": the mesh shows its rest shape")

@@ -31,6 +31,7 @@ from bpy.props import (
 from ...core import aff3
 from .. import caches
 from ..addressing import DeformerIndexed, active_deformer, addressed_deformer
+from ..validation import rest_matrix_problem
 from .base import IDENTITY16, OVERRIDABLE, ROTATION_MODES, BindError
 from .services import on_item_weight_option, owner, reweight, search_vertex_groups, services
 from .transforms import finite_transform, in_a_scene, local_matrix, relative_motion, world_matrix
@@ -185,6 +186,8 @@ def _probe_state(obj: bpy.types.Object, item, target_world: np.ndarray,
         return "INVALID"
     current = local_matrix(target_world, world)
     rest = np.array(item.rest_matrix, dtype=np.float32).reshape(4, 4)
+    if rest_matrix_problem("", rest, mirrored=True):  # damaged stored data: the deformer's status says how
+        return "INVALID"
     if np.array_equal(current, rest):
         return "AT_REST"
     try:

@@ -16,6 +16,7 @@ import numpy as np
 from ... import accel
 from ...core import aff3, unwrap
 from .. import nodes
+from ..validation import MAX_COORDINATE, transform_problem
 
 
 def world_matrix(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:
@@ -360,28 +361,25 @@ def in_a_scene(obj: bpy.types.Object) -> bool:
     return bool(obj.users_scene)
 
 
-#: Blender clamps an infinite location or scale to ±3.4e38 (the float32 maximum): entries beyond this
-#: are treated as not finite, instead of sending the mesh there.
-MAX_COORDINATE = 1e30
-
-
-def motion_problem(matrix: np.ndarray,
-                   non_finite: str = "has a non-finite transform (NaN or infinity)") -> str:
-    """Why the motion `matrix` (4, 4) is not in Aff+(3), as the end of a sentence about its control
-    ('is mirrored (negative scale)', 'is scaled to zero', `non_finite`), or '' when it is."""
+def motion_problem(matrix: np.ndarray, what: str = "transform") -> str:
+    """Why the motion `matrix` (4, 4) is not in Aff+(3) or out of range, as the end of a sentence
+    about its control ('is mirrored (negative scale)', 'is scaled to zero', 'has a non-finite
+    transform (NaN or infinity)' or 'has a transform out of range (…)', with `what` for
+    'transform'), or '' when it is usable."""
     try:
         aff3.validate_affine(matrix)
     except ValueError:
         if not np.all(np.isfinite(matrix)):
-            return non_finite
+            return transform_problem(matrix, what)
         if np.linalg.det(matrix[:3, :3]) < 0.0:
             return "is mirrored (negative scale)"
         return "is scaled to zero"
-    return ""
+    return transform_problem(matrix, what)
 
 
 def finite_transform(matrix: np.ndarray) -> bool:
-    """Whether every entry of `matrix` is finite and below MAX_COORDINATE in magnitude (NaN fails too).
+    """Whether every entry of `matrix` is finite and below MAX_COORDINATE in magnitude (NaN fails too;
+    `transform_problem` words why not).
 
     Over the entries as Python floats: for a 4×4 that is a few microseconds, where numpy's abs and
     reduce cost ~30 µs per update once the kernel's pass has evicted them from the caches."""

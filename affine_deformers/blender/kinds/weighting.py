@@ -7,12 +7,14 @@ memoised on their exact inputs; 'VERTEX_GROUPS': the groups the kind names).
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 
 import bpy
 import numpy as np
 
 from ...core import surface, weights
 from .. import caches, nodes
+from ..validation import items_problem, settings_problem
 
 
 def draw_weight_options(layout: bpy.types.UILayout, deformer) -> None:
@@ -25,6 +27,27 @@ def draw_weight_options(layout: bpy.types.UILayout, deformer) -> None:
         layout.prop(deformer, "exponent")
     layout.prop(deformer, "normalize")
     layout.prop(deformer, "max_influences")
+
+
+#: The deformer settings each weight mode reads (core.weights.probe_weights): Radius as the distance
+#: scale (and, for 'SURFACE', on loose parts without a control), Exponent as the power; every mode
+#: keeps the Max Influences largest.
+MODE_SETTINGS = {
+    "INVERSE_DISTANCE": ("radius", "exponent", "max_influences"),
+    "FALLOFF": ("radius", "max_influences"),
+    "VERTEX_GROUPS": ("max_influences",),
+    "SURFACE": ("radius", "exponent", "max_influences"),
+}
+
+
+def weight_settings_problem(deformer, items, label: Callable[[int], str]) -> str:
+    """The first setting the weights of `deformer` read that is refused (validation.py: not a finite
+    number in its range), with what the update does: its weight mode's settings (`MODE_SETTINGS`),
+    then each control item's Weight Scale (`items`, named by `label(i)`); '' when all are fine. Checked
+    by every update (the scales also weigh the pooled nodes; a damaged setting shows at once, not at
+    the next re-weighting) and by re-weighting."""
+    return (settings_problem(deformer, MODE_SETTINGS.get(deformer.weight_mode, ()))
+            or items_problem(items, "weight_scale", label))
 
 
 def control_weights(obj: bpy.types.Object, deformer, rest_points: np.ndarray, heads: np.ndarray,

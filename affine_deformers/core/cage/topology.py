@@ -64,7 +64,8 @@ class CageTopology:
         if np.any(total < 3):
             bad = np.flatnonzero(total < 3)
             raise ValueError(f"cage faces with fewer than 3 corners: {_list_indices(bad)}")
-        if np.any(start < 0) or np.any(start + total > loops.size):
+        # in int64: a damaged int32 start near its maximum must not wrap around past the check
+        if np.any(start < 0) or np.any(start.astype(np.int64) + total > loops.size):
             raise ValueError("loop_start/loop_total point outside loop_vertex_indices")
         if loops.size and loops.min() < 0:
             raise ValueError("negative vertex index in loop_vertex_indices")
