@@ -71,6 +71,9 @@ samples: build venv-lts
 test: build venv-lts
 	$(PY) -m ruff check .
 	AFFINE_LTS_PYTHON=$(abspath $(PY_LTS)) $(PY) -m pytest tests
+	@echo "--- the Blender suite again: every frame read ahead, every output in a position carrier ---"
+	AFFINE_DEFORMERS_OUTPUT_STORE=POSITIONS AFFINE_DEFORMERS_READ_AHEAD=always \
+		$(PY) -m pytest tests/blender -q -p no:cacheprovider
 	@echo "--- the Blender suite again on Blender 4.5 LTS ---"
 	$(PY_LTS45) -m pytest tests/blender -q -p no:cacheprovider
 	@echo "--- the Blender suite again on Blender 4.2 LTS ---"

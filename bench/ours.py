@@ -433,15 +433,27 @@ def write_only_updates():
     evaluate = sys.modules[f"{INNER}.blender.evaluate"]
     storage = sys.modules[f"{INNER}.blender.storage"]
     frame_check = sys.modules[f"{INNER}.blender.frame_check"]
+    output_store = sys.modules[f"{INNER}.blender.output_store"]
+    nodes = sys.modules[f"{INNER}.blender.nodes"]
     real = evaluate.run
 
-    def write_only(scene: bpy.types.Scene, _depsgraph) -> None:
+    done: list = []
+
+    def write_only(scene: bpy.types.Scene, _depsgraph, read=None) -> None:
+        """Writes once a frame: ahead of its evaluation where the update would read ahead (`read`
+        given: read_ahead.py), else after it."""
         if scene is None:
             return
+        stamp = (scene.frame_current, scene.frame_subframe)
+        if read is None and done and done[-1] == stamp:
+            return
+        done[:] = [stamp] if read is not None else []
         value = 1e-4 * (scene.frame_current % 97 + 1)
         for obj in scene.objects:
             mesh = obj.data if obj.type == "MESH" else None
             for deformer in getattr(obj, "affine_deformers", ()):
+                # the floor of the attribute store: a position carrier must not show instead
+                output_store.empty_carrier(obj, nodes.find_modifier(obj, storage.offset_name(deformer.uid)))
                 offsets = np.full((len(mesh.vertices), 3), value, dtype=np.float32)
                 storage.write_offsets_unchecked(mesh, deformer.uid, offsets)
                 # the frame check's stamp, as every real update writes it (frame_check.py)

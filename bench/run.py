@@ -17,6 +17,8 @@ handler and Blender's re-evaluation included) — median of `--reps` repetitions
       our modifier and Blender's re-evaluation left), the same rigs baked to PC2, and our compiled
       per-vertex map alone; and 10 characters each skinned by its own armature, ours vs the Armature
       modifier (Preserve Volume);
+  (w) studio-size scenes: one deformed 5k mesh beside 0 / 5,000 / 20,000 other objects, ours (each
+      output store, output_store.py) vs Hooks; a 10k mesh with 8 probes, playback and drag;
   (s) shape preservation: a bar bent 90° / 180° and twisted 270° by two bones, Suzanne's cage pulled:
       volume, edge distortion, roughness and update time, ours vs Armature (Preserve Volume) and Mesh
       Deform.
@@ -24,7 +26,7 @@ handler and Blender's re-evaluation included) — median of `--reps` repetitions
 Exit status 1 when a measurement is not trustworthy (an update that changed nothing, a result still
 moving after the timed passes) or our operators fail; a missing operator is a printed note, not a failure.
 
-Usage: python bench/run.py [--quick] [--reps N] [--markdown docs/benchmarks.md] [--only a,b,c,d,p,m,s]
+Usage: python bench/run.py [--quick] [--reps N] [--markdown docs/benchmarks.md] [--only a,b,c,d,p,m,s,w]
                            [--zip Z]
 """
 
@@ -49,14 +51,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true", help="small meshes, few reps (smoke test)")
     parser.add_argument("--reps", type=int, help="timed repetitions per case (default 15, quick 3)")
     parser.add_argument("--markdown", type=Path, help="also write the tables to this markdown file")
-    parser.add_argument("--only", default="a,b,c,d,p,m,s",
-                        help="comma list of parts to run (a, b, c, d, p, m, s)")
+    parser.add_argument("--only", default="a,b,c,d,p,m,s,w",
+                        help="comma list of parts to run (a, b, c, d, p, m, s, w)")
     parser.add_argument("--zip", type=Path, help="extension package (default: newest dist/*.zip)")
     ns = parser.parse_args(argv)
     ns.parts = {p.strip() for p in ns.only.split(",") if p.strip()}
-    unknown = ns.parts - {"a", "b", "c", "d", "p", "m", "s"}
+    unknown = ns.parts - {"a", "b", "c", "d", "p", "m", "s", "w"}
     if unknown:
-        parser.error(f"unknown part(s) {sorted(unknown)}: use a, b, c, d, p, m, s")
+        parser.error(f"unknown part(s) {sorted(unknown)}: use a, b, c, d, p, m, s, w")
     if ns.reps is not None and ns.reps < 1:
         parser.error("--reps must be at least 1")
     if ns.zip is None:

@@ -19,6 +19,7 @@ import common
 import native
 import ours
 import playback
+import scene_size
 import shape
 from common import Samples, Table, fmt_ms, fmt_ratio
 
@@ -42,6 +43,10 @@ class Plan:
     m_verts: int = 5_000  # (m) vertices of each
     m_probes: int = 4  # (m) keyed probes on each
     s_verts: tuple[int, ...] = (10_000, 130_000)  # (s) shape preservation: the bar's sizes
+    w_verts: int = 5_000  # (w) the deformed mesh beside other objects
+    w_others: tuple[int, ...] = (0, 5_000, 20_000)  # (w) how many other objects
+    w_large_verts: int = 10_000  # (w) the mesh of the 8-probe playback and drag rows
+    w_paths_verts: int = 80_000  # (w) the large mesh of the write-path floors
 
 
 FULL = Plan(
@@ -70,6 +75,10 @@ QUICK = Plan(
     m_objects=3,
     m_verts=1_000,
     s_verts=(2_000,),
+    w_verts=1_000,
+    w_others=(0, 500),
+    w_large_verts=2_000,
+    w_paths_verts=4_000,
 )
 
 STAGES = (
@@ -619,7 +628,7 @@ def run(ns: argparse.Namespace) -> int:
     report = Report()
     t0 = time.perf_counter()
     for part, fn in (("a", part_a), ("b", part_b), ("c", part_c), ("d", part_d), ("p", playback.part_p),
-                     ("m", playback.part_m), ("s", shape.part_s)):
+                     ("m", playback.part_m), ("s", shape.part_s), ("w", scene_size.part_w)):
         if part in ns.parts:
             fn(plan, have_ours, report)
     if report.split_rows:

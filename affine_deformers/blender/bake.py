@@ -34,7 +34,7 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
-from . import binding, carrier, carrier_input, evaluate, nodes, relations, storage
+from . import binding, carrier, carrier_input, evaluate, nodes, output_store, relations, storage
 from .addressing import DeformerIndexed, active_target
 from .bake_targets import TARGETS, BakeError, default_filepath, remove_artifacts, resolve_cache_path
 from .pc2 import PC2Error
@@ -128,6 +128,7 @@ class _Capture:
         offset_attr, motion_attrs = storage.offset_name(uid), storage.motion_names(uid)
         self.count = len(obj.data.vertices)
         self.object = self.input = None
+        self._pinned: tuple[bpy.types.Object, str] | None = None
         try:
             self.object = self._stand_in(scene, obj)
             capture = nodes.ensure_modifier(self.object, offset_attr, motion_attrs, "Capture")
@@ -138,6 +139,11 @@ class _Capture:
             # A library override's output is on its carrier, not on the mesh: made now if no update
             # has written it yet, so the capture reads the same carrier from the first frame.
             found = carrier.ensure(obj) if carrier.needs_carrier(obj) else None
+            if found is None:
+                # The live output stays in the store it is in (output_store.py) while the capture
+                # reads it: a position carrier is named on the capture too.
+                found = output_store.pin(obj, uid, nodes.find_modifier(obj, offset_attr))
+                self._pinned = (obj, uid)
             if found is not None:
                 nodes.set_carrier(capture, found)
             if with_input:
@@ -172,6 +178,9 @@ class _Capture:
         return storage.read_positions(mesh)
 
     def remove(self) -> None:
+        if self._pinned is not None:
+            output_store.unpin(*self._pinned)
+            self._pinned = None
         for stand_in in (self.object, self.input):
             if stand_in is not None:
                 bpy.data.objects.remove(stand_in, do_unlink=True)

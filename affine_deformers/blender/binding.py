@@ -13,7 +13,7 @@ import zlib
 import bpy
 import numpy as np
 
-from . import caches, kinds, nodes, relations, storage, weight_preview
+from . import caches, kinds, nodes, output_store, registry, relations, storage, weight_preview
 from .addressing import (
     deformer_at,
     deformer_index,
@@ -72,6 +72,7 @@ def _new_uid(obj: bpy.types.Object) -> str:
 def create(obj: bpy.types.Object, kind: str, name: str):
     """Append an unbound deformer item of `kind` to `obj` and make it the active one."""
     deformer = obj.affine_deformers.add()
+    registry.add(obj)
     deformer.uid = _new_uid(obj)
     deformer.kind = kind
     deformer.name = name
@@ -179,6 +180,7 @@ def remove(obj: bpy.types.Object, index: int) -> None:
             "Render toggles are kept in the override), or remove it in that file")
     uid = deformer.uid
     weight_preview.release(obj, deformer)  # the deformer takes its weight preview with it
+    output_store.remove_carrier(obj, nodes.find_modifier(obj, storage.offset_name(uid)))
     relations.remove_modifier(obj, uid)
     if obj.type == "MESH" and obj.data.library is None:
         storage.remove_all(obj.data, uid)
@@ -202,7 +204,8 @@ def apply(obj: bpy.types.Object, index: int) -> None:
     if mesh.users > 1:
         raise BindError(f"'{mesh.name}' is used by {mesh.users} objects: make it single-user first")
     deformer = deformer_at(obj, index)
-    deformed = storage.deformed_positions(mesh, deformer.uid)
+    deformed = output_store.deformed_positions(obj, deformer.uid, nodes.find_modifier(
+        obj, storage.offset_name(deformer.uid)))
     remove(obj, index)
     if deformed is not None:
         storage.write_positions(mesh, deformed)

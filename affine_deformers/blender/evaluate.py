@@ -33,7 +33,9 @@ from . import (
     frame_check,
     hooks,
     kinds,
+    output_store,
     outputs,
+    registry,
     shape_pass,
     snapshot,
     storage,
@@ -58,8 +60,13 @@ def set_status(deformer, message: str) -> bool:
     return False
 
 
-def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> str:
-    """Evaluate one deformer and write its output when it changed. Returns its status ('' = fine)."""
+def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
+                      read: bpy.types.Depsgraph | None = None) -> str:
+    """Evaluate one deformer and write its output when it changed. Returns its status ('' = fine).
+
+    `read`: a depsgraph to read the controls from instead of `depsgraph`, ahead of the frame's
+    evaluation (read_ahead.py): then only a clean result is written (an error, a control it does not
+    evaluate, is left to the update after the frame), and no status or hook is touched."""
     if obj.type != "MESH":
         error = snapshot.precheck(obj, deformer)
         set_status(deformer, error)
@@ -75,8 +82,12 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
             with contextlib.suppress(AttributeError, TypeError, RuntimeError):  # a linked ID may refuse
                 set_status(deformer, problem)
             return problem
-    snap = snapshot.take(obj, deformer, depsgraph)
-    hooks.run_inputs_read(obj, deformer, snap, depsgraph)  # e.g. the controls' states (weight_groups.py)
+    ahead = read is not None
+    snap = snapshot.take(obj, deformer, read if ahead else depsgraph)
+    if ahead and snap.error:
+        return deformer.status
+    if not ahead:
+        hooks.run_inputs_read(obj, deformer, snap, depsgraph)  # e.g. the controls' states (weight_groups.py)
     key = (obj.session_uid, deformer.uid)
     signature = snap.signature()
     create = depsgraph.mode != "RENDER"  # no ID is made during a render frame (on_render_start makes them)
@@ -87,6 +98,8 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     output = rows = None
     if not error:
         output, rows, error = _compute(obj, deformer, snap)
+    if ahead and error:
+        return deformer.status
     mesh = obj.data
     if error:
         # Zero offsets and no motions: the modifier passes its input through, wherever it stands.
@@ -94,8 +107,7 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         cached = bound_data.cached(obj, deformer)
         if cached is not None:
             cached.written = cached.motions_written = None  # written below without them
-    _write(carrier.output_mesh(obj, create), deformer.uid, path, output, rows, None if error else bound)
-    _stamp(obj, deformer, depsgraph, create)
+    _write(obj, deformer, path, output, rows, None if error else bound, depsgraph, create)
     warning = snap.motions.warning if snap.motions is not None else ""
     status = error or "; ".join(m for m in (warning, deformer.bind_warning) if m)
     set_status(deformer, status)
@@ -134,34 +146,79 @@ def _compute(obj: bpy.types.Object, deformer,
     return output, rows, error
 
 
-def _write(mesh: bpy.types.Mesh | None, uid: str, path: str, output: np.ndarray, rows: np.ndarray | None,
-           bound: bound_data.BoundData | None) -> None:
-    """Write the output of `path` to `mesh` (the target's, or its carrier's: carrier.output_mesh),
-    dropping the other path's attributes. Nothing is written to a linked mesh (Blender would drop it)
-    or when there is no mesh to write to: the modifier shows what the mesh or carrier holds."""
+def _write(obj: bpy.types.Object, deformer, path: str, output: np.ndarray, rows: np.ndarray | None,
+           bound: bound_data.BoundData | None, depsgraph: bpy.types.Depsgraph, create: bool) -> None:
+    """Write the output of `path` and its frame stamp where it goes (output_store.py): a library
+    override's carrier (attributes), else the mesh's attributes or the deformer's position carrier,
+    whichever costs less; the store not chosen is emptied. Nothing is written to a linked mesh (Blender
+    would drop it) or when there is nothing to write to: the modifier shows what is there."""
+    uid = deformer.uid
+    stamp = _stamp_value(obj, deformer, depsgraph)
+    if carrier.needs_carrier(obj):
+        _write_attributes(carrier.output_mesh(obj, create), uid, path, output, rows, bound, stamp)
+        return
+    mod = outputs.modifier(obj, uid)
+    holder = None
+    if output_store.choose(obj, uid, mod, path, depsgraph) == "POSITIONS":
+        holder = output_store.ensure_carrier(obj, uid, mod, create)
+    switched = output_store.switched(obj, uid, "ATTRIBUTES" if holder is None else "POSITIONS")
+    if switched and bound is not None:
+        bound.written = bound.motions_written = None  # what is remembered is the other store's
+    if holder is None:
+        output_store.empty_carrier(obj, mod)
+        _write_attributes(obj.data, uid, path, output, rows, bound, stamp)
+        return
+    store = output_store.PositionStore(holder.data)
+    if output_store.drop_attributes(obj.data, uid) and bound is not None:
+        bound.written = bound.motions_written = None
+    data = (outputs.pending_motions(output, rows, bound) if path == "MOTION"
+            else outputs.pending_offsets(output, rows, bound))
+    if data is None:
+        store.stamp(stamp)
+    else:
+        store.write(data, stamp)
+
+
+def _write_attributes(mesh: bpy.types.Mesh | None, uid: str, path: str, output: np.ndarray,
+                      rows: np.ndarray | None, bound: bound_data.BoundData | None, stamp: float) -> None:
+    """The output and its stamp as attributes of `mesh` (the target's, or an override's carrier's),
+    dropping the other path's attributes."""
     if mesh is None or mesh.library is not None or mesh.override_library is not None:
         if bound is not None:
             bound.written = bound.motions_written = None
         return
     if path == "MOTION":
         outputs.write_motions(mesh, uid, output, rows, bound)
-        return
-    if storage.remove_output(mesh, uid, keep="OFFSET") and bound is not None:
-        bound.motions_written = None
-    outputs.write_offsets(mesh, uid, output, rows, bound)
+    else:
+        if storage.remove_output(mesh, uid, keep="OFFSET") and bound is not None:
+            bound.motions_written = None
+        outputs.write_offsets(mesh, uid, output, rows, bound)
+    frame_check.stamp(mesh, uid, stamp)
+
+
+def _stamp_value(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> np.float32:
+    """The scene time the deformer's output is right for (frame_check.py): the depsgraph's time, or
+    "every frame" when nothing it depends on changes with time."""
+    kind = kinds.get(deformer.kind)
+    controls = kind.controls(obj, deformer) if kind is not None else []
+    if frame_check.right_at_every_frame(obj, controls):
+        return np.float32(frame_check.STAMP_ALWAYS)
+    return frame_check.scene_time(depsgraph.scene)
 
 
 def _stamp(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph, create: bool) -> None:
-    """Stamp the deformer's output with the scene time it is right for (frame_check.py): the
-    depsgraph's time, or "every frame" when nothing it depends on changes with time."""
-    mesh = carrier.output_mesh(obj, create)
-    if mesh is None or mesh.library is not None or mesh.override_library is not None:
+    """Re-stamp an output that is right at a new time too, where it lives."""
+    stamp = _stamp_value(obj, deformer, depsgraph)
+    if carrier.needs_carrier(obj):
+        mesh = carrier.output_mesh(obj, create)
+        if mesh is not None and mesh.library is None and mesh.override_library is None:
+            frame_check.stamp(mesh, deformer.uid, stamp)
         return
-    kind = kinds.get(deformer.kind)
-    controls = kind.controls(obj, deformer) if kind is not None else []
-    value = (frame_check.STAMP_ALWAYS if frame_check.right_at_every_frame(obj, controls)
-             else frame_check.scene_time(depsgraph.scene))
-    frame_check.stamp(mesh, deformer.uid, value)
+    found = output_store.carrier_of(obj, outputs.modifier(obj, deformer.uid))
+    if found is not None and found.library is None and len(found.data.vertices):
+        output_store.PositionStore(found.data).stamp(stamp)
+    elif obj.data.library is None and obj.data.override_library is None:
+        frame_check.stamp(obj.data, deformer.uid, stamp)
 
 
 def blocking_error(obj: bpy.types.Object, deformer) -> str:
@@ -170,7 +227,8 @@ def blocking_error(obj: bpy.types.Object, deformer) -> str:
 
 
 def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None = None,
-                    skip: Container[tuple[int, str]] = ()) -> list[str]:
+                    skip: Container[tuple[int, str]] = (),
+                    read: bpy.types.Depsgraph | None = None) -> list[str]:
     """Evaluate every deformer of `obj`; returns their statuses. Objects in Edit Mode are left alone
     (their mesh data is not in sync). For scripts: call `bpy.context.evaluated_depsgraph_get()`
     afterwards to see the written offsets in the evaluated mesh.
@@ -182,26 +240,34 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
     it, and its signature (caches.signatures) says whether the kept output is still right."""
     if depsgraph is None:
         depsgraph = bpy.context.evaluated_depsgraph_get()
+    if len(obj.affine_deformers):
+        registry.add(obj)  # a deformer a script made without our operators is updated from now on
     if obj.mode == "EDIT":
         return [d.status for d in obj.affine_deformers]
     try:
         binding.separate_shared_ids(obj)  # linked duplicates must not share output attributes
     except Exception:  # never let it stop the evaluation; the ids stay shared and the next update retries
         traceback.print_exc()
-    hooks.run_before_object(obj)  # e.g. renamed controls' groups, the weight preview (weight_groups.py)
+    if read is None:
+        hooks.run_before_object(obj)  # e.g. renamed controls' groups, the weight preview (weight_groups.py)
     statuses = []
     for deformer in obj.affine_deformers:
         if (obj.session_uid, deformer.uid) in skip:
             statuses.append(deformer.status)
             continue
         try:
-            statuses.append(evaluate_deformer(obj, deformer, depsgraph))
+            statuses.append(evaluate_deformer(obj, deformer, depsgraph, read))
         except Exception as exc:  # never let bad data take the handler (or Blender) down
+            if read is not None:  # ahead of the frame: the update after it says what went wrong
+                statuses.append(deformer.status)
+                continue
             message = f"Internal error ({type(exc).__name__}: {exc}): the mesh shows its rest shape"
             if deformer.status != message:  # print once, not at every depsgraph update
                 traceback.print_exc()
             try:
                 bound_data.forget((obj.session_uid, deformer.uid))  # its copy of the attribute is stale
+                if obj.type == "MESH":  # a position carrier would go on showing its last output
+                    output_store.empty_carrier(obj, outputs.modifier(obj, deformer.uid))
                 mesh = carrier.output_mesh(obj, create=False) if obj.type == "MESH" else None
                 if mesh is not None and mesh.library is None and mesh.override_library is None:
                     storage.remove_output(mesh, deformer.uid, keep="OFFSET")
@@ -234,21 +300,29 @@ def evaluate_all(scene: bpy.types.Scene | None = None, depsgraph: bpy.types.Deps
     run(scene, depsgraph)
 
 
-def run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None) -> None:
+def run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None,
+        read: bpy.types.Depsgraph | None = None) -> None:
     """Evaluate every deformer in `scene` with `depsgraph`, unless an update is already running (our
-    own writes trigger depsgraph updates while it runs); never raises."""
+    own writes trigger depsgraph updates while it runs); never raises. `read`: read the controls from
+    this depsgraph, ahead of `depsgraph`'s evaluation (read_ahead.py; see evaluate_deformer)."""
     global _busy
     if _busy or scene is None or depsgraph is None:
         return
     _busy = True
     try:
+        if read is None:  # ahead of the frame `depsgraph` still lists the last evaluation's updates,
+            # whose IDs may be gone since: only an evaluated depsgraph is asked what changed
+            registry.note(depsgraph)  # objects added since (append, link, Shift+D, a script)
+            output_store.note(depsgraph)
         shown = _shown_elsewhere(scene, depsgraph)
-        objects = [obj for obj in scene.objects if len(obj.affine_deformers) and not shown(obj)]
+        objects = [obj for obj in registry.in_scene(scene) if not shown(obj)]
+        if not objects:
+            return
         off = {(obj.session_uid, deformer.uid) for obj in objects for deformer in obj.affine_deformers
                if disabled(obj, deformer, depsgraph)}
-        _prefetch(objects, depsgraph, off)
+        _prefetch(objects, read or depsgraph, off)
         for obj in objects:
-            evaluate_object(obj, depsgraph, skip=off)
+            evaluate_object(obj, depsgraph, skip=off, read=read)
     except Exception:
         traceback.print_exc()
     finally:

@@ -49,7 +49,8 @@ WARNING = ("This deformation was computed for another frame and nothing updates 
            "modifier shows its input. Install and enable Affine Deformers, make a library override, or "
            "bake the deformer (its panel: Bake) in a file where the add-on runs")
 
-#: (mesh session uid, deformer uid) → the stamp this process last wrote there (float32).
+#: (mesh session uid, deformer uid or '' for a position carrier) → the stamp this process last wrote
+#: there (float32).
 _written: dict[tuple[int, str], np.float32] = {}
 
 
@@ -59,7 +60,7 @@ def forget(key: caches.Key | None = None) -> None:
     if key is None:
         _written.clear()
     else:
-        for found in [k for k in _written if k[1] == key[1]]:
+        for found in [k for k in _written if k[1] in (key[1], "")]:
             del _written[found]
 
 
@@ -103,15 +104,24 @@ def right_at_every_frame(obj: bpy.types.Object, controls: list[bpy.types.Object]
 
 
 def stamp(mesh: bpy.types.Mesh, uid: str, value: np.float32) -> None:
-    """Make deformer `uid`'s stamp on `mesh` (the target's, or its carrier's) `value`: written only when
-    this process did not write that value there last (a write tags the mesh for another update)."""
-    key = (mesh.session_uid, uid)
+    """Make deformer `uid`'s stamp attribute on `mesh` (the target's, or its carrier's) `value`: written
+    only when this process did not write that value there last (a write tags the mesh for another
+    update)."""
     value = np.float32(value)
-    name = storage.frame_name(uid)
-    if _written.get(key) == value and mesh.attributes.get(name) is not None:
+    if remembered(mesh, value, uid) and mesh.attributes.get(storage.frame_name(uid)) is not None:
         return
     storage.write_frame(mesh, uid, value)
-    _written[key] = value
+    remember(mesh, value, uid)
+
+
+def remembered(mesh: bpy.types.Mesh, value: np.float32, uid: str = "") -> bool:
+    """Whether this process wrote stamp `value` on `mesh` last (for deformer `uid`; '' for a position
+    carrier, output_store.py)."""
+    return _written.get((mesh.session_uid, uid)) == value
+
+
+def remember(mesh: bpy.types.Mesh, value: np.float32, uid: str = "") -> None:
+    _written[(mesh.session_uid, uid)] = np.float32(value)
 
 
 # ------------------------------------------------------------------------------ the group's nodes
@@ -168,8 +178,8 @@ def _boolean(ng: bpy.types.NodeTree, operation: str, a, b=None, location=(0.0, 0
 
 def stale_socket(ng: bpy.types.NodeTree, geometry: bpy.types.NodeSocket, name: bpy.types.NodeSocket,
                  location: tuple[float, float]) -> bpy.types.NodeSocket:
-    """A single boolean: `geometry` holds a stamp named `name` (read at point 0) that is neither
-    `STAMP_ALWAYS` nor the scene time (a NaN stamp is stale too)."""
+    """A single boolean: `geometry` holds a stamp attribute named `name` (read at point 0) that is
+    neither `STAMP_ALWAYS` nor the scene time (a NaN stamp is stale too)."""
     x, y = location
     named = ng.nodes.new("GeometryNodeInputNamedAttribute")
     named.data_type = "FLOAT"
@@ -184,18 +194,45 @@ def stale_socket(ng: bpy.types.NodeTree, geometry: bpy.types.NodeSocket, name: b
         ng.links.new(named.outputs[output], node.inputs["Value"])
         node.inputs["Index"].default_value = 0
         sampled.append(node.outputs[0])
-    value, exists = sampled
+    fresh = _fresh(ng, sampled[0], (x + 360, y))
+    return _boolean(ng, "NIMPLY", sampled[1], fresh, (x + 1080, y))  # exists and not fresh
+
+
+def stale_point_socket(ng: bpy.types.NodeTree, geometry: bpy.types.NodeSocket, index: bpy.types.NodeSocket,
+                       location: tuple[float, float]) -> bpy.types.NodeSocket:
+    """A single boolean: the x of point `index` of `geometry` (a position carrier's stamp point,
+    output_store.py) is neither `STAMP_ALWAYS` nor the scene time."""
+    x, y = location
+    position = ng.nodes.new("GeometryNodeInputPosition")
+    position.location = (x, y)
+    separate = ng.nodes.new("ShaderNodeSeparateXYZ")
+    separate.location = (x + 80, y)
+    ng.links.new(position.outputs[0], separate.inputs[0])
+    node = ng.nodes.new("GeometryNodeSampleIndex")
+    node.data_type, node.domain = "FLOAT", "POINT"
+    node.location = (x + 180, y)
+    ng.links.new(geometry, node.inputs["Geometry"])
+    ng.links.new(separate.outputs[0], node.inputs["Value"])
+    ng.links.new(index, node.inputs["Index"])
+    fresh = _fresh(ng, node.outputs[0], (x + 360, y))
+    return _boolean(ng, "NOT", fresh, None, (x + 1080, y))
+
+
+def _fresh(ng: bpy.types.NodeTree, value: bpy.types.NodeSocket,
+           location: tuple[float, float]) -> bpy.types.NodeSocket:
+    """A single boolean: the stamp `value` is `STAMP_ALWAYS` or the scene time (within the tolerance);
+    False for NaN."""
+    x, y = location
     time = ng.nodes.new("GeometryNodeInputSceneTime")
-    time.location = (x + 180, y + 120)
+    time.location = (x - 180, y + 120)
     frame = time.outputs["Frame"]
-    difference = _math(ng, "ABSOLUTE", _math(ng, "SUBTRACT", value, frame, location=(x + 360, y + 60)),
-                       location=(x + 540, y + 60))
-    allowed = _math(ng, "MULTIPLY_ADD", _math(ng, "ABSOLUTE", frame, location=(x + 360, y + 180)),
-                    RELATIVE_TOLERANCE, TOLERANCE, location=(x + 540, y + 180))
-    same = _compare(ng, "LESS_EQUAL", difference, allowed, (x + 720, y + 120))
-    always = _compare(ng, "LESS_EQUAL", value, ALWAYS_BELOW, (x + 720, y - 40))
-    fresh = _boolean(ng, "OR", same, always, (x + 900, y + 60))
-    return _boolean(ng, "NIMPLY", exists, fresh, (x + 1080, y))  # exists and not fresh
+    difference = _math(ng, "ABSOLUTE", _math(ng, "SUBTRACT", value, frame, location=(x, y + 60)),
+                       location=(x + 180, y + 60))
+    allowed = _math(ng, "MULTIPLY_ADD", _math(ng, "ABSOLUTE", frame, location=(x, y + 180)),
+                    RELATIVE_TOLERANCE, TOLERANCE, location=(x + 180, y + 180))
+    same = _compare(ng, "LESS_EQUAL", difference, allowed, (x + 360, y + 120))
+    always = _compare(ng, "LESS_EQUAL", value, ALWAYS_BELOW, (x + 360, y - 40))
+    return _boolean(ng, "OR", same, always, (x + 540, y + 60))
 
 
 def pass_through_when_stale(ng: bpy.types.NodeTree, stale: bpy.types.NodeSocket,

@@ -12,14 +12,33 @@ import traceback
 import bpy
 from bpy.app.handlers import persistent
 
-from . import caches, carrier, copies, evaluate, instances, nodes, relations
+from . import caches, carrier, copies, evaluate, instances, nodes, read_ahead, relations
 from .kinds import transforms
 
 _syncing = False  # relations.sync_scene is running (its depsgraph.update() calls this handler again)
 
 
 @persistent
+def on_frame_change_pre(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None) -> None:
+    """Read the new frame's controls ahead and write the outputs before Blender evaluates it
+    (read_ahead.py); what cannot be read ahead is left to on_frame_change_post."""
+    if read_ahead.is_helper(scene) or evaluate.running():
+        return
+    try:
+        frame = read_ahead.frame_depsgraph(scene, depsgraph)
+        read = read_ahead.depsgraph(scene, frame)
+        if read is not None:
+            evaluate.run(scene, frame, read=read)
+    except Exception:
+        traceback.print_exc()
+    finally:
+        transforms.take_resync()  # asked for ahead of the frame: the update after it asks again
+
+
+@persistent
 def on_frame_change_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None) -> None:
+    if read_ahead.is_helper(scene):
+        return
     evaluate.run(scene, depsgraph)
     if transforms.take_resync():
         _sync(scene, depsgraph)
@@ -28,7 +47,7 @@ def on_frame_change_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph 
 
 @persistent
 def on_depsgraph_update_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None) -> None:
-    if _syncing:
+    if _syncing or read_ahead.is_helper(scene):
         return
     try:
         scene_changed = False
@@ -90,6 +109,14 @@ def on_load_post(*_args) -> None:
 
 
 @persistent
+def on_save_pre(*_args) -> None:
+    try:
+        read_ahead.remove()  # helper data never goes into a saved file
+    except Exception:
+        traceback.print_exc()
+
+
+@persistent
 def on_undo_redo(*_args) -> None:
     # Undo restores mesh attributes and transforms together; cached signatures may describe neither.
     caches.forget()
@@ -115,7 +142,9 @@ def on_render_start(scene: bpy.types.Scene, *_args) -> None:
 
 
 HANDLERS = (
+    ("frame_change_pre", on_frame_change_pre),
     ("frame_change_post", on_frame_change_post),
+    ("save_pre", on_save_pre),
     ("depsgraph_update_post", on_depsgraph_update_post),
     ("load_post", on_load_post),
     ("undo_post", on_undo_redo),

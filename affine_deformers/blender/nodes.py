@@ -33,6 +33,10 @@ before) are upgraded in place by `upgrade_group`: the inputs are added and the n
 modifiers keep their values. A group linked from a library is read-only and is never upgraded: it
 is used as it is (see carrier.py for what a version-3 group linked into a shot means).
 
+Version 6 also reads a position carrier on the same input (output_store.py): a mesh of N + 1 or 4N + 1
+points (N the points reaching the modifier) holds the offsets or the motion columns as vertex
+positions, and its last point the frame stamp; the same arithmetic as on the attributes.
+
 Version 5 checks the frame (frame_check.py): the update stamps its output with the scene time it
 was computed for, as a FLOAT point attribute `.affdef_<uid>_frame` (the name derived from the
 offset input's by two Replace String nodes, so no modifier needs a new input), or with
@@ -45,6 +49,8 @@ is trusted as before.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import bpy
 import numpy as np
 
@@ -52,10 +58,12 @@ from . import caches, frame_check
 
 GROUP_NAME = "AffineDeformer"
 GROUP_MARK = "affine_deformers_group"  # custom property identifying our group (value = version)
-GROUP_VERSION = 5
+GROUP_VERSION = 6
 #: 1: Geometry + Offset Attribute; 2: + Cage and Probes; 3: + Motion X/Y/Z/T; 4: + Output Carrier;
-#: 5: the frame check (no new input)
-KNOWN_VERSIONS = (1, 2, 3, 4, 5)
+#: 5: the frame check (no new input); 6: position carriers on the carrier input (output_store.py)
+KNOWN_VERSIONS = (1, 2, 3, 4, 5, 6)
+#: The first version that reads a position carrier.
+POSITIONS_SINCE = 6
 #: Set on a group built with the Warning node (Blender 4.4 on): a group built by an older Blender
 #: (the samples are saved by 4.2) is rebuilt where the node exists, so the warning shows there.
 WARNS_MARK = "affine_deformers_warns"
@@ -77,6 +85,8 @@ _MOTION_INPUTS = tuple(
                                            "image of the Z axis", "translation"), strict=True)
 )
 CARRIER_SOCKET = "Output Carrier"
+#: The Switch between the chain on the geometry's own attributes (False) and the carriers' (True).
+CARRIER_SWITCH = "Carrier Switch"
 _CARRIER_INPUTS = (
     (CARRIER_SOCKET, "NodeSocketObject", "Local object holding this deformer's per-frame output when the "
                                          "target's mesh is linked from a library (set by the add-on)"),
@@ -195,48 +205,101 @@ def is_editable(ng: bpy.types.NodeTree) -> bool:
 
 def _build_nodes(ng: bpy.types.NodeTree) -> None:
     """(Re)create the group's nodes: the chain on the geometry's own attributes, the same chain on the
-    carrier's attributes sampled by point index, and a single-value geometry Switch between them on
-    "the carrier has points" (lazy: only the chosen chain runs, see the module doc)."""
+    carrier's attributes sampled by point index, the chain on a position carrier's points (offset or
+    motion layout, output_store.py), and single-value Switches between them on the carrier's point
+    count (lazy: only the chosen chain runs, see the module doc); then the frame check."""
     nodes, links = ng.nodes, ng.links
     nodes.clear()
     group_in = nodes.new("NodeGroupInput")
     group_out = nodes.new("NodeGroupOutput")
     group_in.location, group_out.location = (-1100, 0), (1300, 0)
     info = nodes.new("GeometryNodeObjectInfo")
-    info.transform_space = "ORIGINAL"  # positions of the carrier do not matter, only its attributes
+    info.transform_space = "ORIGINAL"  # the carrier's own data, wherever the object stands
     info.location = (-900, -900)
     links.new(group_in.outputs[CARRIER_SOCKET], info.inputs["Object"])
-    size = nodes.new("GeometryNodeAttributeDomainSize")
-    size.component = "MESH"
-    size.location = (-700, -1100)
-    links.new(info.outputs["Geometry"], size.inputs[0])
-    has_points = nodes.new("FunctionNodeCompare")
-    # FLOAT: its A and B are the node's first two inputs (each data type has sockets named "A" and
-    # "B"); a point count is exact in float32 far beyond any mesh.
-    has_points.data_type, has_points.operation = "FLOAT", "GREATER_THAN"
-    has_points.location = (-500, -1100)
-    links.new(size.outputs["Point Count"], has_points.inputs[0])
-    has_points.inputs[1].default_value = 0.5
+    carrier = info.outputs["Geometry"]
+    count = _point_count(ng, carrier, (-700, -1100))
+    points = _point_count(ng, group_in.outputs[0], (-700, -1250))
+    # FLOAT comparisons: a point count is exact in float32 far beyond any mesh.
+    has_points = _compare(ng, "GREATER_THAN", count, 0.5, (-500, -1100))
+    layout = _math(ng, "SUBTRACT", count, 1.0, (-500, -1250))  # a position carrier's data points
+    as_offsets = _compare(ng, "EQUAL", layout, points, (-300, -1250))
+    as_motions = _compare(ng, "EQUAL", layout, _math(ng, "MULTIPLY", points, 4.0, (-500, -1400)),
+                          (-300, -1400))
     index = nodes.new("GeometryNodeInputIndex")
     index.location = (-900, -1200)
-    own = _build_chain(ng, group_in, None, None, 0)
-    sampled = _build_chain(ng, group_in, info.outputs["Geometry"], index.outputs[0], -1400)
-    on_carrier = has_points.outputs[0]
-    deformed = _switch(ng, "GEOMETRY", on_carrier, own, sampled, (700, 0))
+    own = _build_chain(ng, group_in, _attribute_reader(ng, None, None), 0)
+    sampled = _build_chain(ng, group_in, _attribute_reader(ng, carrier, index.outputs[0]), -1400)
+    at = index.outputs[0]
+    offsets = _build_chain(ng, group_in, _position_reader(ng, carrier, at, points, False), -2800)
+    motions = _build_chain(ng, group_in, _position_reader(ng, carrier, at, points, True), -4200)
+    positions = _switch(ng, "GEOMETRY", as_offsets, _switch(ng, "GEOMETRY", as_motions, sampled, motions,
+                                                            (500, -1800)), offsets, (600, -1600))
+    deformed = _switch(ng, "GEOMETRY", has_points, own, positions, (700, 0), name=CARRIER_SWITCH)
     stamp_name = frame_check.stamp_name_socket(ng, group_in.outputs[OFFSET_SOCKET], (-900, 500))
     own_stale = frame_check.stale_socket(ng, group_in.outputs[0], stamp_name, (-500, 700))
-    carrier_stale = frame_check.stale_socket(ng, info.outputs["Geometry"], stamp_name, (-500, 900))
-    stale = _switch(ng, "BOOLEAN", on_carrier, own_stale, carrier_stale, (100, 700))
+    carrier_stale = frame_check.stale_socket(ng, carrier, stamp_name, (-500, 900))
+    positions_stale = frame_check.stale_point_socket(ng, carrier, layout, (-500, 1100))
+    in_positions = _boolean(ng, "OR", as_offsets, as_motions, (-100, 1100))
+    carrier_stale = _switch(ng, "BOOLEAN", in_positions, carrier_stale, positions_stale, (0, 1000))
+    stale = _switch(ng, "BOOLEAN", has_points, own_stale, carrier_stale, (100, 700))
     shown = frame_check.pass_through_when_stale(ng, stale, group_in.outputs[0], deformed, (900, 300))
     links.new(shown, group_out.inputs[0])
 
 
+def _point_count(ng: bpy.types.NodeTree, geometry: bpy.types.NodeSocket,
+                 location: tuple[float, float]) -> bpy.types.NodeSocket:
+    node = ng.nodes.new("GeometryNodeAttributeDomainSize")
+    node.component = "MESH"
+    node.location = location
+    ng.links.new(geometry, node.inputs[0])
+    return node.outputs["Point Count"]
+
+
+def _operands(ng: bpy.types.NodeTree, node: bpy.types.Node, values) -> None:
+    for socket, value in zip(node.inputs, values, strict=False):
+        if isinstance(value, bpy.types.NodeSocket):
+            ng.links.new(value, socket)
+        else:
+            socket.default_value = value
+
+
+def _compare(ng: bpy.types.NodeTree, operation: str, a, b, location) -> bpy.types.NodeSocket:
+    """A FLOAT Compare node (its A and B are the node's first two inputs)."""
+    node = ng.nodes.new("FunctionNodeCompare")
+    node.data_type, node.operation = "FLOAT", operation
+    node.location = location
+    _operands(ng, node, (a, b))
+    if operation == "EQUAL":
+        node.inputs["Epsilon"].default_value = 0.0  # counts are whole numbers
+    return node.outputs[0]
+
+
+def _math(ng: bpy.types.NodeTree, operation: str, a, b, location) -> bpy.types.NodeSocket:
+    """A FLOAT Math node `operation` of a and b (sockets or numbers)."""
+    node = ng.nodes.new("ShaderNodeMath")
+    node.operation = operation
+    node.location = location
+    _operands(ng, node, (a, b))
+    return node.outputs[0]
+
+
+def _boolean(ng: bpy.types.NodeTree, operation: str, a, b, location) -> bpy.types.NodeSocket:
+    node = ng.nodes.new("FunctionNodeBooleanMath")
+    node.operation = operation
+    node.location = location
+    _operands(ng, node, (a, b))
+    return node.outputs[0]
+
+
 def _switch(ng: bpy.types.NodeTree, input_type: str, condition: bpy.types.NodeSocket,
             false: bpy.types.NodeSocket, true: bpy.types.NodeSocket,
-            location: tuple[float, float]) -> bpy.types.NodeSocket:
+            location: tuple[float, float], name: str = "") -> bpy.types.NodeSocket:
     """A Switch node of `input_type` giving `true` when `condition`, else `false` (lazy: only the
-    chosen input is evaluated)."""
+    chosen input is evaluated); `name`: the node's name, for one that tests look up."""
     node = ng.nodes.new("GeometryNodeSwitch")
+    if name:
+        node.name = name
     node.input_type = input_type
     node.location = location
     ng.links.new(condition, node.inputs["Switch"])
@@ -245,42 +308,87 @@ def _switch(ng: bpy.types.NodeTree, input_type: str, condition: bpy.types.NodeSo
     return node.outputs[0]
 
 
-def _read_vector(ng: bpy.types.NodeTree, name: bpy.types.NodeSocket, carrier: bpy.types.NodeSocket | None,
-                 index: bpy.types.NodeSocket | None, location: tuple[float, float]):
-    """(value, exists) sockets of the vector attribute named by `name`: on the evaluated geometry
-    itself (carrier None), or on the carrier geometry at the same point index."""
+#: A reader of the chain's inputs: (the group input naming the attribute, motion column 0…3 or None
+#: for the offset, node location) → (value, exists) sockets.
+Reader = Callable[[bpy.types.NodeSocket, int | None, tuple[float, float]],
+                  tuple[bpy.types.NodeSocket, bpy.types.NodeSocket]]
+
+
+def _attribute_reader(ng: bpy.types.NodeTree, carrier: bpy.types.NodeSocket | None,
+                      index: bpy.types.NodeSocket | None) -> Reader:
+    """The vector attribute named by the input: on the evaluated geometry itself (carrier None), or on
+    the carrier geometry at the same point index."""
     nodes, links = ng.nodes, ng.links
-    named = nodes.new("GeometryNodeInputNamedAttribute")
-    named.data_type = "FLOAT_VECTOR"
-    named.location = location
-    links.new(name, named.inputs["Name"])
-    if carrier is None:
-        return named.outputs["Attribute"], named.outputs["Exists"]
-    sampled = []
-    for data_type, output, dy in (("FLOAT_VECTOR", "Attribute", 0), ("BOOLEAN", "Exists", -60)):
-        node = nodes.new("GeometryNodeSampleIndex")
-        node.data_type, node.domain = data_type, "POINT"
-        node.location = (location[0] + 150, location[1] + dy)
-        links.new(carrier, node.inputs["Geometry"])
-        links.new(named.outputs[output], node.inputs["Value"])
-        links.new(index, node.inputs["Index"])
-        sampled.append(node.outputs[0])
-    return sampled[0], sampled[1]
+
+    def read(name: bpy.types.NodeSocket, _column: int | None, location: tuple[float, float]):
+        named = nodes.new("GeometryNodeInputNamedAttribute")
+        named.data_type = "FLOAT_VECTOR"
+        named.location = location
+        links.new(name, named.inputs["Name"])
+        if carrier is None:
+            return named.outputs["Attribute"], named.outputs["Exists"]
+        sampled = []
+        for data_type, output, dy in (("FLOAT_VECTOR", "Attribute", 0), ("BOOLEAN", "Exists", -60)):
+            node = nodes.new("GeometryNodeSampleIndex")
+            node.data_type, node.domain = data_type, "POINT"
+            node.location = (location[0] + 150, location[1] + dy)
+            links.new(carrier, node.inputs["Geometry"])
+            links.new(named.outputs[output], node.inputs["Value"])
+            links.new(index, node.inputs["Index"])
+            sampled.append(node.outputs[0])
+        return sampled[0], sampled[1]
+
+    return read
 
 
-def _build_chain(ng: bpy.types.NodeTree, group_in: bpy.types.Node, carrier: bpy.types.NodeSocket | None,
-                 index: bpy.types.NodeSocket | None, y: float) -> bpy.types.NodeSocket:
+def _position_reader(ng: bpy.types.NodeTree, carrier: bpy.types.NodeSocket, index: bpy.types.NodeSocket,
+                     points: bpy.types.NodeSocket, motions: bool) -> Reader:
+    """A position carrier's points (output_store.py): the offsets at the point's own index, or motion
+    column c at index c·N + index (N: the points reaching the modifier); the other form reads as
+    missing, exactly as an absent attribute does on the chain of the geometry's own attributes."""
+    nodes, links = ng.nodes, ng.links
+
+    def read(_name: bpy.types.NodeSocket, column: int | None, location: tuple[float, float]):
+        exists = nodes.new("FunctionNodeInputBool")
+        exists.boolean = motions == (column is not None)
+        exists.location = (location[0], location[1] - 80)
+        if not exists.boolean:
+            zero = nodes.new("FunctionNodeInputVector")
+            zero.location = location
+            return zero.outputs[0], exists.outputs[0]
+        at = index
+        if column:  # N·c + index: whole numbers, exact in float32 below 2^24
+            node = nodes.new("ShaderNodeMath")
+            node.operation = "MULTIPLY_ADD"
+            node.location = (location[0] + 80, location[1] - 120)
+            _operands(ng, node, (points, float(column), index))
+            at = node.outputs[0]
+        sample = nodes.new("GeometryNodeSampleIndex")
+        sample.data_type, sample.domain = "FLOAT_VECTOR", "POINT"
+        sample.location = (location[0] + 150, location[1])
+        position = nodes.new("GeometryNodeInputPosition")
+        position.location = (location[0], location[1] - 40)
+        links.new(carrier, sample.inputs["Geometry"])
+        links.new(position.outputs[0], sample.inputs["Value"])
+        links.new(at, sample.inputs["Index"])
+        return sample.outputs[0], exists.outputs[0]
+
+    return read
+
+
+def _build_chain(ng: bpy.types.NodeTree, group_in: bpy.types.Node, read: Reader,
+                 y: float) -> bpy.types.NodeSocket:
     """position' = Σ_c x_c·(Motion c) + Motion T where the motion exists, then + Offset (see the module
-    doc), the attributes read by `_read_vector`; returns the resulting geometry socket. With no
-    carrier these are the nodes of version 3, so local targets get its results bit for bit."""
+    doc), the inputs read by `read`; returns the resulting geometry socket. On the geometry's own
+    attributes these are the nodes of version 3, so local targets get its results bit for bit, and
+    every reader feeds the same arithmetic."""
     nodes, links = ng.nodes, ng.links
     position = nodes.new("GeometryNodeInputPosition")
     position.location = (-700, y + 250)
     separate = nodes.new("ShaderNodeSeparateXYZ")
     separate.location = (-500, y + 250)
     links.new(position.outputs[0], separate.inputs[0])
-    columns = [_read_vector(ng, group_in.outputs[name], carrier, index, (-700, y - 150 * i))
-               for i, name in enumerate(MOTION_SOCKETS)]
+    columns = [read(group_in.outputs[name], i, (-700, y - 150 * i)) for i, name in enumerate(MOTION_SOCKETS)]
     total = None
     for i, ((value, _exists), coordinate) in enumerate(zip(columns[:3], separate.outputs, strict=True)):
         scale = nodes.new("ShaderNodeVectorMath")
@@ -298,7 +406,7 @@ def _build_chain(ng: bpy.types.NodeTree, group_in: bpy.types.Node, carrier: bpy.
     links.new(group_in.outputs[0], moved.inputs["Geometry"])
     links.new(columns[3][1], moved.inputs["Selection"])
     links.new(total.outputs[0], moved.inputs["Position"])
-    offset, _exists = _read_vector(ng, group_in.outputs[OFFSET_SOCKET], carrier, index, (100, y + 250))
+    offset, _exists = read(group_in.outputs[OFFSET_SOCKET], None, (100, y + 250))
     shifted = nodes.new("GeometryNodeSetPosition")
     shifted.location = (500, y)
     links.new(moved.outputs["Geometry"], shifted.inputs["Geometry"])
@@ -424,6 +532,15 @@ def set_controls(mod: bpy.types.NodesModifier, cage: bpy.types.Object | None,
         # Assigning an ID property does not tag the depsgraph relations; re-assigning the group does.
         mod.node_group = ng
     return changed
+
+
+def reads_positions(mod: bpy.types.NodesModifier | None) -> bool:
+    """Whether our modifier's group reads a position carrier named on its carrier input (version 6 on;
+    a group of an older version, linked from a library or not upgraded yet, does not)."""
+    ng = mod.node_group if mod is not None else None
+    version = ng.get(GROUP_MARK) if ng is not None else None
+    return (isinstance(version, int) and version >= POSITIONS_SINCE
+            and _input_identifier(ng, CARRIER_SOCKET, "NodeSocketObject") is not None)
 
 
 def has_motion_inputs(mod: bpy.types.NodesModifier) -> bool:

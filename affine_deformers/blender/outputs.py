@@ -124,6 +124,43 @@ def write_motions(mesh: bpy.types.Mesh, uid: str, result: np.ndarray, rows: np.n
         bound.motions_written = result
 
 
+def pending_offsets(offsets: np.ndarray, rows: np.ndarray | None,
+                    bound: BoundData | None) -> np.ndarray | None:
+    """The float32 offsets (N, 3) to write into a store that holds what this process wrote last
+    (`bound.written`), or None when it already holds them (as `write_offsets` decides, without reading
+    a store back: an unknown content is written)."""
+    if bound is not None and bound.written is not None and bound.written.shape == offsets.shape:
+        if rows is not None and len(rows) == 0:
+            return None
+        if rows is None:
+            fresh = offsets.astype(np.float32)
+            if np.array_equal(bound.written, fresh):
+                return None
+            bound.written = fresh
+        return bound.written  # an incremental result's rows are already in it (blend.py)
+    fresh = np.array(offsets, dtype=np.float32, order="C")
+    if bound is not None:
+        bound.written = fresh
+    return fresh
+
+
+def pending_motions(result: np.ndarray, rows: np.ndarray | None,
+                    bound: BoundData | None) -> np.ndarray | None:
+    """The motions (4, N, 3) float32 to write, or None when the store already holds them (as
+    `write_motions` decides, without reading a store back)."""
+    known = bound.motions_written if bound is not None else None
+    if known is not None and known.shape == result.shape:
+        if rows is not None and len(rows) == 0 and known is result:
+            return None
+        if rows is None and known is not result and np.array_equal(known, result):
+            if bound.motions is result:
+                bound.motions = known  # keep one array: later incremental updates write into it
+            return None
+    if bound is not None:
+        bound.motions_written = result
+    return result
+
+
 #: The largest magnitude a float32 attribute holds: beyond it a value would be stored as ±inf.
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import accel
 from . import bound as bound_data
-from . import kinds, outputs, storage
+from . import kinds, nodes, outputs, storage
 from .bound import BoundData
 from .kinds import Motions
 from .kinds.base import PREVIEW, REWEIGHTS
@@ -71,11 +71,14 @@ class Snapshot:
     settings: tuple  # values of SETTINGS
     motions_key: tuple | None  # Motions.key()
     backend: bool  # the compiled kernel is active (the kernels agree to ~1e-15, not bit for bit)
+    reader: bool = True  # the modifier's group reads position carriers (a group replaced or downgraded
+    # under an unchanged output must be written again, to the store it reads: output_store.py)
     motions: Motions | None = field(default=None, compare=False)
     bound: BoundData | None = field(default=None, compare=False)
 
     def signature(self) -> tuple:
-        return (self.mesh, self.serial, self.error, self.path, self.settings, self.motions_key, self.backend)
+        return (self.mesh, self.serial, self.error, self.path, self.settings, self.motions_key, self.backend,
+                self.reader)
 
     def result_state(self) -> tuple:
         """What a result is computed with besides the parameters (the incremental update's key)."""
@@ -127,4 +130,5 @@ def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Sna
     return Snapshot(
         obj.data.session_uid, None if bound is None else bound.serial, error, path,
         tuple(getattr(deformer, name) for name in SETTINGS),
-        None if motions is None else motions.key(), accel.active(), motions, bound)
+        None if motions is None else motions.key(), accel.active(), nodes.reads_positions(mod), motions,
+        bound)

@@ -339,15 +339,3 @@ def write_frame(mesh: bpy.types.Mesh, uid: str, value: float) -> None:
     _point_attribute(mesh, frame_name(uid), "FLOAT").data.foreach_set(
         "value", np.full(len(mesh.vertices), value, dtype=np.float32))
     mesh.update_tag()
-
-
-def deformed_positions(mesh: bpy.types.Mesh, uid: str) -> np.ndarray | None:
-    """The mesh's rest positions moved by deformer `uid`'s stored output (motion or offset), float32
-    (N, 3), as its modifier computes them when it is first in the stack; None without an output."""
-    rest = read_positions(mesh)
-    motions = read_motions(mesh, uid)
-    if motions is not None:
-        x, y, z = (rest[:, i : i + 1] for i in range(3))
-        return x * motions[0] + y * motions[1] + z * motions[2] + motions[3]
-    offsets = read_offsets(mesh, uid)
-    return None if offsets is None or offsets.shape != rest.shape else rest + offsets

@@ -22,6 +22,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 USER_DIR = Path(tempfile.mkdtemp(prefix="affdef_user_"))
 os.environ["BLENDER_USER_RESOURCES"] = str(USER_DIR)
+# Where the deformers write their output (output_store.py): the tests inspect the mesh's attributes,
+# so they run on that store unless told otherwise (POSITIONS, or AUTO for the cost model); the
+# stores' own tests choose per test.
+os.environ.setdefault("AFFINE_DEFORMERS_OUTPUT_STORE", "ATTRIBUTES")
 
 import bpy  # noqa: E402  (must follow BLENDER_USER_RESOURCES)
 
@@ -47,6 +51,20 @@ def _fresh_zip() -> Path:
     subprocess.run([sys.executable, str(ROOT / "tools" / "build_extension.py"), "--output-dir", str(out)],
                    check=True, cwd=ROOT, capture_output=True, timeout=SUBPROCESS_TIMEOUT)
     return sorted(out.glob("affine_deformers-*.zip"))[-1]
+
+
+def pytest_configure(config) -> None:
+    config.addinivalue_line("markers", "attributes: inspects the mesh-attribute output store directly "
+                                       "(skipped on AFFINE_DEFORMERS_OUTPUT_STORE=POSITIONS)")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    if os.environ.get("AFFINE_DEFORMERS_OUTPUT_STORE") != "POSITIONS":
+        return
+    skip = pytest.mark.skip(reason="inspects the attribute store; this run writes to position carriers")
+    for item in items:
+        if "attributes" in item.keywords:
+            item.add_marker(skip)
 
 
 @pytest.fixture(scope="session")
@@ -169,9 +187,14 @@ def dense_weights(obj, deformer) -> np.ndarray:
 
 
 def stored_offsets(target, deformer) -> np.ndarray:
-    """A copy of the offsets the deformer last wrote into the target mesh (float32, (N, 3))."""
-    storage = importlib.import_module(f"{PACKAGE}.blender.storage")
-    return storage.read_offsets(target.data, deformer.uid).copy()
+    """A copy of the offsets the deformer last wrote (float32, (N, 3)), wherever they live
+    (output_store.py: the mesh's attributes or a position carrier)."""
+    store = importlib.import_module(f"{PACKAGE}.blender.output_store")
+    nodes = importlib.import_module(f"{PACKAGE}.blender.nodes")
+    mod = nodes.find_modifier(target, f"affdef_{deformer.uid}_offset")
+    path, data = store.stored_output(target, deformer.uid, mod)
+    assert path == "OFFSET", path
+    return data.copy()
 
 
 def recomputed_offsets(target, deformer) -> np.ndarray:

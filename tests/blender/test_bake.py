@@ -178,6 +178,7 @@ def test_pc2_bake_plays_back_without_the_addon_and_through_alembic(bl, installed
     _check_baked_equals_live(bl, target, live, tmp_path)
 
 
+@pytest.mark.attributes  # inspects the attribute store (conftest: skipped on POSITIONS)
 def test_pc2_bake_keeps_modifiers_below_live_and_captures_only_our_deformer(bl, installed, tmp_path):
     target, deformer = _scene(bl, tmp_path)
     above = target.modifiers.new("Displace", "DISPLACE")

@@ -547,6 +547,7 @@ def test_a_twist_past_180_under_a_turned_parent_stays_on_the_bone_axis(bl):
     assert np.abs(radius - 1.0).max() < 1e-3
 
 
+@pytest.mark.attributes  # inspects the attribute store (conftest: skipped on POSITIONS)
 @pytest.mark.parametrize("path", ["OFFSET", "MOTION"])
 def test_random_pose_changes_match_a_full_recompute_bit_for_bit(bl, installed, path):
     # The blend down the hierarchy recomputes only the vertices that read a changed bone (as prefix
@@ -669,6 +670,7 @@ def _ring_rig(bl):
     return tube, arm, deformer
 
 
+@pytest.mark.attributes  # inspects the attribute store (conftest: skipped on POSITIONS)
 def test_pooled_bone_weight_follows_the_bones_tree(bl, installed):
     """Distance weights of a ring of 8 bones at 4 influences pool weight (on the axis all of it) on
     the pooled nodes m … 2m (the mean of a bone's children, of the roots): the mesh gets what the core

@@ -20,6 +20,12 @@ def _frame_check(installed):
 
 
 def _stamp(obj, deformer) -> np.ndarray:
+    """The output's stamp: the mesh's attribute (every point), or a position carrier's last point."""
+    carrier = next((m for m in obj.modifiers if m.type == "NODES"), None)
+    carrier = next((v for v in (carrier.values() if carrier else ()) if isinstance(v, bpy.types.Object)
+                    and v.get("affine_deformers_positions") and len(v.data.vertices)), None)
+    if carrier is not None:
+        return np.array([carrier.data.vertices[len(carrier.data.vertices) - 1].co.x], np.float32)
     values = np.empty(len(obj.data.vertices), np.float32)
     obj.data.attributes[f".affdef_{deformer.uid}_frame"].data.foreach_get("value", values)
     return values

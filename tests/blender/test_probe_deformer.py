@@ -133,6 +133,7 @@ def test_strength_scales_towards_rest(bl):
     assert np.abs(half - rest - [0, 0, 1]).max() < 1e-5
 
 
+@pytest.mark.attributes  # inspects the attribute store (conftest: skipped on POSITIONS)
 def test_it_is_a_real_modifier(bl):
     target = bl.uv_sphere()
     probe = bl.empty("P")

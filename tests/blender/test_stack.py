@@ -164,6 +164,7 @@ def test_a_non_common_motion_deforms_the_keyed_shape(installed, bl):
     assert np.abs(got - keyed).max() > 0.1
 
 
+@pytest.mark.attributes  # inspects the attribute store (conftest: skipped on POSITIONS)
 def test_a_basis_only_key_keeps_the_fast_path_until_its_shape_differs(installed, bl):
     """A lone reference key holding the mesh's positions changes nothing (offsets stay exact); once its
     data differ, that is what reaches the modifier, and the deformer switches to motions."""
@@ -460,7 +461,7 @@ def test_a_file_saved_by_0_1_0_opens_and_deforms_as_before(bl, tmp_path):
     """)
     got = dict(np.load(out))
     assert str(got["status"]) == ";"
-    assert int(got["version"]) == 5, "the node group is upgraded on load"
+    assert int(got["version"]) == 6, "the node group is upgraded on load"
     for name, positions in expected.items():
         assert np.abs(got[name] - positions).max() < 1e-6, name
     assert np.abs(expected["Bar_10"] - expected["Bar_1"]).max() > 1.0, "the fixture deforms"

@@ -74,6 +74,7 @@ def test_memoised_updates_match_a_fresh_evaluation_bit_for_bit(bl, installed):
     assert np.abs(memoised).max() > 0.05
 
 
+@pytest.mark.attributes  # inspects the attribute store (conftest: skipped on POSITIONS)
 def test_updates_write_without_reading_the_offsets_back(bl, installed, monkeypatch):
     """After the first write the evaluate cache holds a copy of the offset attribute: an update writes
     from it without reading the attribute back, an unchanged result is not written again, and what the
@@ -275,6 +276,7 @@ def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, install
     assert np.array_equal(cached.view(np.uint32), fresh.view(np.uint32))
 
 
+@pytest.mark.attributes  # inspects the attribute store (conftest: skipped on POSITIONS)
 def test_two_scenes_at_different_frames_do_not_fight_over_the_mesh(bl, installed, monkeypatch):
     """An object shown by two scenes at different frames: updates of the other scene's viewport leave
     the mesh to the scene the artist is in (one write, not one per alternate update); a render of the
@@ -434,7 +436,8 @@ def test_a_disabled_deformer_costs_nothing_and_catches_up_when_enabled(bl, insta
     rest = bl.rest_positions(target)
     calls = []
     real = evaluate.evaluate_deformer
-    monkeypatch.setattr(evaluate, "evaluate_deformer", lambda o, d, g: calls.append(d.uid) or real(o, d, g))
+    monkeypatch.setattr(evaluate, "evaluate_deformer",
+                        lambda o, d, g, r=None: calls.append(d.uid) or real(o, d, g, r))
     deformer.show_viewport = False
     bpy.context.view_layer.update()
     for step in range(3):

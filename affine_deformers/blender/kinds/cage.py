@@ -102,6 +102,7 @@ from .transforms import (
     channel_frame,
     control_evaluated,
     finite_transform,
+    in_a_scene,
     local_matrix,
     motion_problem,
     reference_rotvecs,
@@ -295,7 +296,7 @@ def cage_problem(target: bpy.types.Object, cage: bpy.types.Object | None) -> str
         return f"'{target.name}' cannot be its own cage"
     if cage.type != "MESH":
         return f"Cage '{cage.name}' is not a mesh ({cage.type.title()}): pick a closed mesh"
-    if not cage.users_scene:
+    if not in_a_scene(cage):
         return f"Cage '{cage.name}' is not in any scene (deleted?): link it back or pick another cage"
     return ""
 

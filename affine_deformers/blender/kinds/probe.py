@@ -133,7 +133,7 @@ class ProbeKind(BatchedKind, DeformerKind):
                     raise BindError(f"Probe '{item.name or '?'}' has no object: remove it or pick one")
                 if probe == obj:
                     raise BindError(f"'{obj.name}' cannot be a probe of itself")
-                if not probe.users_scene:
+                if not in_a_scene(probe):
                     raise BindError(f"Probe '{probe.name}' is not in any scene: link it back or remove it")
                 rest = local_matrix(target_world, world_matrix(probe, depsgraph))
                 reason = transform_problem(rest)  # a rest the update would refuse as damaged

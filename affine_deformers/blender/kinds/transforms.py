@@ -350,15 +350,21 @@ class StaleControls:
         return True
 
 
+#: Marks the read-ahead's helper scene (read_ahead.py): not a scene of the artist's, so an object only
+#: it holds is in no scene.
+HELPER_MARK = "affine_deformers_read_ahead"
+
+
 def in_a_scene(obj: bpy.types.Object) -> bool:
-    """`bool(obj.users_scene)` without its cost in the common case: users_scene lists every object of
-    every scene (O(objects) per call); a lookup by name finds the object directly, and only a miss
-    (e.g. a linked object sharing a local one's name) takes the full scan."""
+    """Whether a scene of the artist's holds `obj` (not the read-ahead's helper): `obj.users_scene`
+    without its cost in the common case (it lists every object of every scene, O(objects) per call);
+    a lookup by name finds the object directly, and only a miss (e.g. a linked object sharing a
+    local one's name) takes the full scan."""
     name = obj.name
     for scene in bpy.data.scenes:
-        if scene.objects.get(name) == obj:
+        if scene.objects.get(name) == obj and not scene.get(HELPER_MARK):
             return True
-    return bool(obj.users_scene)
+    return any(not scene.get(HELPER_MARK) for scene in obj.users_scene)
 
 
 def motion_problem(matrix: np.ndarray, what: str = "transform") -> str:
