@@ -92,7 +92,7 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     signature = snap.signature()
     create = depsgraph.mode != "RENDER"  # no ID is made during a render frame (on_render_start makes them)
     if caches.signatures.get(key) == signature:
-        _stamp(obj, deformer, depsgraph, create)  # the same output may be right at a new frame
+        _stamp(obj, deformer, depsgraph, create, snap.modifier)  # the same output may be right now too
         return deformer.status
     error, path, bound = snap.error, snap.path, snap.bound
     output = rows = None
@@ -107,7 +107,7 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         cached = bound_data.cached(obj, deformer)
         if cached is not None:
             cached.written = cached.motions_written = None  # written below without them
-    _write(obj, deformer, path, output, rows, None if error else bound, depsgraph, create)
+    _write(obj, deformer, snap.modifier, path, output, rows, None if error else bound, depsgraph, create)
     warning = snap.motions.warning if snap.motions is not None else ""
     status = error or "; ".join(m for m in (warning, deformer.bind_warning) if m)
     set_status(deformer, status)
@@ -146,8 +146,9 @@ def _compute(obj: bpy.types.Object, deformer,
     return output, rows, error
 
 
-def _write(obj: bpy.types.Object, deformer, path: str, output: np.ndarray, rows: np.ndarray | None,
-           bound: bound_data.BoundData | None, depsgraph: bpy.types.Depsgraph, create: bool) -> None:
+def _write(obj: bpy.types.Object, deformer, mod: bpy.types.Modifier | None, path: str, output: np.ndarray,
+           rows: np.ndarray | None, bound: bound_data.BoundData | None, depsgraph: bpy.types.Depsgraph,
+           create: bool) -> None:
     """Write the output of `path` and its frame stamp where it goes (output_store.py): a library
     override's carrier (attributes), else the mesh's attributes or the deformer's position carrier,
     whichever costs less; the store not chosen is emptied. Nothing is written to a linked mesh (Blender
@@ -157,7 +158,6 @@ def _write(obj: bpy.types.Object, deformer, path: str, output: np.ndarray, rows:
     if carrier.needs_carrier(obj):
         _write_attributes(carrier.output_mesh(obj, create), uid, path, output, rows, bound, stamp)
         return
-    mod = outputs.modifier(obj, uid)
     holder = None
     if output_store.choose(obj, uid, mod, path, depsgraph) == "POSITIONS":
         holder = output_store.ensure_carrier(obj, uid, mod, create)
@@ -206,7 +206,8 @@ def _stamp_value(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph
     return frame_check.scene_time(depsgraph.scene)
 
 
-def _stamp(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph, create: bool) -> None:
+def _stamp(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph, create: bool,
+           mod: bpy.types.Modifier | None) -> None:
     """Re-stamp an output that is right at a new time too, where it lives."""
     stamp = _stamp_value(obj, deformer, depsgraph)
     if carrier.needs_carrier(obj):
@@ -214,7 +215,7 @@ def _stamp(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph, crea
         if mesh is not None and mesh.library is None and mesh.override_library is None:
             frame_check.stamp(mesh, deformer.uid, stamp)
         return
-    found = output_store.carrier_of(obj, outputs.modifier(obj, deformer.uid))
+    found = output_store.carrier_of(obj, mod)
     if found is not None and found.library is None and len(found.data.vertices):
         output_store.PositionStore(found.data).stamp(stamp)
     elif obj.data.library is None and obj.data.override_library is None:

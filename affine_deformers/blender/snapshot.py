@@ -75,6 +75,7 @@ class Snapshot:
     # under an unchanged output must be written again, to the store it reads: output_store.py)
     motions: Motions | None = field(default=None, compare=False)
     bound: BoundData | None = field(default=None, compare=False)
+    modifier: bpy.types.Modifier | None = field(default=None, compare=False)  # the deformer's, looked up once
 
     def signature(self) -> tuple:
         return (self.mesh, self.serial, self.error, self.path, self.settings, self.motions_key, self.backend,
@@ -131,4 +132,4 @@ def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Sna
         obj.data.session_uid, None if bound is None else bound.serial, error, path,
         tuple(getattr(deformer, name) for name in SETTINGS),
         None if motions is None else motions.key(), accel.active(), nodes.reads_positions(mod), motions,
-        bound)
+        bound, mod)
