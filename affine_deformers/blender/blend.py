@@ -14,7 +14,7 @@ import numpy as np
 from .. import accel
 from ..core import deform, hierarchy
 from . import params as parameters
-from .bound import BoundData
+from .bound import BindRecord
 from .kinds import Motions
 
 #: Above this fraction of the vertices, an update recomputes everything (gathering and scattering the
@@ -32,7 +32,7 @@ def redistribute(indices: np.ndarray, values: np.ndarray, valid: np.ndarray) -> 
     return kept * scale[:, None]
 
 
-def _values(deformer, motions: Motions, bound: BoundData) -> np.ndarray:
+def _values(deformer, motions: Motions, bound: BindRecord) -> np.ndarray:
     """The bound weights at the deformer's strength, with skipped controls' weight redistributed (a
     pooled node, a mix of controls, is valid while any control of its mix is)."""
     if motions.valid is not None and not np.all(motions.valid):
@@ -52,7 +52,7 @@ def pool_mix(motions: Motions, m: int) -> np.ndarray:
     return np.atleast_2d(np.asarray(motions.pool, dtype=np.float64))
 
 
-def _pooled(table: np.ndarray, motions: Motions, bound: BoundData) -> np.ndarray:
+def _pooled(table: np.ndarray, motions: Motions, bound: BindRecord) -> np.ndarray:
     """`table` (m, ...) — parameters, or matrices for the linear blend — with the truncation's pooled
     nodes appended as rows m … m + G − 1 when the bound weights point at them (MATH.md §12): each
     the mix Σ_i mix_gi table[i] (`pool_mix`) of the controls not skipped. A bone's pooled nodes mix
@@ -69,29 +69,30 @@ def _pooled(table: np.ndarray, motions: Motions, bound: BoundData) -> np.ndarray
     return np.concatenate([np.asarray(table, dtype=np.float64), np.tensordot(mix, table, axes=(1, 0))])
 
 
-def blend_offsets(deformer, motions: Motions, bound: BoundData,
+def blend_offsets(deformer, motions: Motions, bound: BindRecord,
                   state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
     """(v' − v for every rest vertex (N, 3) float64, rows): exactly zero when every control is at rest.
 
     `rows` are the only vertices whose offsets may differ from the previous result of `bound` (None:
     any may); `state` is what the result is computed with (Snapshot.result_state). The returned
-    array may be the cache's own (`bound.offsets`): callers must not modify it.
+    array may be the result's own (`bound.result.offsets`): callers must not modify it.
     """
-    bound.proven = False
+    result = bound.result
+    result.prove(False)
     outer = parameters.outer_at_strength(motions, deformer.strength, deformer.branch_rule)
     points = bound.points
     if deformer.strength == 0.0 or len(motions.matrices) == 0 or (np.all(motions.at_rest) and outer is None):
-        bound.forget_result()
+        result.forget()
         return np.zeros(points.shape, dtype=np.float64), None
     if np.all(motions.at_rest):
-        bound.forget_result()
+        result.forget()
         deformed = points.copy()
     elif _plain_affine(deformer, motions, outer):
         if motions.chain is not None:
             return _offsets_chain(deformer, motions, bound, state)
         return _offsets_affine(deformer, motions, bound, state)
     else:
-        bound.forget_result()
+        result.forget()
         indices, values = bound.indices, _values(deformer, motions, bound)
         if deformer.blend_mode == "LINEAR":
             deformed = deform.blend_linear_sparse(points, _pooled(motions.matrices, motions, bound), indices,
@@ -104,7 +105,7 @@ def blend_offsets(deformer, motions: Motions, bound: BoundData,
     return deformed - points, None
 
 
-def _offsets_affine(deformer, motions: Motions, bound: BoundData,
+def _offsets_affine(deformer, motions: Motions, bound: BindRecord,
                     state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
     """`blend_offsets` for the plain affine blend, recomputing only the vertices whose result can differ
     from the cached one: those with a non-zero weight on a control whose parameters changed bitwise.
@@ -116,24 +117,24 @@ def _offsets_affine(deformer, motions: Motions, bound: BoundData,
     values = bound.scaled_values(deformer.strength)
     points = bound.points
     key = (bound.serial, deformer.strength)
-    offsets = bound.offsets
-    rows = _changed_rows(bound, offsets, params, state)
+    result = bound.result
+    rows = _changed_rows(bound, params, state, motions=False)
     if rows is not None:
+        offsets = result.offsets
         if len(rows):
-            # The kernel also rounds the rows it computes into the copy of the attribute, so
-            # `outputs.write_offsets` writes that copy as it is (same condition there: keep in step).
-            written = bound.written
-            out32 = written if written is not None and written.shape == offsets.shape else None
+            # The kernel also rounds the rows it computes into the copy of the stored offsets, so the
+            # write takes that copy as it is (result.Result.pending_offsets: keep in step).
+            out32 = result.offsets_buffer(offsets.shape)
             accel.deform_points_params_rows(points, params, bound.indices, values, rows, offsets,
                                              offsets=True, key=key, out32=out32)
-        bound.params = params
-        bound.proven = _storable_by_bound(bound, params, deformer.strength, offsets=True)
+        result.advance(params)
+        result.prove(_storable_by_bound(bound, params, deformer.strength, offsets=True))
         return offsets, rows
-    bound.forget_result()
+    result.forget()
     offsets = accel.deform_points_params(points, params, bound.indices, values, key=key)
     offsets -= points
-    bound.state, bound.params, bound.offsets = state, params, offsets
-    bound.proven = _storable_by_bound(bound, params, deformer.strength, offsets=True)
+    result.keep(state, params, offsets=offsets)
+    result.prove(_storable_by_bound(bound, params, deformer.strength, offsets=True))
     return offsets, None
 
 
@@ -142,7 +143,7 @@ def _offsets_affine(deformer, motions: Motions, bound: BoundData,
 PROVEN_LIMIT = 0.25 * float(np.finfo(np.float32).max)
 
 
-def _storable_by_bound(bound: BoundData, params: np.ndarray, strength: float, offsets: bool) -> bool:
+def _storable_by_bound(bound: BindRecord, params: np.ndarray, strength: float, offsets: bool) -> bool:
     """Whether every vertex's result of the plain affine blend with `params` is provably finite and
     storable as float32 (core.deform.motion_bound over the bound points, or over unit columns for
     motions), so the output check needs no pass over the vertices. A cached row computed with
@@ -153,20 +154,19 @@ def _storable_by_bound(bound: BoundData, params: np.ndarray, strength: float, of
     return deform.motion_bound(params, weight_sum, 1.0) < PROVEN_LIMIT
 
 
-def _changed_rows(bound: BoundData, previous: np.ndarray | None, params: np.ndarray,
-                  state: tuple) -> np.ndarray | None:
-    """The vertices to recompute when `previous` (the cached result) was computed with the same
+def _changed_rows(bound: BindRecord, params: np.ndarray, state: tuple, motions: bool) -> np.ndarray | None:
+    """The vertices to recompute when the last result (bound.result) was computed with the same
     `state` (the snapshot's result state: path, strength, branch rule, kernel backend — the two
     kernels agree to ~1e-15, not bit for bit, and an incremental update must equal a full recompute
     exactly): those with weight on a control whose parameter row changed bitwise. None: recompute
     everything (no usable previous result, or too many rows changed)."""
-    if previous is None or bound.state != state or bound.params.shape != params.shape:
+    changed = bound.result.changed_controls(state, params, motions=motions)
+    if changed is None:
         return None
-    changed = np.flatnonzero((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1))
     return _rows_to_recompute(bound, changed, len(params), bound.affected_rows, bound.weighted_rows)
 
 
-def _rows_to_recompute(bound: BoundData, changed: np.ndarray, m: int, affected,
+def _rows_to_recompute(bound: BindRecord, changed: np.ndarray, m: int, affected,
                        every=None) -> np.ndarray | None:
     """The rows an incremental update recomputes when the controls `changed` (of m) changed, or None
     for a full recompute; `affected(changed)` gives the vertices reading them, `every()` (default:
@@ -184,12 +184,12 @@ def _rows_to_recompute(bound: BoundData, changed: np.ndarray, m: int, affected,
     return rows if compiled or len(rows) <= INCREMENTAL_MAX_FRACTION * len(bound.points) else None
 
 
-def blend_motions(deformer, motions: Motions, bound: BoundData,
+def blend_motions(deformer, motions: Motions, bound: BindRecord,
                   state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
     """(each rest vertex's motion x ↦ M x + t as (4, N, 3) float32 columns M e_x, M e_y, M e_z, t,
     rows): the motion path's counterpart of `blend_offsets` (same rules, same `rows` meaning); exactly the
     identity when every control is at rest. The array may be the cache's own: do not modify it."""
-    bound.proven = False
+    bound.result.prove(False)
     outer = parameters.outer_at_strength(motions, deformer.strength, deformer.branch_rule)
     n = len(bound.points)
     at_rest = deformer.strength == 0.0 or len(motions.matrices) == 0 or np.all(motions.at_rest)
@@ -197,7 +197,7 @@ def blend_motions(deformer, motions: Motions, bound: BoundData,
         if motions.chain is not None:
             return _motions_chain(deformer, motions, bound, state)
         return _motions_affine(deformer, motions, bound, state)
-    bound.forget_result()
+    bound.result.forget()
     if at_rest:
         result = _identity_motions(n)
     else:
@@ -238,30 +238,31 @@ def _compose(outer: np.ndarray, motions: np.ndarray) -> np.ndarray:
     return result
 
 
-def _motions_affine(deformer, motions: Motions, bound: BoundData,
+def _motions_affine(deformer, motions: Motions, bound: BindRecord,
                     state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
     """`blend_motions` for the plain affine blend, recomputing only the vertices whose motion can
     differ from the cached one (the rule of `_offsets_affine`, for motions instead of offsets)."""
     params = _pooled(parameters.motions_to_params(motions, deformer.branch_rule), motions, bound)
     values = bound.scaled_values(deformer.strength)
     key = (bound.serial, deformer.strength)
-    result = bound.motions
-    rows = _changed_rows(bound, result, params, state)
+    kept = bound.result
+    rows = _changed_rows(bound, params, state, motions=True)
     if rows is not None:
+        result = kept.motions
         if len(rows):
             accel.vertex_motions(params, bound.indices, values, out=result, rows=rows, key=key)
-        bound.params = params
-        bound.proven = _storable_by_bound(bound, params, deformer.strength, offsets=False)
+        kept.advance(params)
+        kept.prove(_storable_by_bound(bound, params, deformer.strength, offsets=False))
         return result, rows
-    bound.forget_result()
+    kept.forget()
     result = accel.vertex_motions(params, bound.indices, values,
                                   out=np.empty((4, len(bound.points), 3), dtype=np.float32), key=key)
-    bound.state, bound.params, bound.motions = state, params, result
-    bound.proven = _storable_by_bound(bound, params, deformer.strength, offsets=False)
+    kept.keep(state, params, motions=result)
+    kept.prove(_storable_by_bound(bound, params, deformer.strength, offsets=False))
     return result, None
 
 
-def _chain_inputs(deformer, motions: Motions, bound: BoundData, state: tuple
+def _chain_inputs(deformer, motions: Motions, bound: BindRecord, state: tuple, as_motions: bool
                   ) -> tuple[np.ndarray, np.ndarray, hierarchy.ChainLayout, tuple, np.ndarray | None]:
     """(ψ(L_i), the prefix matrices (core.hierarchy.prefix_table), the weights' layout down the
     hierarchy, the result state, the rows to recompute or None for all): as `_changed_rows`, a vertex
@@ -276,59 +277,57 @@ def _chain_inputs(deformer, motions: Motions, bound: BoundData, state: tuple
     prefixes = hierarchy.prefix_table(matrices)
     layout = bound.chain_layout(parents, deformer.strength)
     state = (state, parents.tobytes())
-    previous = bound.motions if bound.offsets is None else bound.offsets
-    if (previous is None or bound.state != state or bound.params is None or bound.prefixes is None
-            or bound.params.shape != params.shape):
+    changed = bound.result.changed_controls(state, params, motions=as_motions, prefixes=prefixes)
+    if changed is None:
         return params, prefixes, layout, state, None
-    changed = ((params.view(np.int64) != bound.params.view(np.int64)).any(axis=1)
-               | (prefixes[:-1].view(np.int64) != bound.prefixes[:-1].view(np.int64)).any(axis=1))
-    rows = _rows_to_recompute(bound, np.flatnonzero(changed), len(params), layout.affected_rows)
+    rows = _rows_to_recompute(bound, changed, len(params), layout.affected_rows)
     return params, prefixes, layout, state, rows
 
 
-def _chain_args(bound: BoundData, params: np.ndarray, prefixes: np.ndarray,
+def _chain_args(bound: BindRecord, params: np.ndarray, prefixes: np.ndarray,
                 layout: hierarchy.ChainLayout) -> tuple[tuple, dict]:
     """The arguments of accel.chain_points / chain_motions, with a key naming the bound points and
     the layout's passes for the kernel's argument checks: a layout is a pure function of the bound
     weights (`bound.serial`) and its cache key (parents, strength)."""
-    key = ("chain", bound.serial, bound.layout[0] if bound.layout is not None else None)
+    key = ("chain", bound.serial, bound.layout_key())
     return (params, layout.indices, layout.values, layout.prefix, prefixes), {"key": key}
 
 
-def _offsets_chain(deformer, motions: Motions, bound: BoundData,
+def _offsets_chain(deformer, motions: Motions, bound: BindRecord,
                    state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
     """`blend_offsets` down a hierarchy (accel.chain_points), recomputing only the vertices that read
     a changed control (rows are independent: bit-identical to a full recompute)."""
-    params, prefixes, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    params, prefixes, layout, state, rows = _chain_inputs(deformer, motions, bound, state, False)
     args, key = _chain_args(bound, params, prefixes, layout)
     points = bound.points
-    if rows is not None and bound.offsets is not None:
-        offsets = bound.offsets
+    kept = bound.result
+    if rows is not None and kept.offsets is not None:
+        offsets = kept.offsets
         if len(rows):
-            # The kernel rounds the rows it computes into the attribute's copy too, as in _offsets_affine.
-            written = bound.written
-            out32 = written if written is not None and written.shape == offsets.shape else None
-            accel.chain_points(points, *args, rows, offsets, offsets=True, out32=out32, **key)
-        bound.params, bound.prefixes = params, prefixes
+            # The kernel rounds the rows it computes into the store's copy too, as in _offsets_affine.
+            accel.chain_points(points, *args, rows, offsets, offsets=True,
+                               out32=kept.offsets_buffer(offsets.shape), **key)
+        kept.advance(params, prefixes)
         return offsets, rows
-    bound.forget_result()
+    kept.forget()
     offsets = accel.chain_points(points, *args, offsets=True, **key)
-    bound.state, bound.params, bound.prefixes, bound.offsets = state, params, prefixes, offsets
+    kept.keep(state, params, offsets=offsets, prefixes=prefixes)
     return offsets, None
 
 
-def _motions_chain(deformer, motions: Motions, bound: BoundData,
+def _motions_chain(deformer, motions: Motions, bound: BindRecord,
                    state: tuple) -> tuple[np.ndarray, np.ndarray | None]:
     """`blend_motions` down a hierarchy (accel.chain_motions), incremental as `_offsets_chain`."""
-    params, prefixes, layout, state, rows = _chain_inputs(deformer, motions, bound, state)
+    params, prefixes, layout, state, rows = _chain_inputs(deformer, motions, bound, state, True)
     args, key = _chain_args(bound, params, prefixes, layout)
-    if rows is not None and bound.motions is not None:
-        result = bound.motions
+    kept = bound.result
+    if rows is not None and kept.motions is not None:
+        result = kept.motions
         if len(rows):
             accel.chain_motions(*args, result, rows=rows, **key)
-        bound.params, bound.prefixes = params, prefixes
+        kept.advance(params, prefixes)
         return result, rows
-    bound.forget_result()
+    kept.forget()
     result = accel.chain_motions(*args, np.empty((4, len(bound.points), 3), dtype=np.float32), **key)
-    bound.state, bound.params, bound.prefixes, bound.motions = state, params, prefixes, result
+    kept.keep(state, params, motions=result, prefixes=prefixes)
     return result, None

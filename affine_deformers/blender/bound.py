@@ -1,5 +1,6 @@
-"""Bind data of each deformer as the update uses it: read from the mesh once per bind generation,
-kept with the deformer's last result so an update recomputes only what changed.
+"""Bind data of each deformer as the update uses it: a read-only record read from the mesh once per bind
+generation (`BindRecord`), carrying the deformer's last result (result.py) so an update recomputes
+only what changed.
 
 The .blend holds the truth (weights as hidden mesh attributes, storage.py); `_bound` is a cache of
 it, keyed so that any change of the mesh, the bind or the rest shape rebuilds the entry.
@@ -8,7 +9,7 @@ it, keyed so that any change of the mesh, the bind or the rest shape rebuilds th
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import bpy
 import numpy as np
@@ -16,25 +17,24 @@ import numpy as np
 from .. import accel
 from ..core import hierarchy
 from . import caches, storage
+from .result import Result
 
-_bound: dict[tuple[int, str], BoundData] = {}
+_bound: dict[tuple[int, str], BindRecord] = {}
 _serial = itertools.count(1)
 
 
 @dataclass
-class BoundData:
-    """Bind data of one deformer read once per bind generation, plus its last result (a cache: the .blend
-    holds the truth, and every value here is recomputed from it when the key no longer matches).
+class BindRecord:
+    """A deformer's bind data read from the mesh once per bind generation: a cache of the .blend,
+    recomputed from it when the key no longer matches, and read-only — nothing outside this class
+    assigns its fields (its derived tables are made by its own methods, on first use). Its `result`
+    (result.Result) is the last result computed from it, owned by result.py.
 
     key = (mesh session uid, bind generation, vertex count, control count); `rest32` is checked against
     the mesh on every evaluation (bit for bit, in one compiled pass: accel.same_bits), so edits of the
     rest shape (Edit Mode, Sculpt Mode, scripts) are seen without rebinding. `serial` changes whenever
-    the entry is rebuilt. `written` is what this process last wrote to the offset attribute, so an
-    update writes it without reading the attribute back (a write by anyone else to that attribute is not
-    supported; undo and file load drop the cache). The last result (`state`, `params`, `offsets`) lets
-    an update recompute only the vertices with a non-zero weight on a control whose blend parameters
-    changed: every vertex's result depends only on its own rest position, weights and the parameters of
-    its controls, so this is bit-identical to a full recompute.
+    the record is rebuilt. `columns`: the parameter rows the weights may index (controls and pooled
+    nodes).
     """
 
     key: tuple
@@ -47,53 +47,52 @@ class BoundData:
     # pooled control, for probes and cage faces (the blend appends its parameter row, `with_pool`);
     # the nodes m … 2m of core.hierarchy.pool_parents for bones (blend.py `_pooled`)
     pooled: bool = False
-    scaled: tuple[float, np.ndarray] | None = None  # (strength, values · strength)
-    # per control: the rows it influences (ptr, rows), and the rows with any weight
-    csr: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-    state: tuple | None = None  # settings `params` and `offsets` were computed with
-    params: np.ndarray | None = None  # (m, 12) blend parameters of the last result
-    offsets: np.ndarray | None = None  # (N, 3) float64 last offsets
-    written: np.ndarray | None = None  # (N, 3) float32 the offset attribute holds (None = unknown)
-    motions: np.ndarray | None = None  # (4, N, 3) float32 last motions (motion path)
-    motions_written: np.ndarray | None = None  # (4, N, 3) float32 the motion attributes hold (None = unknown)
-    prefixes: np.ndarray | None = None  # (m + 1, 12) the bones' prefix matrices of the last result
-    layout: tuple[tuple, hierarchy.ChainLayout] | None = None  # ((parents, strength), layout)
-    every: np.ndarray | None = None  # (N,) intp 0 … N − 1, once asked for (`every_row`)
-    reach_at: tuple[float, float, float] | None = None  # (strength, max |point|, max row Σ|w|)
-    proven: bool = False  # the last result is finite and storable by `core.deform.motion_bound`
+    columns: int = 0
+    result: Result = field(default_factory=Result)
+    _scaled: tuple[float, np.ndarray] | None = field(default=None, repr=False)  # (strength, values·strength)
+    # per parameter row: the rows it influences (ptr, rows), and the rows with any weight
+    _csr: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    _layout: tuple[tuple, hierarchy.ChainLayout] | None = field(default=None, repr=False)
+    _every: np.ndarray | None = field(default=None, repr=False)  # (N,) intp 0 … N − 1
+    _reach_at: tuple[float, float, float] | None = field(default=None, repr=False)
+
+    @property
+    def proven(self) -> bool:
+        """The last result is finite and storable by `core.deform.motion_bound` (result.Result)."""
+        return self.result.proven
 
     def reach(self, strength: float) -> tuple[float, float]:
         """(max |rest point|, max over vertices of Σ_k |w_vk| at `strength`), the inputs of
         core.deform.motion_bound for this bind (kept while the strength is the same)."""
-        if self.reach_at is None or self.reach_at[0] != strength:
+        if self._reach_at is None or self._reach_at[0] != strength:
             radius = float(np.sqrt((self.points ** 2).sum(axis=1)).max(initial=0.0))
             weight_sum = float(np.abs(self.scaled_values(strength)).sum(axis=1).max(initial=0.0))
-            self.reach_at = (strength, radius, weight_sum)
-        return self.reach_at[1], self.reach_at[2]
+            self._reach_at = (strength, radius, weight_sum)
+        return self._reach_at[1], self._reach_at[2]
 
     def every_row(self) -> np.ndarray:
         """All vertex indices (N,) intp, as a row list for the kernel's row path (made once)."""
-        if self.every is None:
-            self.every = np.arange(len(self.points), dtype=np.intp)
-        return self.every
+        if self._every is None:
+            self._every = np.arange(len(self.points), dtype=np.intp)
+        return self._every
 
     def scaled_values(self, strength: float) -> np.ndarray:
-        if self.scaled is None or self.scaled[0] != strength:
-            self.scaled = (strength, self.values * strength)
-        return self.scaled[1]
+        if self._scaled is None or self._scaled[0] != strength:
+            self._scaled = (strength, self.values * strength)
+        return self._scaled[1]
 
     def _rows_by_control(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(ptr, rows, weighted): control i's rows are rows[ptr[i] : ptr[i + 1]], `weighted` the rows
-        with any non-zero weight; built once per generation."""
-        if self.csr is None:
-            m = len(self.params) if self.params is not None else int(self.indices.max(initial=-1)) + 1
+        """(ptr, rows, weighted): parameter row i's vertices are rows[ptr[i] : ptr[i + 1]], `weighted`
+        the vertices with any non-zero weight; built once per record."""
+        if self._csr is None:
+            m = max(self.columns, int(self.indices.max(initial=-1)) + 1)
             rows, slots = np.nonzero(self.values)
             cols = self.indices[rows, slots]
             order = np.argsort(cols, kind="stable")
             ptr = np.zeros(m + 1, dtype=np.intp)
             np.cumsum(np.bincount(cols, minlength=m), out=ptr[1:])
-            self.csr = (ptr, rows[order].astype(np.intp), np.flatnonzero((self.values != 0.0).any(axis=1)))
-        return self.csr
+            self._csr = (ptr, rows[order].astype(np.intp), np.flatnonzero((self.values != 0.0).any(axis=1)))
+        return self._csr
 
     def weighted_rows(self) -> np.ndarray:
         """Sorted vertices with any non-zero weight: all a change of every control can move (the
@@ -102,7 +101,7 @@ class BoundData:
 
     def affected_rows(self, controls: np.ndarray) -> np.ndarray:
         """Sorted vertices with a non-zero weight on any of `controls`: for a few, gathered from
-        per-control row lists built once per generation (O(affected) plus one boolean pass over the
+        per-control row lists built once per record (O(affected) plus one boolean pass over the
         vertices); for many, one compiled pass over the weights, or numpy's tagging of the row lists."""
         ptr, rows, weighted = self._rows_by_control()
         if len(controls) == len(ptr) - 1:  # every control (a cage's nodes after any edit): all weighted rows
@@ -129,13 +128,13 @@ class BoundData:
         """The weights at `strength` laid out down the hierarchy `parents` (core.hierarchy), kept
         while the same parents and strength come back."""
         key = (parents.tobytes(), strength)
-        if self.layout is None or self.layout[0] != key:
-            self.layout = (key, hierarchy.chain_layout(self.indices, self.scaled_values(strength), parents))
-        return self.layout[1]
+        if self._layout is None or self._layout[0] != key:
+            self._layout = (key, hierarchy.chain_layout(self.indices, self.scaled_values(strength), parents))
+        return self._layout[1]
 
-    def forget_result(self) -> None:
-        self.state = self.params = self.offsets = self.motions = self.prefixes = None
-        self.proven = False
+    def layout_key(self) -> tuple | None:
+        """The key of the chain layout made last (None before one): part of the kernel's argument key."""
+        return None if self._layout is None else self._layout[0]
 
 
 @caches.register
@@ -144,12 +143,12 @@ def forget(key: caches.Key | None = None) -> None:
     caches.drop(_bound, key)
 
 
-def cached(obj: bpy.types.Object, deformer) -> BoundData | None:
+def cached(obj: bpy.types.Object, deformer) -> BindRecord | None:
     """The cached entry of `deformer` on `obj`, if any (not checked against the mesh)."""
     return _bound.get((obj.session_uid, deformer.uid))
 
 
-def bind_data(obj: bpy.types.Object, deformer, n_controls: int, pool: int = 0) -> BoundData:
+def bind_data(obj: bpy.types.Object, deformer, n_controls: int, pool: int = 0) -> BindRecord:
     """The cached bind data of `deformer`, re-read when the bind generation, mesh, vertex or control
     count changed or the rest positions differ from the cached ones. `pool`: how many pooled nodes
     past the controls its weights may point at (MATH.md §12): 1 for the pooled control of a flat set
@@ -166,7 +165,8 @@ def bind_data(obj: bpy.types.Object, deformer, n_controls: int, pool: int = 0) -
     _check_vertices(mesh, deformer, rest)
     indices, values = storage.read_weights(mesh, deformer.uid, n_controls + pool)
     pooled = bool(pool and indices.size and int(indices.max()) >= n_controls)
-    bound = BoundData(key, next(_serial), rest, rest.astype(np.float64), indices, values, pooled=pooled)
+    bound = BindRecord(key, next(_serial), rest, rest.astype(np.float64), indices, values, pooled=pooled,
+                       columns=n_controls + pool)
     _bound[cache_key] = bound
     return bound
 

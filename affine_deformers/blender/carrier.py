@@ -136,11 +136,7 @@ def ensure_all(scene: bpy.types.Scene | None = None) -> None:
 def _control_fields(deformer) -> list[tuple]:
     """(owner, property name) of every control pointer of the deformer's kind that is set."""
     kind = kinds.get(deformer.kind)
-    if kind is None:
-        return []
-    fields = [(item, "object") for item in getattr(deformer, "probes", ())]
-    fields += [(deformer, name) for name in ("cage", "armature") if hasattr(deformer, name)]
-    return [(owner, name) for owner, name in fields if getattr(owner, name) is not None]
+    return [] if kind is None else kind.control_pointers(deformer)
 
 
 def _root(override: bpy.types.IDOverrideLibrary) -> int:

@@ -44,6 +44,7 @@ from . import bound as bound_data
 from .caches import forget
 from .params import motions_to_params
 from .params import prefetch as motions_params_prefetch
+from .result import Result
 
 __all__ = ["blocking_error", "evaluate_all", "evaluate_deformer", "evaluate_object", "forget",
            "motions_to_params", "run"]
@@ -106,7 +107,7 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         path, output, rows = "OFFSET", np.zeros((len(mesh.vertices), 3)), None
         cached = bound_data.cached(obj, deformer)
         if cached is not None:
-            cached.written = cached.motions_written = None  # written below without them
+            cached.result.forget_written()  # written below without it
     _write(obj, deformer, snap.modifier, path, output, rows, None if error else bound, depsgraph, create)
     warning = snap.motions.warning if snap.motions is not None else ""
     status = error or "; ".join(m for m in (warning, deformer.bind_warning) if m)
@@ -131,23 +132,23 @@ def _compute(obj: bpy.types.Object, deformer,
             field, _rows = blend.blend_motions(deformer, snap.motions, snap.bound, snap.result_state())
             controls = len(snap.motions.matrices)
             output, rows = shape_pass.apply(obj, deformer, snap.bound, controls, field, snap.path), None
-            snap.bound.forget_result()  # the per-vertex caches must not meet the pass's output
+            snap.bound.result.forget()  # the per-vertex caches must not meet the pass's output
         else:
             output, rows = compute(deformer, snap.motions, snap.bound, snap.result_state())
     except (storage.StorageError, shape_pass.ShapePassError) as exc:
         error = str(exc)
     except ValueError as exc:  # core refuses to blend (e.g. a motion too degenerate for its log)
         error = f"The controls' motions cannot be blended ({exc}): the mesh shows its rest shape"
-    # A result the blend proved bounded (bound.proven) needs no pass over its vertices.
-    if not error and not snap.bound.proven and not finite(output, rows):
+    # A result the blend proved bounded (result.Result.proven) needs no pass over its vertices.
+    if not error and not snap.bound.result.proven and not finite(output, rows):
         error = "The deformation is not finite: the mesh shows its rest shape"
     if error:
-        snap.bound.forget_result()
+        snap.bound.result.forget()
     return output, rows, error
 
 
 def _write(obj: bpy.types.Object, deformer, mod: bpy.types.Modifier | None, path: str, output: np.ndarray,
-           rows: np.ndarray | None, bound: bound_data.BoundData | None, depsgraph: bpy.types.Depsgraph,
+           rows: np.ndarray | None, bound: bound_data.BindRecord | None, depsgraph: bpy.types.Depsgraph,
            create: bool) -> None:
     """Write the output of `path` and its frame stamp where it goes (output_store.py): a library
     override's carrier (attributes), else the mesh's attributes or the deformer's position carrier,
@@ -155,24 +156,28 @@ def _write(obj: bpy.types.Object, deformer, mod: bpy.types.Modifier | None, path
     would drop it) or when there is nothing to write to: the modifier shows what is there."""
     uid = deformer.uid
     stamp = _stamp_value(obj, deformer, depsgraph)
+    result = bound.result if bound is not None else None
     if carrier.needs_carrier(obj):
-        _write_attributes(carrier.output_mesh(obj, create), uid, path, output, rows, bound, stamp)
+        _write_attributes(carrier.output_mesh(obj, create), uid, path, output, rows, result, stamp)
         return
     holder = None
     if output_store.choose(obj, uid, mod, path, depsgraph) == "POSITIONS":
         holder = output_store.ensure_carrier(obj, uid, mod, create)
     switched = output_store.switched(obj, uid, "ATTRIBUTES" if holder is None else "POSITIONS")
-    if switched and bound is not None:
-        bound.written = bound.motions_written = None  # what is remembered is the other store's
+    if switched and result is not None:
+        result.forget_written()  # what is remembered is the other store's
     if holder is None:
         output_store.empty_carrier(obj, mod)
-        _write_attributes(obj.data, uid, path, output, rows, bound, stamp)
+        _write_attributes(obj.data, uid, path, output, rows, result, stamp)
         return
     store = output_store.PositionStore(holder.data)
-    if output_store.drop_attributes(obj.data, uid) and bound is not None:
-        bound.written = bound.motions_written = None
-    data = (outputs.pending_motions(output, rows, bound) if path == "MOTION"
-            else outputs.pending_offsets(output, rows, bound))
+    if output_store.drop_attributes(obj.data, uid) and result is not None:
+        result.forget_written()
+    if result is None:
+        data = output
+    else:
+        data = (result.pending_motions(output, rows) if path == "MOTION"
+                else result.pending_offsets(output, rows))
     if data is None:
         store.stamp(stamp)
     else:
@@ -180,19 +185,19 @@ def _write(obj: bpy.types.Object, deformer, mod: bpy.types.Modifier | None, path
 
 
 def _write_attributes(mesh: bpy.types.Mesh | None, uid: str, path: str, output: np.ndarray,
-                      rows: np.ndarray | None, bound: bound_data.BoundData | None, stamp: float) -> None:
+                      rows: np.ndarray | None, result: Result | None, stamp: float) -> None:
     """The output and its stamp as attributes of `mesh` (the target's, or an override's carrier's),
     dropping the other path's attributes."""
     if mesh is None or mesh.library is not None or mesh.override_library is not None:
-        if bound is not None:
-            bound.written = bound.motions_written = None
+        if result is not None:
+            result.forget_written()
         return
     if path == "MOTION":
-        outputs.write_motions(mesh, uid, output, rows, bound)
+        outputs.write_motions(mesh, uid, output, rows, result)
     else:
-        if storage.remove_output(mesh, uid, keep="OFFSET") and bound is not None:
-            bound.motions_written = None
-        outputs.write_offsets(mesh, uid, output, rows, bound)
+        if storage.remove_output(mesh, uid, keep="OFFSET") and result is not None:
+            result.forget_written(motions_only=True)
+        outputs.write_offsets(mesh, uid, output, rows, result)
     frame_check.stamp(mesh, uid, stamp)
 
 

@@ -256,7 +256,7 @@ def deformed_positions(obj: bpy.types.Object, uid: str,
 
 class PositionStore:
     """Writes an output into a position carrier's mesh (layout in the module doc). `written` is what
-    it holds, kept by the update (bound.BoundData) to skip identical writes."""
+    it holds, kept by the update (result.Result) to skip identical writes."""
 
     def __init__(self, mesh: bpy.types.Mesh) -> None:
         self.mesh = mesh

@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import accel
 from . import caches, carrier_input, nodes, storage
-from .bound import BoundData
+from .result import Result
 
 
 @caches.register
@@ -95,70 +95,25 @@ def keys_keep_rest(mesh: bpy.types.Mesh, rest32: np.ndarray) -> bool:
     return accel.same_bits(basis.reshape(rest32.shape), rest32)
 
 
-def write_motions(mesh: bpy.types.Mesh, uid: str, result: np.ndarray, rows: np.ndarray | None,
-                   bound: BoundData | None) -> None:
-    """Write `result` (4, N, 3) float32 to the motion attributes unless they already hold it (as
+def write_motions(mesh: bpy.types.Mesh, uid: str, motions: np.ndarray, rows: np.ndarray | None,
+                  result: Result | None) -> None:
+    """Write `motions` (4, N, 3) float32 to the motion attributes unless they already hold them (as
     `write_offsets`: an incremental result is written when rows changed, a full one when it differs
     from what this process wrote last, or from what the mesh holds when that is unknown), and drop the
     offset attribute, which would add to the motion."""
     if storage.remove_output(mesh, uid, keep="MOTION"):
         mesh.update_tag()
-        if bound is not None:
-            bound.written = None
-    known = bound.motions_written if bound is not None else None
-    if known is not None and known.shape == result.shape:
-        if rows is not None and len(rows) == 0 and known is result:
+        if result is not None:
+            result.forget_written()
+    if result is None or (rows is None and not result.knows_motions(motions.shape)):
+        stored = storage.read_motions(mesh, uid)  # unknown: read back once, and skip an identical write
+        if stored is not None and np.array_equal(stored, motions):
+            if result is not None:
+                result.note_motions(motions)
             return
-        if rows is None and known is not result and np.array_equal(known, result):
-            if bound.motions is result:
-                bound.motions = known  # keep one array: later incremental updates write into it
-            return
-    elif rows is None:
-        stored = storage.read_motions(mesh, uid)
-        if stored is not None and np.array_equal(stored, result):
-            if bound is not None:
-                bound.motions_written = result
-            return
-    storage.write_motions(mesh, uid, result)
-    if bound is not None:
-        bound.motions_written = result
-
-
-def pending_offsets(offsets: np.ndarray, rows: np.ndarray | None,
-                    bound: BoundData | None) -> np.ndarray | None:
-    """The float32 offsets (N, 3) to write into a store that holds what this process wrote last
-    (`bound.written`), or None when it already holds them (as `write_offsets` decides, without reading
-    a store back: an unknown content is written)."""
-    if bound is not None and bound.written is not None and bound.written.shape == offsets.shape:
-        if rows is not None and len(rows) == 0:
-            return None
-        if rows is None:
-            fresh = offsets.astype(np.float32)
-            if np.array_equal(bound.written, fresh):
-                return None
-            bound.written = fresh
-        return bound.written  # an incremental result's rows are already in it (blend.py)
-    fresh = np.array(offsets, dtype=np.float32, order="C")
-    if bound is not None:
-        bound.written = fresh
-    return fresh
-
-
-def pending_motions(result: np.ndarray, rows: np.ndarray | None,
-                    bound: BoundData | None) -> np.ndarray | None:
-    """The motions (4, N, 3) float32 to write, or None when the store already holds them (as
-    `write_motions` decides, without reading a store back)."""
-    known = bound.motions_written if bound is not None else None
-    if known is not None and known.shape == result.shape:
-        if rows is not None and len(rows) == 0 and known is result:
-            return None
-        if rows is None and known is not result and np.array_equal(known, result):
-            if bound.motions is result:
-                bound.motions = known  # keep one array: later incremental updates write into it
-            return None
-    if bound is not None:
-        bound.motions_written = result
-    return result
+    pending = motions if result is None else result.pending_motions(motions, rows)
+    if pending is not None:
+        storage.write_motions(mesh, uid, pending)
 
 
 #: The largest magnitude a float32 attribute holds: beyond it a value would be stored as ±inf.
@@ -198,28 +153,21 @@ def finite_offsets(offsets: np.ndarray, rows: np.ndarray | None) -> bool:
 
 
 def write_offsets(mesh: bpy.types.Mesh, uid: str, offsets: np.ndarray, rows: np.ndarray | None,
-                   bound: BoundData | None) -> None:
+                  result: Result | None) -> None:
     """Write `offsets` to the offset attribute unless it already holds them (a write tags the mesh,
     which triggers another depsgraph update).
 
-    With `bound`'s copy of the attribute nothing is read back from the mesh: an incremental result
-    (`rows` not None) is written when rows were recomputed (their parameters changed, so they almost
-    always moved; an identical write only costs one more, signature-cached, update) and skipped when
-    none were; a full result is compared with the copy. Without a copy the attribute is read back.
-    An incremental result's rows are already in the copy: `blend.offsets_affine` had the kernel round them
-    into it (float32(offset), what a cast of the whole array would give), so nothing is converted here.
+    With the result's copy of the attribute nothing is read back from the mesh (result.Result
+    .pending_offsets: an incremental result is written when rows were recomputed, a full one when it
+    differs from the copy; the rows are already in the copy, rounded by the kernel). Without a copy
+    the attribute is read back once.
     """
-    if bound is not None and bound.written is not None and bound.written.shape == offsets.shape:
-        if rows is not None and len(rows) == 0:
-            return
-        if rows is None:
-            fresh = offsets.astype(np.float32)
-            if np.array_equal(bound.written, fresh):
-                return
-            bound.written = fresh
-        storage.write_offsets_unchecked(mesh, uid, bound.written)
+    if result is not None and result.knows_offsets(offsets.shape):
+        pending = result.pending_offsets(offsets, rows)
+        if pending is not None:
+            storage.write_offsets_unchecked(mesh, uid, pending)
         return
     fresh = np.array(offsets, dtype=np.float32, order="C")  # always a copy: `offsets` may be a cache's
     storage.write_offsets(mesh, uid, fresh)  # compares with what the mesh holds
-    if bound is not None:
-        bound.written = fresh
+    if result is not None:
+        result.note_offsets(fresh)

@@ -35,7 +35,7 @@ import numpy as np
 from .. import accel
 from ..core import arap
 from . import caches
-from .bound import BoundData
+from .bound import BindRecord
 from .validation import settings_problem
 
 #: The deformer settings the pass reads (Iterations: `apply`; Anchor Strength: `factor_for`).
@@ -101,7 +101,7 @@ def _digest(*arrays: np.ndarray, extra: tuple = ()) -> bytes:
     return h.digest()
 
 
-def factor_for(obj: bpy.types.Object, deformer, bound: BoundData, controls: int) -> Factor:
+def factor_for(obj: bpy.types.Object, deformer, bound: BindRecord, controls: int) -> Factor:
     """The factor of `deformer`'s system, built when its inputs changed (ShapePassError when it
     cannot be). `controls`: the deformer's control count; bound weight columns at or past it are the
     truncation's pooled nodes (MATH.md §12), which anchor nothing."""
@@ -127,7 +127,7 @@ def factor_for(obj: bpy.types.Object, deformer, bound: BoundData, controls: int)
     return found
 
 
-def _build(bound: BoundData, triangles: np.ndarray, strength: float, controls: int) -> Factor:
+def _build(bound: BindRecord, triangles: np.ndarray, strength: float, controls: int) -> Factor:
     start = time.perf_counter()
     try:
         elements = arap.triangle_elements(bound.points, triangles)
@@ -157,7 +157,7 @@ def summary(obj: bpy.types.Object, deformer) -> str:
     return found.summary() if found is not None else ""
 
 
-def apply(obj: bpy.types.Object, deformer, bound: BoundData, controls: int, motions: np.ndarray,
+def apply(obj: bpy.types.Object, deformer, bound: BindRecord, controls: int, motions: np.ndarray,
           path: str) -> np.ndarray:
     """The pass on the field's per-vertex motions (4, N, 3) (blend.blend_motions' columns M e_x, M e_y,
     M e_z, t): offsets x − p (N, 3) float64 for the 'OFFSET' path, motions with the correction in their

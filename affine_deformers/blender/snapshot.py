@@ -5,7 +5,7 @@ data, the output path, the deformer's settings and the kernel backend — into a
 
 * `Snapshot.signature()` is the update's key: equal signatures mean the written output is already
   right (evaluate.evaluate_deformer returns at once);
-* `Snapshot.result_state()` is what a cached result was computed with (bound.BoundData.state): a
+* `Snapshot.result_state()` is what a cached result was computed with (result.Result.state): a
   result is reused incrementally only under the same state;
 * the per-control parameter memo (params.py) is keyed on the bits of `Snapshot.motions` rows.
 
@@ -28,7 +28,7 @@ import numpy as np
 from .. import accel
 from . import bound as bound_data
 from . import kinds, nodes, outputs, storage
-from .bound import BoundData
+from .bound import BindRecord
 from .kinds import Motions
 from .kinds.base import PREVIEW, REWEIGHTS
 from .validation import settings_problem
@@ -65,7 +65,7 @@ class Snapshot:
     carried for the computation; they enter the comparisons through `motions_key` and `serial`."""
 
     mesh: int  # the mesh's session uid
-    serial: int | None  # the bind data entry read (bound.BoundData.serial), None without one
+    serial: int | None  # the bind data entry read (bound.BindRecord.serial), None without one
     error: str
     path: str  # 'OFFSET' or 'MOTION' (outputs.output_path)
     settings: tuple  # values of SETTINGS
@@ -74,7 +74,7 @@ class Snapshot:
     reader: bool = True  # the modifier's group reads position carriers (a group replaced or downgraded
     # under an unchanged output must be written again, to the store it reads: output_store.py)
     motions: Motions | None = field(default=None, compare=False)
-    bound: BoundData | None = field(default=None, compare=False)
+    bound: BindRecord | None = field(default=None, compare=False)
     modifier: bpy.types.Modifier | None = field(default=None, compare=False)  # the deformer's, looked up once
 
     def signature(self) -> tuple:

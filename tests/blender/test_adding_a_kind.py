@@ -1,8 +1,9 @@
 """Adding a deformer kind takes one new file in blender/kinds/ and the kind in the registry
 (docs/DEVELOPING.md, "Adding a kind"), nothing else: a throwaway kind written that way into a copy of
 the add-on gets its property on the deformer (declared for the update's snapshot), its add operator,
-its panel part, weights, the update and the weight preview, and survives a save and reload; the copy
-has no import cycle."""
+its panel part, weights, the update and the weight preview, survives a save and reload, follows Copy
+Modifiers onto another mesh, and plays in a library override of it, posed, saved and reopened (its
+control pointer repointed at the overridden control); the copy has no import cycle."""
 
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from bpy.props import FloatVectorProperty, PointerProperty
 
 from .base import (
     IDENTITY16,
+    OVERRIDABLE,
     READ_BY_KIND,
     Adopted,
     BindError,
@@ -58,7 +60,7 @@ class FollowKind(DeformerKind):
     def properties(cls) -> dict[str, KindProperty]:
         return {
             "leader": KindProperty(PointerProperty(
-                name="Leader", type=bpy.types.Object,
+                name="Leader", type=bpy.types.Object, override=OVERRIDABLE,
                 update=control_picker(cls.id, "leader", "the new leader")), READ_BY_KIND),
             "leader_rest": KindProperty(FloatVectorProperty(name="Leader Rest", size=16, default=IDENTITY16),
                                         READ_BY_KIND),
@@ -204,6 +206,54 @@ assert np.array_equal(positions(), moved)
 bpy.data.objects["Leader"].location = (0.0, 0.0, 0.0)
 bpy.context.view_layer.update()
 assert np.abs(positions() - rest).max() < 1e-5
+
+# Copy Modifiers onto another mesh: the copy becomes a follow deformer of its own (copies.py).
+copies = importlib.import_module("throwaway_addon.affine_deformers.blender.copies")
+bpy.ops.mesh.primitive_cube_add(size=2.0, location=(5.0, 0.0, 0.0))
+other = bpy.context.active_object
+with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, other],
+                               selected_editable_objects=[target, other]):
+    assert bpy.ops.object.make_links_data(type="MODIFIERS") == {"FINISHED"}
+bpy.context.evaluated_depsgraph_get()
+copies.bind_adopted()
+adopted = other.affine_deformers[0]
+assert adopted.kind == "FOLLOW" and adopted.leader == bpy.data.objects["Leader"], adopted.kind
+assert adopted.is_bound and adopted.status == "", adopted.status
+
+# A library override of the rig: the leader pointer is repointed at the overridden leader.
+rig = bpy.data.collections.new("Rig")
+scene = bpy.context.scene
+scene.collection.children.link(rig)
+for obj in (target, bpy.data.objects["Leader"]):
+    rig.objects.link(obj)
+    scene.collection.objects.unlink(obj)
+asset = os.path.join(tempfile.mkdtemp(), "asset.blend")
+bpy.ops.wm.save_as_mainfile(filepath=asset)
+bpy.ops.wm.read_homefile(use_empty=True)
+scene = bpy.context.scene
+with bpy.data.libraries.load(asset, link=True) as (src, dst):
+    dst.collections = ["Rig"]
+instance = bpy.data.objects.new("RigInstance", None)
+instance.instance_type, instance.instance_collection = "COLLECTION", dst.collections[0]
+scene.collection.objects.link(instance)
+dst.collections[0].override_hierarchy_create(scene, bpy.context.view_layer, reference=instance)
+bpy.data.objects.remove(instance)
+def local(name):
+    return next(o for o in bpy.data.objects if o.name == name and o.library is None)
+target, leader = local(name), local("Leader")
+assert target.affine_deformers[0].leader == leader, target.affine_deformers[0].leader
+leader.location = (0.0, 0.0, 1.5)
+scene.frame_set(2)
+assert target.affine_deformers[0].status == "", target.affine_deformers[0].status
+assert np.abs(positions() - (rest + np.array([0.0, 0.0, 1.5]))).max() < 1e-5
+shot = os.path.join(tempfile.mkdtemp(), "shot.blend")
+bpy.ops.wm.save_as_mainfile(filepath=shot)
+bpy.ops.wm.open_mainfile(filepath=shot)
+target = local(name)
+assert target.affine_deformers[0].leader == local("Leader")
+scene = bpy.context.scene
+scene.frame_set(3)
+assert np.abs(positions() - (rest + np.array([0.0, 0.0, 1.5]))).max() < 1e-5
 throwaway_addon.unregister()
 print("FOLLOW KIND OK")
 '''

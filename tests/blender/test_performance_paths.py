@@ -64,7 +64,7 @@ def test_incremental_update_touches_only_influenced_vertices(ns):
     probes[0].location.x += 0.3
     bpy.context.view_layer.update()
     bound = ns.bound._bound[(target.session_uid, deformer.uid)]
-    first = bound.offsets
+    first = bound.result.offsets
     calls = []
     deform = ns.blend.accel  # the kernel dispatch the layer calls (compiled or numpy)
     originals = deform.deform_points_params, deform.deform_points_params_rows
@@ -87,7 +87,7 @@ def test_incremental_update_touches_only_influenced_vertices(ns):
     influenced = np.flatnonzero(np.any((bound.indices == 1) & (bound.values != 0.0), axis=1))
     assert calls == [("rows", len(influenced))], "one kernel call, on exactly the vertices probe 1 influences"
     assert 0 < len(influenced) < len(bound.points)
-    assert bound.offsets is first  # updated in place
+    assert bound.result.offsets is first  # updated in place
     assert np.array_equal(ns.stored_offsets(target, deformer), ns.recomputed_offsets(target, deformer))
 
 
@@ -121,7 +121,7 @@ def test_rebind_and_reweight_invalidate_the_cached_weights(ns):
 
 
 def test_affected_rows_of_few_and_of_many_controls(ns):
-    """`BoundData.affected_rows` (the rows an incremental update recomputes): the sorted vertices with
+    """`BindRecord.affected_rows` (the rows an incremental update recomputes): the sorted vertices with
     a non-zero weight on any of the given controls, whether it gathers per-control row lists (few
     controls) or tags every row-list entry with its control's flag (many: a cage's faces or nodes)."""
     rng = np.random.default_rng(11)
@@ -129,7 +129,7 @@ def test_affected_rows_of_few_and_of_many_controls(ns):
     indices = np.argsort(rng.random((n, m)), axis=1)[:, :k].astype(np.int32)  # distinct per row, as bound
     values = np.where(rng.random((n, k)) < 0.3, 0.0, rng.random((n, k)))
     points = rng.normal(size=(n, 3))
-    bound = ns.bound.BoundData(("test",), 1, points.astype(np.float32), points, indices, values)
+    bound = ns.bound.BindRecord(("test",), 1, points.astype(np.float32), points, indices, values, columns=m)
     accel = importlib.import_module(f"{ns.evaluate.__package__.rsplit('.', 1)[0]}.accel")
     try:
         for compiled in (True, False):  # many controls: the compiled pass, or numpy's

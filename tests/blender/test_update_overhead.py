@@ -245,13 +245,13 @@ def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, install
     bpy.context.view_layer.update()
     bound = importlib.import_module(f"{installed.package}.blender.bound")._bound[
         (target.session_uid, deformer.uid)]
-    copy = bound.written
+    copy = bound.result.written
     assert copy is not None
     calls = []
     real = accel.deform_points_params_rows
 
     def spy(*args, **kwargs):
-        calls.append((len(args[4]), kwargs.get("out32") is bound.written))
+        calls.append((len(args[4]), kwargs.get("out32") is bound.result.written))
         return real(*args, **kwargs)
 
     monkeypatch.setattr(accel, "deform_points_params_rows", spy)
@@ -266,10 +266,10 @@ def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, install
     assert len(calls) == 8, calls  # one incremental kernel call per update ...
     assert all(n > 0 and fused for n, fused in calls), calls  # ... filling the copy
     assert max(n for n, _ in calls) < len(bound.points)
-    assert bound.written is copy  # written in place, never reallocated
+    assert bound.result.written is copy  # written in place, never reallocated
     attribute = bl.stored_offsets(target, deformer)
     assert np.array_equal(attribute.view(np.uint32), copy.view(np.uint32))
-    cached = bound.offsets.astype(np.float32)
+    cached = bound.result.offsets.astype(np.float32)
     fresh = bl.recomputed_offsets(target, deformer)
     assert np.abs(fresh).max() > 0.05
     assert np.array_equal(attribute.view(np.uint32), fresh.view(np.uint32))

@@ -195,6 +195,11 @@ def ignored_note(what: str, objects: list) -> str:
 
 
 
+def _points_to_object(prop: bpy.types.Property) -> bool:
+    fixed = getattr(prop, "fixed_type", None)
+    return fixed is not None and fixed.identifier == "Object"
+
+
 class DeformerKind(ABC):
     """The interface of a deformer kind (see kinds/__init__.py for how one is registered).
 
@@ -282,6 +287,26 @@ class DeformerKind(ABC):
     @abstractmethod
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
         """The objects the target must be evaluated with (never `obj` itself)."""
+
+    def control_pointers(self, deformer) -> list[tuple[Any, str]]:
+        """(owner, property name) of every object pointer among the kind's own properties that is set:
+        a property of the deformer, or one of the items of a collection property of it (a probe's
+        `object`). What library overrides repoint at the overridden controls (carrier.remap_controls)
+        and copies keep (copies.py); found from the registered RNA, so a kind needs no code for it."""
+        found = []
+        rna = deformer.bl_rna.properties
+        for name in self.properties():
+            prop = rna.get(name)
+            if prop is None:
+                continue
+            if prop.type == "POINTER" and getattr(deformer, name) is not None and _points_to_object(prop):
+                found.append((deformer, name))
+            elif prop.type == "COLLECTION":
+                for item in getattr(deformer, name):
+                    found += [(item, p.identifier) for p in item.bl_rna.properties
+                              if p.type == "POINTER" and _points_to_object(p)
+                              and getattr(item, p.identifier) is not None]
+        return found
 
     # ----------------------------------------------------------------------------------- panel
 
