@@ -9,7 +9,7 @@ PY_LTS45 := $(VENV_LTS45)/bin/python
 DIST := dist
 # The compiled kernel: C sources and everything its build reads (tools/build_native.py).
 NATIVE := build/native
-NATIVE_INPUTS := csrc/affine_kernel.c csrc/affine_solve.c csrc/affine_kernel.h csrc/affine_internal.h \
+NATIVE_INPUTS := $(wildcard csrc/*.c csrc/*.h) \
 	tools/build_native.py \
 	affine_deformers/accel/native.py blender_manifest.toml
 

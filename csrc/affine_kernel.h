@@ -1,7 +1,7 @@
 /* The compiled kernel of Affine Deformers: the per-vertex map v -> phi(sum_k w_k P_idx(k)) v and
  * the per-control and per-cage-face steps around it, in portable C11 (no C++ runtime, no OpenMP,
  * nothing beyond the C library). Loaded with ctypes by affine_deformers/accel/native.py, which
- * holds the argument conventions; the mathematics is docs/MATH.md's and affine_kernel.c's.
+ * holds the argument conventions; the mathematics is docs/MATH.md's and kernel_math.h's.
  *
  * Conventions: every array is C-contiguous; float64 = double, float32 = float, int32 indices,
  * int64 for numpy's intp on every supported 64-bit platform, bool = uint8_t (numpy's bool_).

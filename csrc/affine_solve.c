@@ -22,8 +22,8 @@
  * not reach the whole part splits off the connected piece it reached.
  *
  * Everything runs on the calling thread in a fixed order of operations, compiled with IEEE semantics
- * (affine_kernel.c's flags): a factorisation and a frame give the same bits on every run and build.
- * A handle is used by one call at a time (its scratch is shared by the calls). */
+ * (the kernel's flags, tools/build_native.py): a factorisation and a frame give the same bits on every
+ * run and build. A handle is used by one call at a time (its scratch is shared by the calls). */
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>

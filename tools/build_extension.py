@@ -4,7 +4,7 @@ The bpy wheel carries Blender's own `blender_ext.py` and the list of valid exten
 (`_bpy_internal/extensions/tags.py`); using both means the .zip is exactly what Blender's
 "Install from Disk" and the extensions platform accept.
 
-The compiled kernel (csrc/affine_kernel.c, loaded by affine_deformers/accel/native.py) is bundled as
+The compiled kernel (the C sources in csrc/, loaded by affine_deformers/accel/native.py) is bundled as
 a wheel of our own per platform, `affine_deformers_kernel-<version>-py3-none-<platform tag>.whl`, built
 by tools/build_native.py into build/native/wheels/ (this script runs it for the platforms it packages:
 a second when nothing changed). One library serves every Python, so every Blender from 4.2 on.

@@ -1,5 +1,5 @@
-"""Build the compiled kernel (csrc/affine_kernel.c, affine_solve.c) for every platform, and one wheel per
-platform.
+"""Build the compiled kernel (csrc/: SOURCES, one file per concern, compiled into one library) for every
+platform, and one wheel per platform.
 
 The kernel is portable C11 loaded with ctypes (affine_deformers/accel/native.py), so one library per
 platform serves every Blender and Python from 4.2 on. It is cross-compiled here with zig's clang (the
@@ -44,8 +44,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The C sources compiled into each library, relative to ROOT (no checkout path in the binaries).
-SOURCES = (Path("csrc") / "affine_kernel.c", Path("csrc") / "affine_solve.c")
-HEADERS = (Path("csrc") / "affine_kernel.h", Path("csrc") / "affine_internal.h")
+SOURCES = tuple(Path("csrc") / name for name in (
+    "kernel_threads.c", "kernel_vertex.c", "kernel_chain.c", "kernel_controls.c", "kernel_cage.c",
+    "affine_solve.c"))
+HEADERS = tuple(Path("csrc") / name for name in (
+    "affine_kernel.h", "affine_internal.h", "kernel_math.h", "kernel_map.h"))
 NATIVE_PY = ROOT / "affine_deformers" / "accel" / "native.py"
 MANIFEST = ROOT / "blender_manifest.toml"
 WHEEL_NAME = "affine_deformers_kernel"
@@ -162,7 +165,7 @@ INIT_PY = '''"""The compiled kernel of the Affine Deformers Blender extension: i
 platform.
 
 Loaded with ctypes by affine_deformers.accel.native (no Python extension module: the same files serve
-every Python). Built by tools/build_native.py from csrc/affine_kernel.c and affine_solve.c.
+every Python). Built by tools/build_native.py from the C sources in csrc/.
 """
 
 import os
@@ -271,6 +274,10 @@ def main(argv: list[str] | None = None) -> None:
     for path in (*SOURCES, *HEADERS):
         if not (ROOT / path).exists():
             raise SystemExit(f"{path} is missing")
+    # The Makefile rebuilds when any file in csrc/ changes: every one must be a listed input.
+    unlisted = {p.relative_to(ROOT) for p in (ROOT / "csrc").glob("*.[ch]")} - {*SOURCES, *HEADERS}
+    if unlisted:
+        raise SystemExit(f"csrc/ files not in this tool's SOURCES or HEADERS: {sorted(map(str, unlisted))}")
     build(platforms, (ROOT / ns.output).resolve(), ns.jobs)
 
 

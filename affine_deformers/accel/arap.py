@@ -5,7 +5,8 @@ bound system behind an opaque handle, and the per-frame right-hand side, solve a
 (nested dissection, supernodal multifrontal Cholesky); `frame(motions, field, iterations)` is then one
 compiled call per frame: no factorisation, no allocation after the first iterating frame, the same bits
 for the same inputs whatever frames came before. `close()` frees the factor (a finaliser does it if
-the object is dropped first). `affine_deformers.accel.arap_bind` picks this or core's numpy solver.
+the object is dropped first). `arap_bind` picks this (when the compiled kernel is active) or core's
+numpy solver.
 """
 
 from __future__ import annotations
@@ -17,12 +18,16 @@ import weakref
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..core import arap as _arap_core
 from ..core.arap import ArapSystem
+from . import state
 from .native import Kernel
+from .state import _FAILED, _entry_call, _usable
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["ORDERINGS", "CompiledArapSolver", "FactorError", "FactorResult", "check_ordering", "factor"]
+__all__ = ["ORDERINGS", "CompiledArapSolver", "FactorError", "FactorResult", "arap_bind", "check_ordering",
+           "factor"]
 
 #: Ordering name → ak_spd_factor's code (a permutation array selects code 2).
 ORDERINGS = {"NATURAL": 0, "NESTED_DISSECTION": 1}
@@ -168,3 +173,32 @@ class CompiledArapSolver:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def arap_bind(system: ArapSystem, *, ordering: str | ArrayLike = "NESTED_DISSECTION"
+              ) -> CompiledArapSolver | _arap_core.NumpyArapSolver:
+    """The shape-preserving pass's solver for a bound system (`core.arap.bind_system`, MATH.md §15): the
+    compiled factor (`CompiledArapSolver`, ordered and factored here, once per bind) when the
+    compiled kernel is active, else core's `NumpyArapSolver` (conjugate gradients every frame). Both
+    have `frame(motions, field, iterations=1, out=None)`, `stats` and `close()`. `ordering`:
+    'NESTED_DISSECTION', 'NATURAL' or a permutation of the vertices (the compiled factor only).
+    `FactorError` (a ValueError) when the system cannot be factored."""
+    if system.n < 1:
+        raise ValueError("the shape-preserving pass needs a mesh with vertices")
+    ordering = check_ordering(ordering, system.n)
+    module = _usable()
+    if module is not None:
+        lock = state._state.lock
+        result = _entry_call("spd_factor", lambda: factor(module, lock, system, ordering))
+        if result is not _FAILED:
+            return CompiledArapSolver.from_factor(module, lock, system, result)
+    return _arap_core.NumpyArapSolver(system)
+
+
+def _warm_arap() -> None:
+    """arap_bind and one frame on a single triangle (the compiled pass's entries, once)."""
+    elements = _arap_core.triangle_elements(np.eye(3), np.array([[0, 1, 2]]))
+    solver = arap_bind(_arap_core.bind_system(elements, np.ones(3)))
+    if isinstance(solver, CompiledArapSolver):
+        _entry_call("arap_frame", lambda: solver.frame(np.eye(3)[:, None, :], np.eye(3)))
+    solver.close()

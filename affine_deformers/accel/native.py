@@ -1,10 +1,10 @@
-"""The compiled kernel: csrc/affine_kernel.c and affine_solve.c built as one shared library per platform,
-loaded with ctypes. This module finds and loads the library and wraps each C entry in a function taking
+"""The compiled kernel: the C sources in csrc/ built as one shared library per platform, loaded with
+ctypes. This module finds and loads the library and wraps each C entry in a function taking
 numpy arrays (the entries `affine_deformers.accel` calls; `load()` returns them as a `Kernel`).
 
 Why C and ctypes: one binary serves every Blender from 4.2 on (it depends on neither the Python nor
 the numpy version), loads in milliseconds (nothing is compiled on the user's machine) and needs
-nothing beyond the system C library. A ctypes call releases the GIL, so `accel._run_chunks` runs an
+nothing beyond the system C library. A ctypes call releases the GIL, so accel/threads.py runs an
 entry on several Python threads at once, each claiming chunks from a shared counter.
 
 Where the library is looked for, first match wins:
@@ -219,7 +219,7 @@ class Kernel:
     CHUNK: int = 0
     _fns: dict[str, ctypes._CFuncPtr] = field(default_factory=dict)
 
-    # the same constants as csrc/affine_kernel.c
+    # the same constants as csrc/kernel_cage.c
     COLLAPSED_SIN = COLLAPSED_SIN
     FOLD_KAPPA = FOLD_KAPPA
     NO_LIFT_DIST_SQ = NO_LIFT_DIST_SQ

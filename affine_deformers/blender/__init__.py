@@ -38,6 +38,7 @@ def register() -> None:
         bpy.utils.register_class(cls)
     props.register_properties()
     bpy.types.VIEW3D_MT_object.append(panels.draw_object_menu)
+    bpy.types.OBJECT_MT_modifier_add_deform.append(panels.draw_modifier_menu)
     handlers.register_handlers()
     prefs.apply(prefs.preferences())
     prefs.check_kernel()
@@ -60,6 +61,7 @@ def unregister() -> None:
     handlers.unregister_handlers()
     shape_pass.release_all()
     bpy.types.VIEW3D_MT_object.remove(panels.draw_object_menu)
+    bpy.types.OBJECT_MT_modifier_add_deform.remove(panels.draw_modifier_menu)
     props.unregister_properties()
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

@@ -1,6 +1,9 @@
-"""User interface: Properties ▸ Object ▸ Affine Deformers, and Object ▸ Affine Deformers in the 3D view.
+"""User interface: Properties ▸ Modifiers ▸ Affine Deformer (the primary place: the deformer's settings
+beside its modifier in the stack), Add Modifier ▸ Deform ▸ Affine Probes / Cage / Bones, Properties ▸
+Object ▸ Affine Deformers (the deformer list of the object), and Object ▸ Affine Deformers in the 3D
+view.
 
-The panel draws what every deformer shares; each kind draws its own part (DeformerKind.draw_object,
+The panels draw what every deformer shares; each kind draws its own part (DeformerKind.draw_object,
 draw_actions, draw_settings, draw_controls, draw_preview_options: its lists are kinds' classes too).
 """
 
@@ -8,7 +11,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import instances, kinds, shape_pass, weight_operators, weight_preview
+from . import instances, kinds, nodes, shape_pass, storage, weight_operators, weight_preview
 from .bake import AFFINE_OT_deformer_bake, AFFINE_OT_deformer_unbake, bake_state
 
 
@@ -51,7 +54,7 @@ class AFFINE_PT_linked_instance(bpy.types.Panel):
 
 
 class AFFINE_PT_deformers(bpy.types.Panel):
-    """Affine Deformers of the active object."""
+    """Affine Deformers of the active object: its deformer list and the active deformer."""
 
     bl_label = "Affine Deformers"
     bl_space_type = "PROPERTIES"
@@ -77,39 +80,87 @@ class AFFINE_PT_deformers(bpy.types.Panel):
         if not 0 <= index < len(obj.affine_deformers):
             return
         col.operator("object.affine_deformer_remove", icon="REMOVE", text="").index = index
-        deformer = obj.affine_deformers[index]
+        draw_deformer(layout, context, obj, index)
 
-        if deformer.status:
-            box = layout.box()
-            for i, line in enumerate(_wrap(deformer.status, 60)):
-                box.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
 
-        row = layout.row(align=True)
-        row.operator("object.affine_deformer_bind", text="Rebind" if deformer.is_bound else "Bind",
-                     icon="LINKED").index = index
-        row.operator("object.affine_deformer_apply", text="Apply", icon="CHECKMARK").index = index
-        if deformer.is_bound:
-            layout.label(text=f"Bound to {deformer.bound_vertex_count} vertices", icon="INFO")
-            draw_bake(layout, deformer, index)
+def modifier_deformer_index(obj: bpy.types.Object) -> int:
+    """The deformer whose modifier is the active one of `obj`'s stack, else the active deformer of its
+    list (-1: none)."""
+    active = obj.modifiers.active
+    if active is not None and active.type == "NODES":
+        attr = nodes.offset_attribute(active)
+        for i, deformer in enumerate(obj.affine_deformers):
+            if deformer.uid and storage.offset_name(deformer.uid) == attr:
+                return i
+    index = obj.affine_deformers_active_index
+    return index if 0 <= index < len(obj.affine_deformers) else -1
 
-        kind = kinds.get(deformer.kind)
-        if kind is None:
+
+class AFFINE_PT_modifier(bpy.types.Panel):
+    """The settings of the deformer whose modifier is active in the stack (click it to show it here),
+    beside the modifiers, as a built-in deformer's settings are."""
+
+    bl_label = "Affine Deformer"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "modifier"
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        obj = context.object
+        return obj is not None and obj.type == "MESH" and len(obj.affine_deformers) > 0
+
+    def draw_header(self, context: bpy.types.Context) -> None:
+        index = modifier_deformer_index(context.object)
+        if index >= 0:
+            deformer = context.object.affine_deformers[index]
+            kind = kinds.get(deformer.kind)
+            self.layout.label(text=deformer.name, icon=kind.icon if kind is not None else "MODIFIER")
+
+    def draw(self, context: bpy.types.Context) -> None:
+        obj = context.object
+        index = modifier_deformer_index(obj)
+        if index < 0:
+            self.layout.label(text="Click an Affine deformer's modifier in the stack", icon="INFO")
             return
-        weight_preview.draw(layout, context, deformer)
-        weight_operators.draw(layout, deformer, index)
-        kind.draw_actions(layout, deformer, index)
-        col = layout.column()
-        col.use_property_split = True
-        kind.draw_settings(col, deformer)
-        col.prop(deformer, "mask_group", icon="GROUP_VERTEX")
-        col.prop(deformer, "strength")
-        col.prop(deformer, "blend_mode")
-        sub = col.column()
-        sub.active = kind.branch_rule_active(deformer)
-        sub.prop(deformer, "branch_rule")
-        if kind.shape_pass:
-            draw_shape_pass(col, obj, deformer)
-        kind.draw_controls(layout, deformer, index)
+        draw_deformer(self.layout, context, obj, index)
+
+
+def draw_deformer(layout: bpy.types.UILayout, context: bpy.types.Context, obj: bpy.types.Object,
+                  index: int) -> None:
+    """One deformer's status, actions, settings and controls (both panels)."""
+    deformer = obj.affine_deformers[index]
+    if deformer.status:
+        box = layout.box()
+        for i, line in enumerate(_wrap(deformer.status, 60)):
+            box.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
+
+    row = layout.row(align=True)
+    row.operator("object.affine_deformer_bind", text="Rebind" if deformer.is_bound else "Bind",
+                 icon="LINKED").index = index
+    row.operator("object.affine_deformer_apply", text="Apply", icon="CHECKMARK").index = index
+    if deformer.is_bound:
+        layout.label(text=f"Bound to {deformer.bound_vertex_count} vertices", icon="INFO")
+        draw_bake(layout, deformer, index)
+
+    kind = kinds.get(deformer.kind)
+    if kind is None:
+        return
+    weight_preview.draw(layout, context, deformer)
+    weight_operators.draw(layout, deformer, index)
+    kind.draw_actions(layout, deformer, index)
+    col = layout.column()
+    col.use_property_split = True
+    kind.draw_settings(col, deformer)
+    col.prop(deformer, "mask_group", icon="GROUP_VERTEX")
+    col.prop(deformer, "strength")
+    col.prop(deformer, "blend_mode")
+    sub = col.column()
+    sub.active = kind.branch_rule_active(deformer)
+    sub.prop(deformer, "branch_rule")
+    if kind.shape_pass:
+        draw_shape_pass(col, obj, deformer)
+    kind.draw_controls(layout, deformer, index)
 
 
 def draw_shape_pass(col: bpy.types.UILayout, obj: bpy.types.Object, deformer) -> None:
@@ -175,4 +226,17 @@ def draw_object_menu(self, _context: bpy.types.Context) -> None:
     self.layout.menu(AFFINE_MT_object.bl_idname)
 
 
-CLASSES = (AFFINE_UL_deformers, AFFINE_PT_deformers, AFFINE_PT_linked_instance, AFFINE_MT_object)
+def draw_modifier_menu(self, context: bpy.types.Context) -> None:
+    """Add Modifier ▸ Deform: one entry per kind, beside Hook, Lattice and Mesh Deform (meshes only)."""
+    obj = getattr(context, "object", None)
+    if obj is None or obj.type != "MESH":
+        return
+    layout = self.layout
+    layout.separator()
+    for kind in kinds.KINDS.values():
+        label = f"Affine {kind.menu_label or kind.label}"
+        layout.operator(kinds.add_operator_id(kind.id), text=label, icon=kind.icon)
+
+
+CLASSES = (AFFINE_UL_deformers, AFFINE_PT_modifier, AFFINE_PT_deformers, AFFINE_PT_linked_instance,
+           AFFINE_MT_object)

@@ -1,6 +1,11 @@
 """Argument checks and trivial results shared by the two kernels (core.deform, numpy; accel, compiled),
 so both refuse bad input with the same messages and give the same exact answers where no arithmetic
-is needed (controls at rest: the input, or the identity motion, bit for bit)."""
+is needed (controls at rest: the input, or the identity motion, bit for bit).
+
+`check_deform_args` and `check_motion_args` are the whole check of core.deform's
+`deform_points_params` and `vertex_motions` arguments, in the order core's kernel applies them
+(there the weights cache sits between the shape and the content checks of the weights, which a
+cache hit skips: `check_weights_shape`, then `check_indices`)."""
 
 from __future__ import annotations
 
@@ -11,14 +16,17 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int32]
 
 __all__ = [
+    "check_deform_args",
     "check_given_out",
     "check_indices",
+    "check_motion_args",
     "check_motion_indices",
     "check_motion_out",
     "check_out",
     "check_points",
     "check_rows",
     "check_table",
+    "check_weights_shape",
     "identity_motions",
     "unchanged",
 ]
@@ -124,3 +132,33 @@ def check_rows(rows: ArrayLike, n_points: int) -> NDArray[np.integer]:
     if sel.size and (int(sel.min()) < 0 or int(sel.max()) >= n_points):
         raise ValueError(f"rows must lie in [0, {n_points})")
     return sel
+
+
+def check_weights_shape(indices: ArrayLike, n_points: int) -> None:
+    """(N, K) indices for N = n_points points: the first check of the weights (before their contents)."""
+    shape = np.shape(indices)
+    if len(shape) != 2 or shape[0] != n_points:
+        raise ValueError(f"indices must have shape ({n_points}, K), got {shape}")
+
+
+def check_deform_args(
+    points: ArrayLike, params: ArrayLike, indices: ArrayLike, values: ArrayLike
+) -> tuple[FloatArray, FloatArray, NDArray[np.integer], FloatArray]:
+    """(points (N, 3), params (m, 12), indices (N, K) integers in [0, m), values (N, K)) checked as
+    core.deform.deform_points_params checks them, with its messages."""
+    table = check_table(params, 12, "params")
+    pts = check_points(points)
+    check_weights_shape(indices, pts.shape[0])
+    idx, val = check_indices(indices, values, pts.shape[0], table.shape[0])
+    return pts, table, idx, val
+
+
+def check_motion_args(
+    params: ArrayLike, indices: ArrayLike, values: ArrayLike
+) -> tuple[FloatArray, NDArray[np.integer], FloatArray]:
+    """(params (m, 12), indices (N, K) integers in [0, m), values (N, K)) checked as
+    core.deform.vertex_motions checks them, with its messages."""
+    table = check_table(params, 12, "params")
+    check_motion_indices(indices, values, table.shape[0])
+    idx, val = check_indices(indices, values, None, table.shape[0])
+    return table, idx, val

@@ -6,8 +6,10 @@ Parameters follow docs/DEVELOPING.md: P = (ω, u, Y₆) ∈ R¹²; for a point v
     v' = R(ω) · exp(Y) v + V(ω) u.
 
 This module is the module-level API (docs/DEVELOPING.md; one kernel per calling thread) and the
-script contract's `deform_points`. The kernel class, with its chunks, scratch rows, caches and thread
-pool, is core/kernel.py; the stages of the map on rows are core/kernel_stages.py.
+script contract's `deform_points`. Its docstrings are the kernel entries' contract, written once:
+the kernel class (core/kernel.py: chunks, scratch rows, caches and thread pool) and the compiled
+backend (affine_deformers.accel, which falls back to these functions) refer to them, and both check
+arguments with core/checks.py. The stages of the map on rows are core/kernel_stages.py.
 
 Accuracy: ≤ 2e-15 relative to ‖M‖‖v‖ + ‖t‖ against aff3.phi on an adversarial parameter set (tests).
 

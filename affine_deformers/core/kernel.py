@@ -34,6 +34,7 @@ from .checks import (
     check_points,
     check_rows,
     check_table,
+    check_weights_shape,
     identity_motions,
     unchanged,
 )
@@ -201,7 +202,7 @@ class DeformKernel:
         cache_weights: bool = True,
         key: Hashable | None = None,
     ) -> FloatArray:
-        """Sparse hot path; see `deform_points_params`."""
+        """Sparse hot path: core.deform.deform_points_params (the contract)."""
         table = check_table(params, 12, "params")
         if cache_weights:
             pts, idx, val, dense = self._inputs(points, indices, values, table.shape[0], key)
@@ -234,7 +235,7 @@ class DeformKernel:
         offsets: bool = False,
         key: Hashable | None = None,
     ) -> FloatArray:
-        """Only the listed rows; see `deform_points_params_rows`."""
+        """Only the listed rows: core.deform.deform_points_params_rows (the contract)."""
         table = check_table(params, 12, "params")
         pts, idx, val, dense = self._inputs(points, indices, values, table.shape[0], key)
         check_given_out(out, pts)
@@ -268,7 +269,7 @@ class DeformKernel:
         rows: ArrayLike | None = None,
         key: Hashable | None = None,
     ) -> FloatArray | NDArray[np.float32]:
-        """The per-vertex affine maps; see `vertex_motions`."""
+        """The per-vertex affine maps: core.deform.vertex_motions (the contract)."""
         table = check_table(params, 12, "params")
         m = table.shape[0]
         n_total = check_motion_indices(indices, values, m)
@@ -400,7 +401,7 @@ class DeformKernel:
         values: ArrayLike,
         out: FloatArray | None = None,
     ) -> FloatArray:
-        """'LINEAR' comparison mode; see `blend_linear_sparse`."""
+        """'LINEAR' comparison mode: core.deform.blend_linear_sparse (the contract)."""
         T = np.asarray(transforms, dtype=np.float64)
         if T.ndim != 3 or T.shape[1:] != (4, 4):
             raise ValueError(f"transforms must have shape (m, 4, 4), got {T.shape}")
@@ -451,8 +452,7 @@ class DeformKernel:
         """
         idx = np.asarray(indices)
         val = np.asarray(values, dtype=np.float64)
-        if idx.ndim != 2 or idx.shape[0] != n_points:
-            raise ValueError(f"indices must have shape ({n_points}, K), got {idx.shape}")
+        check_weights_shape(idx, n_points)
         cache = self._weights_cache
         for i, entry in enumerate(cache):
             if entry.m != m or entry.idx.shape != idx.shape or entry.idx.dtype != idx.dtype:

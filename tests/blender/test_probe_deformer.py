@@ -159,14 +159,22 @@ def test_it_is_a_real_modifier(bl):
     assert np.abs(bl.rest_positions(target) - moved).max() == 0.0
 
 
-def test_add_without_selected_empties_creates_a_probe_at_the_origin(bl):
+def test_add_without_selected_empties_creates_two_probes_at_the_ends_of_the_longest_axis(bl):
+    """With no Empty selected, the deformer gets two new probes at the centres of the bounding box's
+    two faces across the mesh's longest axis (world space; issue #50), so it deforms at once."""
     target = bl.uv_sphere(location=(1.0, 2.0, 3.0))
+    target.scale = (1.0, 2.5, 1.0)
+    bpy.context.view_layer.update()
     deformer = bl.add_probe_deformer(target, [])
-    (item,) = deformer.probes
-    assert item.object is not None and item.object.type == "EMPTY"
-    assert np.allclose(item.object.matrix_world.translation, (1.0, 2.0, 3.0))
-    item.object.location.z += 1.0
-    assert np.abs(bl.evaluated_positions(target) - bl.rest_positions(target) - [0, 0, 1]).max() < 1e-5
+    ends = [item.object for item in deformer.probes]
+    assert len(ends) == 2 and all(o is not None and o.type == "EMPTY" for o in ends)
+    assert np.allclose(ends[0].matrix_world.translation, (1.0, 2.0 - 2.5, 3.0), atol=1e-5)
+    assert np.allclose(ends[1].matrix_world.translation, (1.0, 2.0 + 2.5, 3.0), atol=1e-5)
+    assert deformer.status == ""
+    ends[1].location.z += 1.0
+    moved = bl.evaluated_positions(target) - bl.rest_positions(target)
+    far = bl.rest_positions(target)[:, 1] > 0.9  # local y: the end at the moved probe
+    assert moved[far, 2].min() > 0.5 and np.abs(moved[~far]).max() < 1.0
 
 
 def test_rebind_makes_the_current_pose_the_rest(bl):

@@ -171,3 +171,71 @@ def test_bone_deformer_panel_and_convert_buttons(bl, panels):
 
 def test_panel_hidden_for_non_mesh(bl, panels):
     assert not panels.AFFINE_PT_deformers.poll(SimpleNamespace(object=bl.empty("E")))
+
+
+def test_add_modifier_deform_lists_every_kind_for_meshes_only(bl, panels):
+    """Add Modifier ▸ Deform, beside Hook, Lattice and Mesh Deform: one entry per kind (meshes only)."""
+    assert panels.draw_modifier_menu in bpy.types.OBJECT_MT_modifier_add_deform._dyn_ui_initialize()
+    log: list = []
+    menu = SimpleNamespace(layout=RecordingLayout(log))
+    panels.draw_modifier_menu(menu, SimpleNamespace(object=bl.uv_sphere()))
+    assert [entry for entry in log if entry[0] == "operator"] == [
+        ("operator", "object.affine_probe_deformer_add"),
+        ("operator", "object.affine_cage_deformer_add"),
+        ("operator", "object.affine_bone_deformer_add"),
+    ]
+    log.clear()
+    panels.draw_modifier_menu(menu, SimpleNamespace(object=bl.empty("E")))
+    assert log == []
+
+
+def test_the_modifier_tab_shows_the_deformer_of_the_active_modifier(bl, panels):
+    target = bl.grid_cube(cuts=2)
+    first = bl.add_probe_deformer(target, [bl.empty("A", (1.5, 0, 0)), bl.empty("B", (-1.5, 0, 0))])
+    second = bl.add_probe_deformer(target, [bl.empty("C", (0, 1.5, 0))])
+    first.name, second.name = "First", "Second"
+    context = SimpleNamespace(object=target, active_object=target)
+    assert panels.AFFINE_PT_modifier.poll(context)
+    for deformer in (first, second):
+        target.modifiers.active = next(m for m in target.modifiers
+                                       if panels.nodes.offset_attribute(m) == f"affdef_{deformer.uid}_offset")
+        log: list = []
+        panel = SimpleNamespace(layout=RecordingLayout(log))
+        panels.AFFINE_PT_modifier.draw_header(panel, context)
+        panels.AFFINE_PT_modifier.draw(panel, context)
+        assert ("label", deformer.name) in log, log
+        assert ("prop", "strength") in log and ("operator", "object.affine_deformer_bind") in log
+    assert not panels.AFFINE_PT_modifier.poll(SimpleNamespace(object=bl.uv_sphere()))
+
+
+def test_adding_without_controls_makes_sensible_ones(bl):
+    """No Empty selected: two probes at the ends of the mesh's longest axis; no armature selected: the
+    armature of the mesh's Armature modifier, else a message saying what to select."""
+    bar = bl.grid_cube(cuts=3, name="Bar")
+    bar.scale = (3.0, 0.5, 0.5)
+    bar.location = (1.0, 2.0, 0.0)
+    bpy.context.view_layer.update()
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert bpy.ops.object.affine_probe_deformer_add() == {"FINISHED"}
+    probes = [item.object for item in bar.affine_deformers[0].probes]
+    assert len(probes) == 2
+    ends = sorted(tuple(round(v, 5) for v in p.location) for p in probes)
+    assert ends == [(-2.0, 2.0, 0.0), (4.0, 2.0, 0.0)], ends
+
+    body = bl.grid_cube(cuts=2, name="Body")
+    with (bpy.context.temp_override(active_object=body, object=body, selected_objects=[body]),
+          pytest.raises(RuntimeError, match="Armature modifier")):
+        bpy.ops.object.affine_bone_deformer_add()
+    assert len(body.affine_deformers) == 0
+    data = bpy.data.armatures.new("Rig")
+    arm = bpy.data.objects.new("Rig", data)
+    bpy.context.scene.collection.objects.link(arm)
+    bpy.context.view_layer.objects.active = arm
+    bpy.ops.object.mode_set(mode="EDIT")
+    bone = data.edit_bones.new("Bone")
+    bone.head, bone.tail = (0.0, 0.0, -1.0), (0.0, 0.0, 1.0)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    body.modifiers.new("Armature", "ARMATURE").object = arm
+    with bpy.context.temp_override(active_object=body, object=body, selected_objects=[body]):
+        assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+    assert body.affine_deformers[0].armature == arm and body.affine_deformers[0].status == ""

@@ -1,7 +1,7 @@
 """The packages carry the compiled kernel for every Blender they serve, and a kernel that cannot load
 falls back to numpy with the reason shown.
 
-* The kernel is a C library (csrc/affine_kernel.c) in a wheel of ours per platform,
+* The kernel is a C library (csrc/) in a wheel of ours per platform,
   `affine_deformers_kernel-<version>-py3-none-<platform tag>.whl` (tools/build_native.py): one library
   serves every Python. Blender's OWN wheel filter (`bl_pkg`, from the bpy wheel this suite runs on: 5.0,
   4.5 LTS or 4.2 LTS) picks exactly that platform's wheel for Python 3.11 (Blender 4.2–5.0, run by

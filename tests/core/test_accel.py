@@ -1,4 +1,4 @@
-"""The compiled kernel (csrc/affine_kernel.c, loaded by affine_deformers/accel/native.py) against the
+"""The compiled kernel (csrc/, loaded by affine_deformers/accel/native.py) against the
 numpy kernel and the aff3 reference, its bit-identity guarantees (rows, threads, chunk positions, the
 column forms a chunk mixes), the argument checks of its wrappers and the fallback to numpy."""
 
@@ -39,7 +39,7 @@ from tests.core.test_deform import (
 )
 
 ROOT = Path(__file__).resolve().parents[2]
-#: csrc/affine_kernel.c's CHUNK (vertices per chunk; `test_the_c_constants_are_the_python_ones`
+#: csrc/affine_internal.h's CHUNK (vertices per chunk; `test_the_c_constants_are_the_python_ones`
 #: and the loaded library's ak_chunk() agree with it). A literal, so the numpy runs need no library.
 CHUNK = 2048
 #: θ² beyond which the C kernel redoes a column with libm sin/cos (its POLY_MAX_S), as numpy's kernel.
@@ -70,6 +70,7 @@ def kernel(monkeypatch: pytest.MonkeyPatch) -> native.Kernel:
 def fresh_state(monkeypatch: pytest.MonkeyPatch) -> accel._State:
     """A backend that has not tried to load the library yet (restored afterwards)."""
     state = accel._State()
+    monkeypatch.setattr(accel.state, "_state", state)  # what every call reads
     monkeypatch.setattr(accel, "_state", state)
     return state
 
@@ -159,23 +160,26 @@ def test_zero_params_return_the_input_bit_for_bit(kernel: native.Kernel) -> None
     assert got.tobytes() == pts.tobytes()
 
 
-def _c_defines(path: Path) -> dict[str, float]:
-    """The numeric #defines of a C file (hexadecimal floats included)."""
-    found = {}
-    for name, value in re.findall(r"^#define\s+(\w+)\s+([-+0-9.xXa-fA-Fp]+)\b", path.read_text(), re.M):
-        found[name] = float.fromhex(value) if value.lower().startswith("0x") else float(value)
+def _c_defines(*paths: Path) -> dict[str, float]:
+    """The numeric #defines of C files (hexadecimal floats included); a name defined twice must have
+    one value."""
+    found: dict[str, float] = {}
+    for path in paths:
+        for name, value in re.findall(r"^#define\s+(\w+)\s+([-+0-9.xXa-fA-Fp]+)\b", path.read_text(), re.M):
+            number = float.fromhex(value) if value.lower().startswith("0x") else float(value)
+            assert found.setdefault(name, number) == number, (name, path)
     return found
 
 
 def test_the_c_constants_are_the_python_ones() -> None:
-    """What the C source repeats from the Python side: the chunk, the small-Y line and the fix-up
+    """What the C sources repeat from the Python side: the chunk, the small-Y line and the fix-up
     threshold of core.deform, the ABI version and the exported entries native.py binds (read from
-    csrc/affine_kernel.c and .h; no library needed)."""
-    source = ROOT / "csrc" / "affine_kernel.c"
+    csrc/; no library needed)."""
+    sources = sorted((ROOT / "csrc").glob("*.[ch]"))
     header = ROOT / "csrc" / "affine_kernel.h"
-    if not source.is_file():
+    if not header.is_file():
         pytest.skip("no C source in this tree")
-    c = _c_defines(source)
+    c = _c_defines(*sources)
     assert c["CHUNK"] == CHUNK
     assert c["SMALL_Y"] == deform.SMALL_Y
     assert c["POLY_MAX_S"] == POLY_MAX_S == kernel_stages._POLY_MAX_S
@@ -1044,7 +1048,7 @@ def test_warm_up_runs_every_entry_once(kernel: native.Kernel, fresh_state: accel
     """warm_up runs each entry accel calls once (so one that fails does so there, not in the first
     update) and measures the helper threads' spin_wait; calls of every kind afterwards (full, rows,
     offsets, out32, float32 motions, int64 indices, the cage and chain entries) all run compiled."""
-    source = Path(accel.__file__).read_text()
+    source = "".join(path.read_text() for path in Path(accel.__file__).parent.glob("*.py"))
     assert set(re.findall(r"\b_(?:run|entry_call)\(\s*\"(\w+)\"", source)) == ENTRIES
     assert all(callable(getattr(native.Kernel, name, None)) for name in (*ENTRIES, "spin_wait"))
     assert accel.warm_up() == f"C kernel ({kernel.path.name}), {accel._threads()} thread" + (

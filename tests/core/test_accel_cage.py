@@ -175,8 +175,8 @@ def test_constants_repeat_the_core_ones() -> None:
 
 
 def test_the_c_source_states_the_same_constants() -> None:
-    """csrc/affine_kernel.c's #defines of the same thresholds and flags (the library's values)."""
-    source = ROOT / "csrc" / "affine_kernel.c"
+    """csrc/kernel_cage.c's #defines of the same thresholds and flags (the library's values)."""
+    source = ROOT / "csrc" / "kernel_cage.c"
     if not source.is_file():
         pytest.skip("no C source in this tree")
     defines = dict(re.findall(r"^#define\s+(\w+)\s+([-+0-9.eE]+)\s*(?:/\*.*)?$", source.read_text(), re.M))

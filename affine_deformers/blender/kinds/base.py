@@ -219,6 +219,8 @@ class DeformerKind(ABC):
 
     id: ClassVar[str]
     label: ClassVar[str]
+    #: How Add Modifier ▸ Deform names it after "Affine" (plural for kinds with many controls).
+    menu_label: ClassVar[str] = ""
     description: ClassVar[str]
     icon: ClassVar[str]
     add_description: ClassVar[str]

@@ -422,6 +422,14 @@ def _rest_inverse(rest: np.ndarray) -> tuple[np.ndarray, bool]:
     return found
 
 
+def modifier_armature(target: bpy.types.Object) -> bpy.types.Object | None:
+    """The armature of `target`'s first enabled Armature modifier that names one (None: none)."""
+    for mod in target.modifiers:
+        if mod.type == "ARMATURE" and mod.object is not None and (mod.show_viewport or mod.show_render):
+            return mod.object
+    return None
+
+
 class BoneKind(BatchedKind, DeformerKind):
     """An Armature object's pose bones (all deform bones, or a chosen set) drive the mesh."""
 
@@ -429,6 +437,7 @@ class BoneKind(BatchedKind, DeformerKind):
 
     id = bone_tools.BONE
     label = "Bone"
+    menu_label = "Bones"
     description = "Driven by the pose bones of an armature (an affine skin)"
     icon = "BONE_DATA"
     single_control = True
@@ -452,7 +461,17 @@ class BoneKind(BatchedKind, DeformerKind):
         }
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
-        """The one selected armature."""
+        """The one selected armature; none selected: the armature of the mesh's (first enabled) Armature
+        modifier, as a built-in deformer takes its object."""
+        selected = [o for o in (getattr(context, "selected_objects", None) or []) if o.type == "ARMATURE"]
+        from_modifier = None if selected else modifier_armature(target)
+        if from_modifier is not None:
+            if not deform_bones(from_modifier):
+                raise BindError(f"Armature '{from_modifier.name}' has no deform bones")
+            return Adopted([from_modifier], [], "")
+        if not selected:
+            raise BindError(f"Select an armature with '{target.name}' active, or give '{target.name}' an "
+                            "Armature modifier that names one: the bone deformer takes its bones")
         armature, ignored = single_selected(context, target, "ARMATURE", "armature")
         if not deform_bones(armature):
             raise BindError(f"Armature '{armature.name}' has no deform bones")

@@ -60,30 +60,26 @@ import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatVectorProperty, IntProperty, PointerProperty
 
 from ... import accel
-from ...core import aff3
 from ...core.cage import (
     CageTopology,
-    FaceMotions,
-    affected_faces,
     cage_weights,
     check_cage,
-    face_motions,
     signed_volume,
 )
 from ...core.cage import pool as cage_pool
-from ...core.cage.harmonic import harmonic_weights, node_matrices_linear
+from ...core.cage.harmonic import harmonic_weights
 from .. import caches, nodes, storage
 from ..validation import (
     MAX_WEIGHT,
-    channels_problem,
     coordinates_problem,
-    rest_matrix_problem,
     settings_problem,
     stored_array,
     values_problem,
 )
+from . import cage_motion, cage_tools
 from .base import (
     IDENTITY16,
+    INTERFACE,
     OVERRIDABLE,
     PREVIEW,
     READ_BY_KIND,
@@ -99,14 +95,9 @@ from .base import (
 )
 from .services import control_picker, on_preview_option, on_weight_option
 from .transforms import (
-    channel_frame,
     control_evaluated,
-    finite_transform,
     in_a_scene,
     local_matrix,
-    motion_problem,
-    reference_rotvecs,
-    relative_motion,
     rotation_channels,
     transform_problem,
     want_resync,
@@ -123,7 +114,6 @@ NODE_POINTS = "cage_node_points"
 NODE_WEIGHTS = "cage_node_weights"
 NODE_KEYS = (NODE_POINTS, NODE_WEIGHTS)
 
-_COLLAPSE_NOTE = "their weight goes to the neighbouring faces"
 
 # (target session_uid, deformer uid) -> (inputs, Motions) of the last evaluation: a cache, not bind data.
 _last_motions: dict[tuple[int, str], tuple[tuple, Motions]] = {}
@@ -142,7 +132,6 @@ class NodeBind(NamedTuple):
 
 # (target session_uid, deformer uid) -> (bind generation, NodeBind).
 _node_data: dict[tuple[int, str], tuple[int, NodeBind]] = {}
-_TOTALS_KEPT = 2
 # (vertex count, loop arrays' bytes) -> the validated CageTopology (`rest_cage`), oldest first.
 _topologies: dict[tuple, CageTopology] = {}
 _TOPOLOGIES_KEPT = 8
@@ -386,8 +375,10 @@ class CageKind(DeformerKind):
     description = "Driven by the faces of a cage mesh"
     icon = "MESH_CUBE"
     single_control = True
-    add_description = ("Add a cage deformer to the active mesh; the other selected mesh is the cage (closed, "
-                       "normals outward). Its current shape becomes the rest shape")
+    add_description = ("Add a cage deformer to the active mesh; the other selected mesh is the cage "
+                       "(closed, normals outward; none selected: a cage is made around the mesh). Its "
+                       "current shape becomes the rest shape")
+    classes = cage_tools.CLASSES
     groups_note = "their controls are cage faces (hundreds of groups); Show Weights shows them"
 
     @classmethod
@@ -424,6 +415,10 @@ class CageKind(DeformerKind):
                         "Influences (the weights of version 0.1)", 1)],
                 description="How the cage's faces are weighted on the target (changing it re-weights)"),
                 REWEIGHTS),
+            "cage_faces": KindProperty(IntProperty(
+                name="Cage Faces", default=cage_tools.DEFAULT_FACES, min=10, max=20000,
+                description="The face budget of a cage made around the mesh (Remake Cage): at most this "
+                            "many quads"), INTERFACE),
             "weight_preview_face": KindProperty(IntProperty(
                 name="Preview Face", default=-1, min=-1, update=on_preview_option,
                 description="Cage face whose weights the preview shows (-1: the cage mesh's active face, "
@@ -431,18 +426,28 @@ class CageKind(DeformerKind):
         }
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
-        """The one other selected mesh (the cage)."""
+        """The one other selected mesh (the cage); none selected: a cage made around the mesh
+        (cage_tools.py)."""
+        selected = [o for o in (getattr(context, "selected_objects", None) or [])
+                    if o.type == "MESH" and o != target]
+        if not selected:
+            made = cage_tools.make_cage(context, target)
+            return Adopted([made], [made], "")
         cage, ignored = single_selected(context, target, "MESH", "other mesh as the cage")
         return Adopted([cage], [], ignored_note("non-mesh", ignored))
 
     def set_up(self, deformer, adopted: Adopted) -> None:
         deformer.cage = adopted.controls[0]
         deformer.max_influences = 8
+        if adopted.created:
+            deformer.cage_faces = len(adopted.created[0].data.polygons)
 
     def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
         faces = len(deformer[LOOP_TOTAL])
+        made = (" (made around the mesh: Remake Cage makes it again at another budget)"
+                if adopted.created else "")
         return (f"Added a cage deformer to '{target.name}' driven by '{adopted.controls[0].name}' "
-                f"({faces} faces)")
+                f"({faces} faces){made}")
 
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:
         cage = deformer.cage
@@ -463,6 +468,9 @@ class CageKind(DeformerKind):
 
     def draw_controls(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
         """A cage is one object, picked in the settings."""
+
+    def draw_actions(self, layout: bpy.types.UILayout, deformer, index: int) -> None:
+        cage_tools.draw_actions(layout, deformer, index)
 
     def draw_preview_options(self, layout: bpy.types.UILayout, deformer) -> None:
         layout.prop(deformer, "weight_preview_face", text="Face")
@@ -575,12 +583,13 @@ class CageKind(DeformerKind):
             return Motions.invalid(
                 F, f"Cage '{cage.name}' changed topology since bind ({len(rest)} → {len(state.points)} "
                    f"vertices, {F} → {len(state.loop_total)} faces): the mesh shows its rest shape; rebind")
-        placed = _object_motion(obj, deformer, cage, state, depsgraph)
+        placed = cage_motion.object_motion(obj, cage, state.matrix_world, rest_matrix(deformer), depsgraph)
         if isinstance(placed, str):
             return Motions.invalid(F, placed)
         target_world, matrix, stored, outer = placed
         try:
-            outer, reference, pivot = _outer_branch(deformer, cage, depsgraph, target_world, matrix, outer)
+            outer, reference, pivot = cage_motion.outer_branch(
+                deformer, cage, depsgraph, target_world, matrix, outer, has_rest_channels(deformer))
         except BindError as exc:  # its stored rest rotation is damaged
             return Motions.invalid(F, str(exc))
         except ValueError as exc:
@@ -612,9 +621,9 @@ class CageKind(DeformerKind):
                                               "current shape (its volume is not positive): the mesh shows "
                                               "its rest shape")
             else:
-                controls = _face_motions(rest, current, topology, linear, compiled)
+                controls = cage_motion.face_motions_of(rest, current, topology, linear, compiled)
                 if nodes is not None:
-                    controls = _node_motions(controls, nodes, linear=linear)
+                    controls = cage_motion.node_motions(controls, nodes, linear=linear)
             _last_motions[(obj.session_uid, deformer.uid)] = (key, controls)
         pool = None
         if nodes is None and not controls.error:  # faces: their pooled nodes (MATH.md §12)
@@ -624,146 +633,3 @@ class CageKind(DeformerKind):
                 return Motions.invalid(F, str(exc))
         return dataclasses.replace(controls, outer=outer, outer_reference=reference, outer_pivot=pivot,
                                    pool=pool)
-
-
-def _object_motion(obj: bpy.types.Object, deformer, cage: bpy.types.Object, state: CageState,
-                   depsgraph: bpy.types.Depsgraph
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None] | str:
-    """(target world matrix, C = target_world⁻¹ · cage_world (float32), the stored C_rest (float32),
-    G = C · C_rest⁻¹ or None when C = C_rest), or the status when they cannot be used: a target or
-    cage transform that is not finite or out of range, a target scaled to zero, a damaged stored rest
-    matrix (Cage Rest Matrix), or a motion G outside Aff+(3) or out of range."""
-    passes = "the mesh shows its rest shape"
-    target_world = world_matrix(obj, depsgraph)
-    for who, world in ((f"'{obj.name}'", target_world), (f"Cage '{cage.name}'", state.matrix_world)):
-        if not finite_transform(world):
-            return f"{who} {transform_problem(world)}: {passes}"
-    try:
-        matrix = local_matrix(target_world, state.matrix_world)
-    except np.linalg.LinAlgError:
-        return f"'{obj.name}' is scaled to zero: {passes}"
-    stored = rest_matrix(deformer)
-    damaged = rest_matrix_problem("Cage Rest Matrix", stored)
-    if damaged:
-        return f"{damaged}: {passes}; rebind the deformer"
-    if np.array_equal(matrix, stored):
-        return target_world, matrix, stored, None
-    try:
-        with np.errstate(all="ignore"):
-            outer = relative_motion(matrix.astype(np.float64), stored.astype(np.float64))
-    except np.linalg.LinAlgError:
-        return f"Cage '{cage.name}' is scaled to zero as an object: {passes}"
-    reason = motion_problem(outer)
-    if reason:
-        return f"Cage '{cage.name}' {reason} as an object: {passes}"
-    return target_world, matrix, stored, outer
-
-
-def _outer_branch(deformer, cage: bpy.types.Object, depsgraph: bpy.types.Depsgraph, target_world: np.ndarray,
-                  matrix: np.ndarray, outer: np.ndarray | None
-                  ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
-    """(outer, reference rotation vector (3,), pivot (3,)) for scaling the cage object's motion G.
-
-    Only needed where the branch of log G matters: 'CHANNELS', a strength other than 0 and 1, and
-    channels stored at bind. The reference is the cage's own turn since bind read from its rotation
-    channels (transforms.reference_rotvecs, in the target's space), the pivot its current origin in the
-    target's space. A cage back at its rest matrix after whole turns (its channels differ) gets
-    G = identity so that the turns still count. ValueError when the channels cannot be unwrapped;
-    BindError when the stored rest channels (Cage Rest Rotation) are damaged.
-    """
-    strength = deformer.strength
-    if deformer.branch_rule != "CHANNELS" or strength in (0.0, 1.0) or not has_rest_channels(deformer):
-        return outer, None, None
-    evaluated = cage.evaluated_get(depsgraph)
-    rest_mode, rest_channels = deformer.cage_rest_rotation_mode, tuple(deformer.cage_rest_rotation)
-    damaged = channels_problem("Cage Rest Rotation", rest_channels)
-    if damaged:
-        raise BindError(f"{damaged}: the mesh shows its rest shape; rebind the deformer")
-    mode, channels = evaluated.rotation_mode, rotation_channels(evaluated)
-    if outer is None:
-        if mode == rest_mode and np.array_equal(np.float32(channels), np.float32(rest_channels)):
-            return None, None, None
-        outer = np.eye(4)
-    frame = channel_frame(evaluated, target_world)
-    reference = reference_rotvecs([rest_mode], [rest_channels], [mode], [channels], frame[None])[0]
-    return outer, reference, matrix[:3, 3].astype(np.float64)
-
-
-def _face_motions(rest: np.ndarray, current: np.ndarray, topology: CageTopology, linear: bool,
-                  compiled: tuple[FaceMotions, np.ndarray, float] | None = None) -> Motions:
-    """Motions of the faces the cage's shape change can reach (core.cage.affected_faces); all other
-    faces are exactly at rest (zero parameters, so the vertices they alone drive stay bit-for-bit).
-    The matrices φ(P_f) are formed only for the 'LINEAR' blend (`linear`), the only reader of them;
-    otherwise they stay the identity and the parameters carry the motion. `compiled`: the result of
-    `accel.cage_faces` for these cages (the same motions to ~1e-15), or None to compute them here."""
-    F = topology.n_faces
-    if compiled is not None:
-        motion, face_moved, _ = compiled
-    else:
-        face_moved = affected_faces(rest, current, topology)
-        motion = None
-        if np.any(face_moved):
-            motion = face_motions(rest, current, topology, faces=face_moved, polar=accel.polar_log)
-    at_rest = ~face_moved
-    params = np.zeros((F, 12))
-    valid = np.ones(F, dtype=bool)
-    warning = ""
-    if motion is not None and np.any(face_moved):
-        if compiled is not None:  # a fresh array, zero outside the faces reached
-            params = motion.params
-        else:
-            params[face_moved] = motion.params[face_moved]
-        valid = motion.valid | at_rest
-        if motion.messages:
-            warning = "; ".join(motion.messages) + f" ({_COLLAPSE_NOTE})"
-    matrices = np.broadcast_to(np.eye(4), (F, 4, 4)).copy()
-    if linear and np.any(face_moved):
-        matrices[face_moved] = aff3.matrices_from_params(params[face_moved])
-    return Motions(matrices, at_rest, "", params=params, valid=valid, warning=warning)
-
-
-def _identities(n: int) -> np.ndarray:
-    """(n, 4, 4) identity matrices (a fresh array: Motions may be modified by their reader)."""
-    return np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
-
-
-def _node_motions(faces: Motions, bind: NodeBind, *, linear: bool = False) -> Motions:
-    """The faces' motions as the grid nodes' ('HARMONIC' weights): node c's parameters are the
-    pivoted blend of its faces' (core.cage.harmonic.node_params), computed for the nodes with weight
-    on a face that moved; the others are exactly at rest (parameters 0). Collapsed faces are left
-    out of each node's blend (their weight goes to the node's other faces), so every node is valid.
-    matrices: with `linear` the nodes' linear blend of the face matrices (what the 'LINEAR' blend
-    uses); otherwise the identity (the affine blend reads the parameters only)."""
-    node_points, node_weights = bind.points, bind.weights
-    G = len(node_points)
-    moved = np.flatnonzero(~faces.at_rest)
-    valid = None if faces.valid is None or np.all(faces.valid) else faces.valid
-    compiled = None
-    if not linear:
-        which = None if valid is None else np.packbits(valid).tobytes()
-        compiled = accel.cage_nodes(node_points, node_weights, faces.params, moved, valid,
-                                    totals=bind.totals.get(which))
-        if compiled is not None and which not in bind.totals:
-            bind.totals[which] = compiled[2]
-            while len(bind.totals) > _TOTALS_KEPT:
-                bind.totals.pop(next(iter(bind.totals)))
-    if compiled is not None:  # the compiled kernel: every touched node in one call
-        params, touched, _ = compiled
-        return Motions(_identities(G), ~touched, "", params=params, warning=faces.warning)
-    touched = np.zeros(node_weights.shape[1])
-    touched[moved] = 1.0
-    rows = np.flatnonzero(node_weights @ touched > 0.0)
-    params = np.zeros((G, 12))
-    matrices = _identities(G)
-    if rows.size:
-        # Most nodes (the usual case: harmonic weights reach far): every node is computed and the rows
-        # kept, rather than copying those rows of the (G, F) weights (column-major: `node_data`).
-        whole = 4 * rows.size >= G
-        points, weights = (node_points, node_weights) if whole else (node_points[rows], node_weights[rows])
-        pick = rows if whole else slice(None)
-        params[rows] = accel.node_params(points, weights, faces.params, faces=moved, valid=valid)[pick]
-        if linear:
-            matrices[rows] = node_matrices_linear(weights, faces.matrices, faces=moved, valid=valid)[pick]
-    at_rest = np.ones(G, dtype=bool)
-    at_rest[rows] = False
-    return Motions(matrices, at_rest, "", params=params, warning=faces.warning)

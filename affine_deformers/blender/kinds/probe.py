@@ -34,7 +34,7 @@ from .base import (
     ignored_note,
 )
 from .batching import Batch, BatchedKind, keep_rows
-from .probe_tools import group_names, new_probe, probe_label, selected_probes
+from .probe_tools import default_probes, group_names, probe_label, selected_probes
 from .services import on_preview_option
 from .transforms import (
     MAX_COORDINATE,
@@ -100,11 +100,13 @@ class ProbeKind(BatchedKind, DeformerKind):
 
     id = probe_tools.PROBE
     label = "Probe"
+    menu_label = "Probes"
     description = "Driven by the motion of probe objects"
     icon = "EMPTY_AXIS"
     single_control = False
     add_description = ("Add a probe deformer to the active mesh; the selected Empties become its probes "
-                       "(none selected: one new Empty at the mesh's origin). Their current poses become the "
+                       "(none selected: two new Empties at the ends of the mesh's longest axis). Their "
+                       "current poses become the "
                        "rest pose")
     classes = probe_tools.CLASSES
     paints_groups = True
@@ -170,9 +172,9 @@ class ProbeKind(BatchedKind, DeformerKind):
         return indices, values, warning
 
     def adopt_selection(self, context: bpy.types.Context, target: bpy.types.Object) -> Adopted:
-        """The selected Empties; none selected: one new Empty at the mesh's origin."""
+        """The selected Empties; none selected: two new Empties at the ends of the mesh's longest axis."""
         probes, ignored = selected_probes(context, target)
-        created = [] if probes else [new_probe(context, target)]
+        created = [] if probes else default_probes(context, target)
         return Adopted(probes or created, created, ignored_note("non-Empty", ignored))
 
     def set_up(self, deformer, adopted: Adopted) -> None:
@@ -181,7 +183,8 @@ class ProbeKind(BatchedKind, DeformerKind):
             deformer.probes.add().object = probe
 
     def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
-        made = f" (created '{adopted.created[0].name}')" if adopted.created else ""
+        names = ", ".join(f"'{o.name}'" for o in adopted.created)
+        made = f" (created {names})" if adopted.created else ""
         return f"Added a probe deformer to '{target.name}' with {len(adopted.controls)} probe(s){made}"
 
     def controls(self, obj: bpy.types.Object, deformer) -> list[bpy.types.Object]:

@@ -27,6 +27,7 @@ from bpy.props import (
     PointerProperty,
     StringProperty,
 )
+from mathutils import Vector
 
 from ...core import aff3
 from .. import caches
@@ -58,15 +59,36 @@ def selected_probes(context: bpy.types.Context, target: bpy.types.Object) -> tup
     return probes, ignored
 
 
-def new_probe(context: bpy.types.Context, target: bpy.types.Object) -> bpy.types.Object:
-    """An Empty at the target's origin, sized to the target, in the target's first collection."""
-    probe = bpy.data.objects.new(f"{target.name}.Probe", None)
+def new_probe(context: bpy.types.Context, target: bpy.types.Object, location=None,
+              name: str = "Probe") -> bpy.types.Object:
+    """An Empty at `location` (world space; default the target's origin), sized to the target, in the
+    target's first collection."""
+    probe = bpy.data.objects.new(f"{target.name}.{name}", None)
     probe.empty_display_type = "SPHERE"
     probe.empty_display_size = max(0.1, 0.25 * max(target.dimensions))
-    probe.location = target.matrix_world.translation  # unparented: location is the world position
+    # unparented: location is the world position
+    probe.location = target.matrix_world.translation if location is None else location
     collections = target.users_collection
     (collections[0] if collections else context.scene.collection).objects.link(probe)
     return probe
+
+
+def default_probes(context: bpy.types.Context, target: bpy.types.Object) -> list[bpy.types.Object]:
+    """Two new Empties at the ends of the mesh's longest axis (the centres of the two faces of its
+    bounding box across the axis that is longest once the object's scale is applied): what a new
+    probe deformer gets when no Empty is selected, so it deforms at once (one probe alone only moves
+    the mesh rigidly)."""
+    corners = np.array([tuple(c) for c in target.bound_box], dtype=np.float64)
+    low, high = corners.min(axis=0), corners.max(axis=0)
+    scale = np.linalg.norm(np.array(target.matrix_world, dtype=np.float64)[:3, :3], axis=0)
+    axis = int(np.argmax((high - low) * scale))
+    centre = (low + high) / 2.0
+    ends = []
+    for side, value in (("A", low[axis]), ("B", high[axis])):
+        local = centre.copy()
+        local[axis] = value
+        ends.append(new_probe(context, target, target.matrix_world @ Vector(local), f"Probe{side}"))
+    return ends
 
 
 def probe_label(item) -> str:

@@ -1,0 +1,131 @@
+"""A cage made for the artist (issue #50): adding a cage deformer with no cage selected builds one around
+the mesh (core.cage.enclosing_cage: closed, 2-manifold, outward, self-intersection free, every vertex
+inside with a margin, following the shape, at most the deformer's Cage Faces, mirror-symmetric when
+the mesh is), and Remake Cage builds it again at another budget and rebinds.
+
+The cage is a mesh object "<target> Cage" in the target's collections, with the target's transform
+(its vertices are made in the target's local space), shown as a wire and hidden in renders, as riggers
+keep cages. It is made from the rest mesh (the mesh's own vertices and triangles, whatever its
+modifiers), so any mesh gets one — open, non-manifold, with loose vertices; a mesh without vertices,
+with all its vertices at one place or with non-finite ones is refused with a message and nothing is made.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+from bpy.props import IntProperty
+
+from ...core.cage.enclose import enclosing_cage
+from .. import storage
+from ..addressing import UNDOABLE, DeformerIndexed, addressed_deformer
+from .base import BindError
+from .services import services
+
+#: The face budget of a made cage, unless the deformer's Cage Faces says otherwise.
+DEFAULT_FACES = 300
+
+
+def _triangles(mesh: bpy.types.Mesh) -> np.ndarray:
+    """The mesh's triangles (T, 3) int32 (loop triangles, through their corners' vertices)."""
+    mesh.calc_loop_triangles()
+    loops = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int32)
+    mesh.loop_triangles.foreach_get("loops", loops)
+    return storage.corner_vertices(mesh)[loops].reshape(-1, 3)
+
+
+def cage_mesh(target: bpy.types.Object, faces: int, name: str) -> bpy.types.Mesh:
+    """A new mesh datablock: the cage made around `target`'s rest mesh with at most `faces` quads, in
+    its local space. BindError (nothing made) when no cage can be made, saying why."""
+    mesh = target.data
+    if target.type != "MESH":
+        raise BindError(f"'{target.name}' is not a mesh: a cage is made around a mesh's vertices")
+    if len(mesh.vertices) == 0:
+        raise BindError(f"'{target.name}' has no vertices: there is nothing to make a cage around")
+    points = storage.read_positions(mesh).astype(np.float64)
+    if not np.all(np.isfinite(points)):
+        raise BindError(f"'{target.name}' has vertices that are not finite (NaN or infinity): fix them first")
+    if np.ptp(points, axis=0).max() == 0.0:
+        raise BindError(f"All vertices of '{target.name}' are at one place: a cage needs a shape to follow")
+    try:
+        made = enclosing_cage(points, _triangles(mesh) if len(mesh.polygons) else None, budget=faces)
+    except ValueError as exc:
+        raise BindError(f"No cage can be made around '{target.name}': {exc}") from None
+    result = bpy.data.meshes.new(name)
+    result.vertices.add(len(made.vertices))
+    result.vertices.foreach_set("co", made.vertices.astype(np.float32).ravel())
+    result.loops.add(len(made.loop_vertices))
+    result.loops.foreach_set("vertex_index", np.asarray(made.loop_vertices, dtype=np.int32))
+    result.polygons.add(len(made.loop_start))
+    result.polygons.foreach_set("loop_start", np.asarray(made.loop_start, dtype=np.int32))
+    result.polygons.foreach_set("loop_total", np.asarray(made.loop_total, dtype=np.int32))
+    result.update(calc_edges=True)
+    result.validate(clean_customdata=False)
+    return result
+
+
+def make_cage(context: bpy.types.Context, target: bpy.types.Object,
+              faces: int = DEFAULT_FACES) -> bpy.types.Object:
+    """A new cage object around `target` (module docstring)."""
+    name = f"{target.name} Cage"
+    cage = bpy.data.objects.new(name, cage_mesh(target, faces, name))
+    cage.matrix_world = target.matrix_world
+    cage.display_type = "WIRE"
+    cage.hide_render = True
+    collections = target.users_collection
+    (collections[0] if collections else context.scene.collection).objects.link(cage)
+    return cage
+
+
+class AFFINE_OT_cage_remake(DeformerIndexed, bpy.types.Operator):
+    """Make the deformer's cage again around the mesh's rest shape with at most Cage Faces quads (the cage
+    object keeps its name and place; its mesh is replaced), and rebind"""
+
+    bl_idname = "object.affine_cage_remake"
+    bl_label = "Remake Cage"
+    bl_options = UNDOABLE
+
+    faces: IntProperty(name="Cage Faces", default=0, min=0, max=20000,
+                       description="At most this many quads (0: the deformer's Cage Faces)")
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        obj, deformer = addressed_deformer(self, context)
+        if obj is None:
+            return {"CANCELLED"}
+        cage = deformer.cage
+        if deformer.kind != "CAGE" or cage is None:
+            self.report({"ERROR"}, f"'{deformer.name}' has no cage to remake")
+            return {"CANCELLED"}
+        if cage.library is not None or cage.data.library is not None:
+            self.report({"ERROR"}, f"Cage '{cage.name}' is linked from a library: remake it in that file")
+            return {"CANCELLED"}
+        faces = self.faces or deformer.cage_faces
+        try:
+            mesh = cage_mesh(obj, faces, cage.data.name)
+        except BindError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        old = cage.data
+        cage.data = mesh
+        cage.matrix_world = obj.matrix_world
+        if old.users == 0:
+            bpy.data.meshes.remove(old)
+        deformer.cage_faces = faces
+        try:
+            services().bind(obj, deformer, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        services().evaluate(obj, context.evaluated_depsgraph_get())
+        self.report({"INFO"}, f"Made a cage of {len(mesh.polygons)} faces around '{obj.name}' and rebound")
+        return {"FINISHED"}
+
+
+def draw_actions(layout: bpy.types.UILayout, deformer, index: int) -> None:
+    """Remake Cage, with the face budget beside it."""
+    row = layout.row(align=True)
+    row.prop(deformer, "cage_faces", text="Faces")
+    row.operator(AFFINE_OT_cage_remake.bl_idname, icon="MESH_CUBE").index = index
+
+
+CLASSES = (AFFINE_OT_cage_remake,)
