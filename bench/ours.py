@@ -43,10 +43,10 @@ BIND_OP = "object.affine_deformer_bind"
 # covered shows up as "glue" (handler − covered stages).
 STAGE_POINTS = (
     ("blender.kinds", "*.current_motions", "read"),  # every kind class registered in kinds.KINDS
-    ("blender.storage", "read_positions", "read mesh"),
-    ("blender.storage", "read_weights", "read mesh"),
-    ("blender.params", "motions_to_params", "psi"),
-    ("blender.params", "chain_params", "psi"),  # bones: ψ of the local motions
+    ("blender.files.storage", "read_positions", "read mesh"),
+    ("blender.files.storage", "read_weights", "read mesh"),
+    ("blender.update.params", "motions_to_params", "psi"),
+    ("blender.update.params", "chain_params", "psi"),  # bones: ψ of the local motions
     ("core.aff3", "params_from_matrices", "psi"),
     ("core.aff3", "matrices_from_params", "psi"),
     ("core.cage", "affected_faces", "psi"),  # cage: which faces moved, then their tetrahedra → params
@@ -65,9 +65,9 @@ STAGE_POINTS = (
     ("accel", "vertex_motions", "kernel"),
     ("accel", "chain_points", "kernel"),  # bones: the blend down the hierarchy
     ("accel", "chain_motions", "kernel"),
-    ("blender.storage", "write_offsets", "write"),
-    ("blender.storage", "write_motions", "write"),
-    ("blender.storage", "write_offsets_unchecked", "write"),
+    ("blender.files.storage", "write_offsets", "write"),
+    ("blender.files.storage", "write_motions", "write"),
+    ("blender.files.storage", "write_offsets_unchecked", "write"),
 )
 
 
@@ -105,7 +105,7 @@ def forget_caches() -> None:
     """Drop our per-control memos and caches, so a case does not find the poses an earlier case
     computed (the move sequence is the same in every case): every timed update then meets new poses,
     as in an interactive drag."""
-    evaluate = sys.modules.get(f"{PKG}.{EXT_ID}.blender.evaluate")
+    evaluate = sys.modules.get(f"{PKG}.{EXT_ID}.blender.update.evaluate")
     if evaluate is not None:
         evaluate.forget()
 
@@ -113,7 +113,7 @@ def forget_caches() -> None:
 def use_compiled_kernel(flag: bool) -> None:
     """Switch our kernel like the add-on preference does (compiled ↔ numpy); caches are dropped."""
     accel = sys.modules.get(f"{PKG}.{EXT_ID}.accel")
-    evaluate = sys.modules.get(f"{PKG}.{EXT_ID}.blender.evaluate")
+    evaluate = sys.modules.get(f"{PKG}.{EXT_ID}.blender.update.evaluate")
     if accel is not None and hasattr(accel, "set_enabled"):
         accel.set_enabled(flag)
     if evaluate is not None:
@@ -430,11 +430,11 @@ def write_only_updates():
     computed. What is left of a frame is the floor of this design — the handler's writes and
     Blender's re-evaluation of the meshes and of our Geometry Nodes modifier — which no faster
     computation can go below."""
-    evaluate = sys.modules[f"{INNER}.blender.evaluate"]
-    storage = sys.modules[f"{INNER}.blender.storage"]
-    frame_check = sys.modules[f"{INNER}.blender.frame_check"]
-    output_store = sys.modules[f"{INNER}.blender.output_store"]
-    nodes = sys.modules[f"{INNER}.blender.nodes"]
+    evaluate = sys.modules[f"{INNER}.blender.update.evaluate"]
+    storage = sys.modules[f"{INNER}.blender.files.storage"]
+    frame_check = sys.modules[f"{INNER}.blender.update.frame_check"]
+    output_store = sys.modules[f"{INNER}.blender.update.output_store"]
+    nodes = sys.modules[f"{INNER}.blender.files.nodes"]
     real = evaluate.run
 
     done: list = []

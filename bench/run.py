@@ -21,12 +21,16 @@ handler and Blender's re-evaluation included) — median of `--reps` repetitions
       output store, output_store.py) vs Hooks; a 10k mesh with 8 probes, playback and drag;
   (s) shape preservation: a bar bent 90° / 180° and twisted 270° by two bones, Suzanne's cage pulled:
       volume, edge distortion, roughness and update time, ours vs Armature (Preserve Volume) and Mesh
-      Deform.
+      Deform;
+  (e) cages made for the mesh (the cage deformer added with no cage selected) on Suzanne, the figure of
+      samples/cage_deform.blend and that figure at 130k vertices: faces, margin, winding numbers, time
+      to make; a cage edit with the made cage vs the sample's hand-made cage vs Mesh Deform bound to
+      the made cage (roughness, edge distortion, torn edges, bind).
 
 Exit status 1 when a measurement is not trustworthy (an update that changed nothing, a result still
 moving after the timed passes) or our operators fail; a missing operator is a printed note, not a failure.
 
-Usage: python bench/run.py [--quick] [--reps N] [--markdown docs/benchmarks.md] [--only a,b,c,d,p,m,s,w]
+Usage: python bench/run.py [--quick] [--reps N] [--markdown docs/benchmarks.md] [--only a,b,c,d,p,m,s,w,e]
                            [--zip Z]
 """
 
@@ -42,6 +46,8 @@ from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
 ROOT = BENCH.parent
+#: The parts, in the order they run (suite.run) and appear in the report.
+PARTS = ("a", "b", "c", "d", "p", "m", "s", "w", "e")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -51,14 +57,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true", help="small meshes, few reps (smoke test)")
     parser.add_argument("--reps", type=int, help="timed repetitions per case (default 15, quick 3)")
     parser.add_argument("--markdown", type=Path, help="also write the tables to this markdown file")
-    parser.add_argument("--only", default="a,b,c,d,p,m,s,w",
-                        help="comma list of parts to run (a, b, c, d, p, m, s, w)")
+    parser.add_argument("--only", default=",".join(PARTS),
+                        help=f"comma list of parts to run ({', '.join(PARTS)})")
     parser.add_argument("--zip", type=Path, help="extension package (default: newest dist/*.zip)")
     ns = parser.parse_args(argv)
     ns.parts = {p.strip() for p in ns.only.split(",") if p.strip()}
-    unknown = ns.parts - {"a", "b", "c", "d", "p", "m", "s", "w"}
+    unknown = ns.parts - set(PARTS)
     if unknown:
-        parser.error(f"unknown part(s) {sorted(unknown)}: use a, b, c, d, p, m, s, w")
+        parser.error(f"unknown part(s) {sorted(unknown)}: use {', '.join(PARTS)}")
     if ns.reps is not None and ns.reps < 1:
         parser.error("--reps must be at least 1")
     if ns.zip is None:

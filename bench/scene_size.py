@@ -31,7 +31,7 @@ FRAMES = 24
 
 
 def _store(forced: str | None) -> None:
-    module = sys.modules.get(f"{ours.PKG}.{ours.EXT_ID}.blender.output_store")
+    module = sys.modules.get(f"{ours.PKG}.{ours.EXT_ID}.blender.update.output_store")
     if module is not None:
         module.forced = forced
 

@@ -207,7 +207,7 @@ def factor_summary(obj: bpy.types.Object) -> str:
     if not len(deformers) or not getattr(deformers[0], "preserve_shape", False):
         return ""
     try:
-        module = importlib.import_module(f"{ours.INNER}.blender.shape_pass")
+        module = importlib.import_module(f"{ours.INNER}.blender.update.shape_pass")
     except ImportError:
         return ""
     return module.summary(obj, deformers[0])

@@ -15,6 +15,7 @@ import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cage_enclose
 import common
 import native
 import ours
@@ -47,6 +48,8 @@ class Plan:
     w_others: tuple[int, ...] = (0, 5_000, 20_000)  # (w) how many other objects
     w_large_verts: int = 10_000  # (w) the mesh of the 8-probe playback and drag rows
     w_paths_verts: int = 80_000  # (w) the large mesh of the write-path floors
+    e_cases: tuple[str, ...] = ("SUZANNE", "FIGURE", "FIGURE_130K")  # (e) made cages (cage_quality.CASES)
+    e_repeats: int = 3  # (e) runs of the cage maker timed per mesh (median)
 
 
 FULL = Plan(
@@ -79,6 +82,8 @@ QUICK = Plan(
     w_others=(0, 500),
     w_large_verts=2_000,
     w_paths_verts=4_000,
+    e_cases=("FIGURE",),
+    e_repeats=1,
 )
 
 STAGES = (
@@ -628,7 +633,8 @@ def run(ns: argparse.Namespace) -> int:
     report = Report()
     t0 = time.perf_counter()
     for part, fn in (("a", part_a), ("b", part_b), ("c", part_c), ("d", part_d), ("p", playback.part_p),
-                     ("m", playback.part_m), ("s", shape.part_s), ("w", scene_size.part_w)):
+                     ("m", playback.part_m), ("s", shape.part_s), ("w", scene_size.part_w),
+                     ("e", cage_enclose.part_e)):
         if part in ns.parts:
             fn(plan, have_ours, report)
     if report.split_rows:

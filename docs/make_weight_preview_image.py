@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "tests" / "blender"))
 import build_samples  # noqa: E402  (the sample scripts' Blender start-up and scene furniture)
 import render_samples  # noqa: E402
 
-PREVIEW_MODULE = f"{build_samples.ADDON_MODULE}.affine_deformers.blender.weight_preview"
+PREVIEW_MODULE = f"{build_samples.ADDON_MODULE}.affine_deformers.blender.tools.weight_preview"
 BACKGROUND = (0.16, 0.17, 0.19)
 PANELS = ("Probe weights: the active probe (left ear)", "All probes, each in its colour",
           "Cage: one face (Fit Range, max {top:.2f})")

@@ -17,6 +17,9 @@ bound to the Affine Deformers extension, so it plays in Blender with no further 
 - bone_tail       a six-bone tail (wave, a non-uniformly scaled bone, then its tip twisting 0° → 450°):
                   Blender's Armature with Preserve Volume (the short way round past 180°) and our bone
                   deformer converted from the same Armature modifier, on the same mesh and vertex groups
+- shape_pass      one bar bent by two probes, the per-vertex field beside Preserve Shape
+- made_cage       Suzanne with a cage deformer added with no cage selected: the add operator makes her
+                  cage; its shape keys lean her head, lift her ears and squash her
 
 The extension is installed from the built .zip into an isolated Blender user directory, so the
 artist's own Blender configuration is never touched. `bpy` must not be imported before
@@ -712,14 +715,19 @@ def _lean(co: np.ndarray) -> np.ndarray:
     return out
 
 
+def squashed(co: np.ndarray, height: float, bulge: float) -> np.ndarray:
+    """`co` squashed vertically to `height` times its height about its base, widened `bulge` times."""
+    out = co.copy()
+    base = co[:, 2].min()
+    out[:, 2] = base + height * (co[:, 2] - base)
+    out[:, :2] *= bulge
+    return out
+
+
 @_cage_shape("Squash")
 def _squash(co: np.ndarray) -> np.ndarray:
     """Squash vertically and bulge sideways, about the cage's base."""
-    out = co.copy()
-    base = co[:, 2].min()
-    out[:, 2] = base + 0.72 * (co[:, 2] - base)
-    out[:, :2] *= 1.25
-    return out
+    return squashed(co, 0.72, 1.25)
 
 
 def build_cage_deform() -> SampleInfo:
@@ -778,6 +786,125 @@ def build_cage_deform() -> SampleInfo:
     add_ground(-0.16)
     add_camera((1.2, -9.5, 3.6), (0.0, 0.0, 1.35), lens=40.0)
     add_lights(target=(0.0, 0.0, 1.3))
+    return SampleInfo(key_frames=[1, 24, 48, 72], todo=todo)
+
+
+#: Shape keys of the made cage in made_cage.blend: functions of the cage's rest vertices, so they fit
+#: whatever cage the add operator makes.
+MADE_CAGE_SHAPES: dict[str, Callable[[np.ndarray], np.ndarray]] = {}
+MADE_CAGE_TILT = 25.0  # degrees the top of the cage leans sideways by in its "Tilt" key
+
+
+def _made_cage_shape(name: str) -> Callable:
+    def register(function: Callable[[np.ndarray], np.ndarray]) -> Callable:
+        MADE_CAGE_SHAPES[name] = function
+        return function
+
+    return register
+
+
+@_made_cage_shape("Tilt")
+def _tilt_top(co: np.ndarray) -> np.ndarray:
+    """Lean the cage's top half sideways (about the Y axis through its middle height), by MADE_CAGE_TILT
+    at the top and smoothly less down to the middle (the chin stays)."""
+    middle, top = 0.5 * (co[:, 2].min() + co[:, 2].max()), co[:, 2].max()
+    t = np.clip((co[:, 2] - middle) / (top - middle), 0.0, 1.0)
+    angle = math.radians(MADE_CAGE_TILT) * t * t * (3.0 - 2.0 * t)
+    out = co.copy()
+    x, z = co[:, 0], co[:, 2] - middle
+    out[:, 0] = np.cos(angle) * x + np.sin(angle) * z
+    out[:, 2] = middle - np.sin(angle) * x + np.cos(angle) * z
+    return out
+
+
+@_made_cage_shape("EarsUp")
+def _ears_up(co: np.ndarray) -> np.ndarray:
+    """Lift the cage around the ears (beyond the cheeks, |x| > 0.8) and spread it a little."""
+    reach = np.clip((np.abs(co[:, 0]) - 0.8) / 0.6, 0.0, 1.0) ** 2
+    out = co.copy()
+    out[:, 2] += 0.5 * reach
+    out[:, 0] += 0.15 * reach * np.sign(co[:, 0])
+    return out
+
+
+@_made_cage_shape("Squash")
+def _squash_head(co: np.ndarray) -> np.ndarray:
+    """Squash vertically about the cage's base and bulge sideways."""
+    return squashed(co, 0.75, 1.18)
+
+
+def suzanne_mesh(name: str, levels: int = 2) -> object:
+    """Blender's Suzanne (size 2) with a Subdivision modifier of `levels` applied."""
+    import bpy
+
+    bpy.ops.mesh.primitive_monkey_add(size=2.0, location=(0.0, 0.0, 0.0))
+    head = bpy.context.active_object
+    modifier = head.modifiers.new("Subdivision", "SUBSURF")
+    modifier.levels = modifier.render_levels = levels
+    mesh = bpy.data.meshes.new_from_object(head.evaluated_get(bpy.context.evaluated_depsgraph_get()))
+    primitive = head.data
+    bpy.data.objects.remove(head, do_unlink=True)
+    bpy.data.meshes.remove(primitive)
+    mesh.name = name
+    return mesh
+
+
+def build_made_cage() -> SampleInfo:
+    """Suzanne with a cage deformer added with no cage selected, so the add operator makes her cage
+    (issue #50); the made cage's shape keys lean her head, lift her ears and squash her."""
+    import bpy
+
+    todo: list[str] = []
+    scene = new_scene("made_cage", frame_end=72)
+    head = add_mesh_object(
+        "Suzanne",
+        suzanne_mesh("Suzanne", levels=1),
+        plain_material("Suzanne", (0.85, 0.32, 0.12), roughness=0.4),
+    )
+    head.data.polygons.foreach_set("use_smooth", np.ones(len(head.data.polygons), dtype=bool))
+    scene.frame_set(1)
+    # Only the mesh selected: the add operator makes the cage "Suzanne Cage" around it and binds.
+    if not add_deformer("cage", head, [], {"blend_mode": "AFFINE_LOG"}, todo):
+        return SampleInfo(key_frames=[1, 24, 48, 72], todo=todo)
+    mark_target(head, "AFFINE_LOG")
+    cage = head.affine_deformers[len(head.affine_deformers) - 1].cage
+    if cage is None or cage == head:
+        raise RuntimeError("the cage deformer added with no cage selected has no cage")
+    cage_mesh = cage.data
+    basis = cage.shape_key_add(name="Basis", from_mix=False)
+    rest = np.empty(len(cage_mesh.vertices) * 3)
+    basis.data.foreach_get("co", rest)
+    rest = rest.reshape(-1, 3)
+    for name, shape in MADE_CAGE_SHAPES.items():
+        block = cage.shape_key_add(name=name, from_mix=False)
+        block.data.foreach_set("co", shape(rest).ravel())
+    values = {
+        "Tilt": {1: 0.0, 24: 1.0, 48: 1.0, 72: 0.0},
+        "EarsUp": {1: 0.0, 24: 0.0, 48: 1.0, 72: 0.0},
+        "Squash": {1: 0.0, 48: 0.0, 72: 1.0},
+    }
+    for name, keys in values.items():
+        block = cage_mesh.shape_keys.key_blocks[name]
+        for frame, value in keys.items():
+            block.value = value
+            block.keyframe_insert("value", frame=frame)
+    # The made cage is hidden in renders; as in cage_deform.blend, a linked duplicate sharing its mesh
+    # (and so its shape keys) shows it as thin tubes.
+    wire = link(bpy.data.objects.new(f"{cage.name}.wire", cage_mesh))
+    modifier = wire.modifiers.new("Wireframe", "WIREFRAME")
+    modifier.thickness = 0.018
+    modifier.use_replace = True
+    modifier.material_offset = 0
+    cage_mesh.materials.append(plain_material("CageWire", (0.05, 0.12, 0.45), roughness=0.3))
+    wire.hide_select = True
+    wire.hide_viewport = True
+    # Subdivision after ours smooths the renders (the viewport shows the mesh the cage deforms).
+    smooth = head.modifiers.new("Subdivision", "SUBSURF")
+    smooth.levels, smooth.render_levels = 0, 1
+    scene.frame_set(1)
+    add_ground(-1.25)
+    add_camera((2.3, -7.6, 1.8), (0.0, 0.0, 0.3), lens=50.0)
+    add_lights()
     return SampleInfo(key_frames=[1, 24, 48, 72], todo=todo)
 
 
@@ -1147,6 +1274,7 @@ SAMPLES: dict[str, Callable[[], SampleInfo]] = {
     "stack": build_stack,
     "bone_tail": build_bone_tail,
     "shape_pass": build_shape_pass,
+    "made_cage": build_made_cage,
 }
 
 

@@ -1,6 +1,6 @@
 """The bpy layer: registration of properties, operators, panels and handlers.
 
-Scripts: `evaluate.evaluate_object(obj, depsgraph)` / `evaluate.evaluate_all(scene, depsgraph)`.
+Scripts: `update.evaluate.evaluate_object(obj, depsgraph)` / `update.evaluate.evaluate_all(scene, depsgraph)`.
 """
 
 from __future__ import annotations
@@ -9,21 +9,11 @@ import traceback
 
 import bpy
 
-from . import (
-    bake,
-    carrier,
-    handlers,
-    kind_services,  # hands the kinds binding, the update and the preview (kinds/services.py)
-    kinds,
-    operators,
-    panels,
-    prefs,
-    props,
-    relations,
-    shape_pass,
-    weight_groups,  # the weight tools' hooks around the update (hooks.py)
-    weight_operators,
-)
+from . import kind_services, kinds, props
+from .files import carrier, relations
+from .tools import bake, weight_groups, weight_operators
+from .ui import operators, panels, prefs
+from .update import handlers, shape_pass
 
 #: Every class to register, in order: the kinds' (their control item groups before the deformer's
 #: property group, which refers to them), then the deformer's, the shared operators and the interface.

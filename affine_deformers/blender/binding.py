@@ -13,8 +13,11 @@ import zlib
 import bpy
 import numpy as np
 
-from . import caches, kinds, nodes, output_store, registry, relations, storage, weight_preview
-from .addressing import (
+from . import caches, kinds
+from .files import nodes, relations, storage
+from .kinds import BindError
+from .tools import weight_preview
+from .ui.addressing import (
     deformer_at,
     deformer_index,
     find_uid,
@@ -22,7 +25,7 @@ from .addressing import (
     linked_mesh_problem,
     target_problem,
 )
-from .kinds import BindError
+from .update import output_store, registry
 
 __all__ = ["BindError", "apply", "bind", "create", "deformer_at", "deformer_index", "find_uid",
            "linked_mesh_problem", "mask_weights", "rebind_probe_safely", "rebind_safely", "remove",

@@ -8,8 +8,11 @@ from contextlib import AbstractContextManager
 
 import bpy
 
-from . import binding, evaluate, relations, weight_preview
+from . import binding
+from .files import relations
 from .kinds import services as kind_services
+from .tools import weight_preview
+from .update import evaluate
 
 
 class BlenderServices:

@@ -24,9 +24,11 @@ from bpy.props import (
 )
 
 from ..core import arap
-from . import kinds, nodes, storage, weight_preview
+from . import kinds
+from .files import nodes, storage
 from .kinds.base import OVERRIDABLE
 from .kinds.services import on_preview_option, on_weight_option, search_vertex_groups
+from .tools import weight_preview
 
 
 def _on_evaluation_option(self: AffineDeformer, _context: bpy.types.Context) -> None:

@@ -84,8 +84,8 @@ def installed(extension_zip: Path) -> SimpleNamespace:
         core=importlib.import_module(f"{PACKAGE}.core"),
         aff3=importlib.import_module(f"{PACKAGE}.core.aff3"),
         deform=importlib.import_module(f"{PACKAGE}.core.deform"),
-        evaluate=importlib.import_module(f"{PACKAGE}.blender.evaluate"),
-        storage=importlib.import_module(f"{PACKAGE}.blender.storage"),
+        evaluate=importlib.import_module(f"{PACKAGE}.blender.update.evaluate"),
+        storage=importlib.import_module(f"{PACKAGE}.blender.files.storage"),
         zip=extension_zip,
         addon=ADDON,
         package=PACKAGE,
@@ -189,8 +189,8 @@ def dense_weights(obj, deformer) -> np.ndarray:
 def stored_offsets(target, deformer) -> np.ndarray:
     """A copy of the offsets the deformer last wrote (float32, (N, 3)), wherever they live
     (output_store.py: the mesh's attributes or a position carrier)."""
-    store = importlib.import_module(f"{PACKAGE}.blender.output_store")
-    nodes = importlib.import_module(f"{PACKAGE}.blender.nodes")
+    store = importlib.import_module(f"{PACKAGE}.blender.update.output_store")
+    nodes = importlib.import_module(f"{PACKAGE}.blender.files.nodes")
     mod = nodes.find_modifier(target, f"affdef_{deformer.uid}_offset")
     path, data = store.stored_output(target, deformer.uid, mod)
     assert path == "OFFSET", path
@@ -200,7 +200,7 @@ def stored_offsets(target, deformer) -> np.ndarray:
 def recomputed_offsets(target, deformer) -> np.ndarray:
     """The offsets of a from-scratch evaluation (every cache dropped first): what incremental updates
     must equal exactly."""
-    evaluate = importlib.import_module(f"{PACKAGE}.blender.evaluate")
+    evaluate = importlib.import_module(f"{PACKAGE}.blender.update.evaluate")
     evaluate.forget()
     evaluate.evaluate_object(target, bpy.context.evaluated_depsgraph_get())
     return stored_offsets(target, deformer)

@@ -130,9 +130,9 @@ import throwaway_addon
 throwaway_addon.register()
 blender = importlib.import_module("throwaway_addon.affine_deformers.blender")
 kinds = importlib.import_module("throwaway_addon.affine_deformers.blender.kinds")
-snapshot = importlib.import_module("throwaway_addon.affine_deformers.blender.snapshot")
+snapshot = importlib.import_module("throwaway_addon.affine_deformers.blender.update.snapshot")
 props = importlib.import_module("throwaway_addon.affine_deformers.blender.props")
-panels = importlib.import_module("throwaway_addon.affine_deformers.blender.panels")
+panels = importlib.import_module("throwaway_addon.affine_deformers.blender.ui.panels")
 
 assert [item[0] for item in kinds.enum_items()] == ["PROBE", "CAGE", "BONE", "FOLLOW"]
 rna = props.AffineDeformer.bl_rna.properties
@@ -191,7 +191,7 @@ assert ("operator", "object.affine_follow_deformer_add") in log and ("prop", "le
 
 deformer.show_weights = True  # the weight preview of its one control
 assert deformer.status == "", deformer.status
-preview = importlib.import_module("throwaway_addon.affine_deformers.blender.weight_preview")
+preview = importlib.import_module("throwaway_addon.affine_deformers.blender.tools.weight_preview")
 assert preview.control_count(deformer) == 1
 assert np.allclose(preview.control_weights(target, deformer, 0), 1.0)
 
@@ -209,7 +209,7 @@ bpy.context.view_layer.update()
 assert np.abs(positions() - rest).max() < 1e-5
 
 # Copy Modifiers onto another mesh: the copy becomes a follow deformer of its own (copies.py).
-copies = importlib.import_module("throwaway_addon.affine_deformers.blender.copies")
+copies = importlib.import_module("throwaway_addon.affine_deformers.blender.files.copies")
 bpy.ops.mesh.primitive_cube_add(size=2.0, location=(5.0, 0.0, 0.0))
 other = bpy.context.active_object
 with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target, other],

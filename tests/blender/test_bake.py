@@ -75,7 +75,7 @@ def _check_baked_equals_live(bl, target, live: dict, tmp_path) -> None:
 
 
 def test_pc2_file_layout_round_trip_and_atomic_writes(installed, tmp_path):
-    pc2 = _module(installed, "pc2")
+    pc2 = _module(installed, "tools.pc2")
     rng = np.random.default_rng(3)
     points = rng.normal(size=(4, 5, 3)).astype(np.float32)
     path = tmp_path / "c.pc2"
@@ -159,7 +159,7 @@ def test_pc2_bake_plays_back_without_the_addon_and_through_alembic(bl, installed
     assert bpy.context.scene.frame_current == 7, "the original frame is restored"
     assert "affdef" not in "".join(o.name for o in bpy.data.objects), "capture object removed"
     cache_path = tmp_path / "Cube_Probe_Deformer.pc2"
-    samples, start, rate = _module(installed, "pc2").read_pc2(cache_path)
+    samples, start, rate = _module(installed, "tools.pc2").read_pc2(cache_path)
     assert samples.shape == (20, len(target.data.vertices), 3) and (start, rate) == (1.0, 1.0)
     for frame in all_frames:
         assert np.abs(samples[frame - 1] - live[frame]).max() <= TOL, f"sample of frame {frame}"
@@ -171,7 +171,7 @@ def test_pc2_bake_plays_back_without_the_addon_and_through_alembic(bl, installed
     assert (cache.cache_format, cache.filepath, cache.deform_mode) == ("PC2", "//Cube_Probe_Deformer.pc2",
                                                                         "OVERWRITE")
     assert (cache.play_mode, cache.time_mode, cache.frame_start) == ("SCENE", "FRAME", 1.0)
-    state = _module(installed, "bake").bake_state(deformer)
+    state = _module(installed, "tools.bake").bake_state(deformer)
     assert state["mode"] == "PC2" and (state["frame_start"], state["frame_end"]) == (1, 20)
 
     # With the add-on still enabled the cache replaces the live result exactly.
@@ -186,7 +186,7 @@ def test_pc2_bake_keeps_modifiers_below_live_and_captures_only_our_deformer(bl, 
     target.modifiers.move(len(target.modifiers) - 1, 0)
     below = target.modifiers.new("Subdivision", "SUBSURF")
     below.levels = 1
-    bake = _module(installed, "bake")
+    bake = _module(installed, "tools.bake")
     job = bake.BakeJob(bpy.context, target, 0, "PC2", 1, 20, "")
     assert len(job.warnings) == 1 and "(Displace)" in job.warnings[0] and "Subdivision" not in job.warnings[0]
 
@@ -199,7 +199,7 @@ def test_pc2_bake_keeps_modifiers_below_live_and_captures_only_our_deformer(bl, 
         offsets[frame] = installed.storage.read_offsets(target.data, deformer.uid).copy()
     above.show_viewport = above.show_render = True  # enabled again: its effect must not leak in
     assert _bake(bl, target, index=0, mode="PC2") == {"FINISHED"}
-    samples, _start, _rate = _module(installed, "pc2").read_pc2(tmp_path / "Cube_Probe_Deformer.pc2")
+    samples, _start, _rate = _module(installed, "tools.pc2").read_pc2(tmp_path / "Cube_Probe_Deformer.pc2")
     for frame in FRAMES:
         assert np.abs(samples[frame - 1] - (rest + offsets[frame])).max() <= TOL, "only our deformer"
     assert [m.type for m in target.modifiers] == ["DISPLACE", "MESH_CACHE", "NODES", "SUBSURF"]
@@ -255,11 +255,11 @@ def test_unbake_brings_the_live_deformer_back_and_rebake_replaces(bl, installed,
     actions = set(bpy.data.actions.keys())
     assert _bake(bl, target, index=0, mode=mode) == {"FINISHED"}
     assert _bake(bl, target, index=0, mode=mode, frame_start=5, frame_end=12) == {"FINISHED"}  # re-bake
-    state = _module(installed, "bake").bake_state(deformer)
+    state = _module(installed, "tools.bake").bake_state(deformer)
     assert (state["frame_start"], state["frame_end"]) == (5, 12)
     if mode == "PC2":
         assert [m.type for m in target.modifiers] == ["MESH_CACHE", "NODES"]
-        assert len(_module(installed, "pc2").read_pc2(tmp_path / "Cube_Probe_Deformer.pc2")[0]) == 8
+        assert len(_module(installed, "tools.pc2").read_pc2(tmp_path / "Cube_Probe_Deformer.pc2")[0]) == 8
     else:
         assert [b.name for b in target.data.shape_keys.key_blocks] == [
             "Basis", *(f"Probe Deformer f{f:04d}" for f in range(5, 13))]
@@ -272,7 +272,7 @@ def test_unbake_brings_the_live_deformer_back_and_rebake_replaces(bl, installed,
     assert _stack(target) == stack and deformer.show_viewport and deformer.show_render
     assert target.data.shape_keys is None
     assert set(bpy.data.actions.keys()) == actions, "the action the bake created is gone"
-    assert _module(installed, "bake").bake_state(deformer) is None
+    assert _module(installed, "tools.bake").bake_state(deformer) is None
     if mode == "PC2":
         assert (tmp_path / "Cube_Probe_Deformer.pc2").exists(), "the cache file stays on disk"
     after = _live(bl, target)
@@ -290,7 +290,7 @@ def test_a_failure_mid_bake_leaves_the_object_as_it_was(bl, installed, tmp_path,
     target, deformer = _scene(bl, tmp_path)
     cache_path = tmp_path / "Cube_Probe_Deformer.pc2"
     cache_path.write_bytes(b"previous cache")
-    bake = _module(installed, "bake")
+    bake = _module(installed, "tools.bake")
     real = bake._Capture.positions
     calls = []
 
@@ -342,7 +342,7 @@ def test_bad_requests_are_refused_with_clear_messages_and_change_nothing(bl, ins
     absolute = tmp_path / "cache" / "abs.pc2"
     assert _bake(bl, target, index=0, mode="PC2", filepath=str(absolute), frame_start=1,
                  frame_end=4) == {"FINISHED"}
-    assert len(_module(installed, "pc2").read_pc2(absolute)[0]) == 4
+    assert len(_module(installed, "tools.pc2").read_pc2(absolute)[0]) == 4
     assert _stack(target) != stack and target.modifiers[0].filepath == str(absolute)
 
 
@@ -370,7 +370,7 @@ class _Recorder:
 
 def test_bake_section_of_the_panel_follows_the_bake_state(bl, installed, tmp_path):
     target, deformer = _scene(bl, tmp_path)
-    panels = _module(installed, "panels")
+    panels = _module(installed, "ui.panels")
 
     def draw():
         log = []

@@ -26,7 +26,7 @@ def test_quick_benchmark_runs_and_validates(extension_zip: Path, tmp_path: Path)
     table = markdown.read_text()
     for case in ("Hook", "Armature", "Mesh Deform", "Affine probes (ours)", "Affine cage (ours)",
                  "(d) 8 bones", "Armature, Preserve Volume", "Armature, linear", "(m) playback",
-                 "Hook ×4 per object"):
+                 "Hook ×4 per object", "(e) cages made for the mesh", "Mesh Deform, made cage"):
         assert case in table, case
     bones = table[table.index("### (d)"):].split("###")[1]
     rows = [line for line in bones.splitlines()[3:] if line.startswith("| ")]  # below header and rule

@@ -253,7 +253,7 @@ def test_an_armature_disabled_in_viewports_is_followed_while_the_deformer_is_on(
     enabled. With the deformer off in viewports the update skips it (nothing is read or written, as
     for a disabled modifier) and, enabled again, it follows the pose; enabled again, or hidden with
     the eye icon, nothing is named."""
-    nodes = importlib.import_module(f"{installed.package}.blender.nodes")
+    nodes = importlib.import_module(f"{installed.package}.blender.files.nodes")
     bar, arm, _native, deformer = _rig(bl)
     mod = nodes.find_modifier(bar, f"affdef_{deformer.uid}_offset")
     rest = bl.rest_positions(bar)
@@ -324,7 +324,7 @@ def test_an_armature_disabled_and_keyed_between_frame_changes_is_read_at_its_pos
 def test_a_file_naming_a_disabled_armature_on_the_object_input_is_resynced_at_load(bl, installed, tmp_path):
     """Files saved before armatures went in the collection name a disabled armature on the Object input
     (its pose stale): at load the armature moves to the collection, and the mesh follows its pose."""
-    nodes = importlib.import_module(f"{installed.package}.blender.nodes")
+    nodes = importlib.import_module(f"{installed.package}.blender.files.nodes")
     bar, arm, _native, deformer = _rig(bl)
     bone = arm.pose.bones["B1"]
     bone.rotation_mode = "XYZ"

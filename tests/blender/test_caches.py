@@ -23,9 +23,9 @@ BLENDER = ROOT / "affine_deformers" / "blender"
 #: Module-level containers that are not caches (a forget must keep them), and why.
 NOT_CACHES = {
     "caches._clears": "the registry of clear functions itself",
-    "hooks._before_object": "a registry of update hooks, filled when the modules are imported",
-    "hooks._inputs_read": "a registry of update hooks, filled when the modules are imported",
-    "shape_pass._factors": "factors keyed on a digest of every input (never stale), kept through undo "
+    "update.hooks._before_object": "a registry of update hooks, filled when the modules are imported",
+    "update.hooks._inputs_read": "a registry of update hooks, filled when the modules are imported",
+    "update.shape_pass._factors": "factors keyed on a digest of every input (never stale), kept through undo "
                            "and reload so they do not factor again; bounded, freed at unregister",
 }
 
@@ -145,9 +145,10 @@ def test_the_scan_finds_caches_and_only_caches():
     assert found == {"a": "container", "b": "container", "c": "container", "d": "container",
                      "e": "container", "f": "container", "h": "functools", "i": "functools"}
     everything = found_caches()
-    known = {"caches.signatures", "caches.errors", "bound._bound", "outputs._modifiers", "params._param_rows",
-             "nodes._identifier_memo", "weight_groups._modes", "weight_groups._pending",
-             "weight_preview._written", "kinds.probe._rows", "kinds.probe._rest_inverses",
+    known = {"caches.signatures", "caches.errors", "update.bound._bound", "update.outputs._modifiers",
+             "update.params._param_rows",
+             "files.nodes._identifier_memo", "tools.weight_groups._modes", "tools.weight_groups._pending",
+             "tools.weight_preview._written", "kinds.probe._rows", "kinds.probe._rest_inverses",
              "kinds.probe_tools._recorded", "kinds.weighting._surface_memo", "kinds.bone._rows",
              "kinds.bone._rest_frames", "kinds.bone._rest_inverses", "kinds.cage._last_motions",
              "kinds.cage._node_data", "kinds.cage._topologies"}
@@ -165,7 +166,7 @@ def test_forget_empties_every_module_level_cache(installed):
             assert _registered_clears_calling(path, name), f"{qualified}: no registered clear function"
 
 
-@pytest.mark.parametrize("memo", ["weight_preview._written", "kinds.probe_tools._recorded"])
+@pytest.mark.parametrize("memo", ["tools.weight_preview._written", "kinds.probe_tools._recorded"])
 def test_an_unregistered_cache_fails_the_check(installed, memo):
     """Without its module's registered clear function, the check reports the memo (and only it)."""
     caches = _module(installed, "caches")

@@ -656,7 +656,7 @@ def test_deleted_unlinked_or_zero_scaled_cage(bl):
 
 @pytest.fixture
 def nodes(installed):
-    return importlib.import_module(f"{installed.package}.blender.nodes")
+    return importlib.import_module(f"{installed.package}.blender.files.nodes")
 
 
 def our_modifier(nodes, target, deformer):
@@ -979,7 +979,7 @@ def test_files_with_the_version_1_node_group_are_upgraded_in_place_on_load(bl, n
 @pytest.mark.parametrize("name", ["cage_deform", "probe_bend"])
 def test_sample_files_open_with_a_current_group_naming_every_hidden_control(bl, nodes, name):
     relations = importlib.import_module(nodes.__name__.rsplit(".", 1)[0] + ".relations")
-    kinds = importlib.import_module(nodes.__name__.rsplit(".", 1)[0] + ".kinds")
+    kinds = importlib.import_module(nodes.__name__.rsplit(".", 2)[0] + ".kinds")
     evaluated_anyway = relations.evaluated_anyway
 
     def kind_controls(obj, deformer):
@@ -1173,7 +1173,7 @@ def test_picking_another_cage_rebinds_to_it(bl):
 
 
 def test_panel_and_menu_show_the_cage_options(bl, installed):
-    panels = importlib.import_module(f"{installed.package}.blender.panels")
+    panels = importlib.import_module(f"{installed.package}.blender.ui.panels")
     target = bl.grid_cube(cuts=2)
     deformer = add_cage_deformer(target, box_cage())
     log: list = []
@@ -1344,6 +1344,19 @@ def test_picking_a_valid_cage_after_a_bad_one_speaks_of_the_new_one(bl):
     assert np.abs(bl.evaluated_positions(target) - bl.rest_positions(target)).max() > 0.1
 
 
+def _cage_arrays(cage_core, cage):
+    """(points float64, CageTopology) of a quad cage object's mesh."""
+    mesh = cage.data
+    points = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", points)
+    loops = np.empty(len(mesh.loops), np.int32)
+    mesh.loops.foreach_get("vertex_index", loops)
+    faces = len(mesh.polygons)
+    topology = cage_core.CageTopology.from_arrays(loops, 4 * np.arange(faces), np.full(faces, 4),
+                                                  len(mesh.vertices))
+    return points.reshape(-1, 3).astype(np.float64), topology
+
+
 def test_a_cage_is_made_when_none_is_selected_and_remade_at_another_budget(bl, installed):
     """Add Cage Deformer with no cage selected makes one around the mesh (kinds/cage_tools.py): closed,
     holding every vertex, within the default budget; editing it deforms the mesh; Remake Cage makes
@@ -1358,7 +1371,8 @@ def test_a_cage_is_made_when_none_is_selected_and_remade_at_another_budget(bl, i
         assert bpy.ops.object.affine_cage_deformer_add() == {"FINISHED"}
     deformer = target.affine_deformers[0]
     cage = deformer.cage
-    assert set(bpy.data.objects.keys()) - before == {cage.name} and cage.name == "Sphere Cage"
+    made = {name for name in set(bpy.data.objects.keys()) - before if not name.startswith(".")}
+    assert made == {cage.name} and cage.name == "Sphere Cage"  # (".…": a hidden position carrier)
     assert deformer.status == "" and deformer.is_bound
     faces = len(cage.data.polygons)
     assert 6 <= faces <= 300 and deformer.cage_faces == faces
@@ -1380,9 +1394,20 @@ def test_a_cage_is_made_when_none_is_selected_and_remade_at_another_budget(bl, i
     assert np.abs(bl.evaluated_positions(target) - rest - np.array([0.5 / 1.5, 0, 0])).max() < 1e-4  # local x
     cage.location.x -= 0.5
 
+    wire = bpy.data.objects.new("Cage Wire", cage.data)  # a linked duplicate shares the cage's mesh
+    bpy.context.scene.collection.objects.link(wire)
+    mesh_name = cage.data.name
     deformer.cage_faces = 60
     bl.run_op(bpy.ops.object.affine_cage_remake, target, index=0)
     assert deformer.cage == cage and len(cage.data.polygons) <= 60 and deformer.status == ""
+    assert cage.data.name == mesh_name and wire.data == cage.data, "filled in place: the name and users stay"
+    assert not cage_core.check_cage(*_cage_arrays(cage_core, cage)).problems
+
+    cage.shape_key_add(name="Basis")
+    cage.shape_key_add(name="Edit")
+    with pytest.raises(RuntimeError, match="shape keys"):
+        bl.run_op(bpy.ops.object.affine_cage_remake, target, index=0, faces=30)
+    assert len(cage.data.shape_keys.key_blocks) == 2 and len(cage.data.polygons) > 30, "nothing changed"
 
     empty = bpy.data.objects.new("Empty Mesh", bpy.data.meshes.new("Empty Mesh"))
     bpy.context.scene.collection.objects.link(empty)

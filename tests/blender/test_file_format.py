@@ -11,7 +11,7 @@ import numpy as np
 
 
 def test_bind_stamps_the_format_and_a_newer_one_passes_through(bl, installed, tmp_path):
-    storage = importlib.import_module(f"{installed.package}.blender.storage")
+    storage = importlib.import_module(f"{installed.package}.blender.files.storage")
     target = bl.uv_sphere()
     probe = bl.empty("P", (1.2, 0.0, 0.0))
     deformer = bl.add_probe_deformer(target, [probe])
@@ -41,7 +41,7 @@ def test_bind_stamps_the_format_and_a_newer_one_passes_through(bl, installed, tm
 
 
 def test_a_deformer_without_a_stamp_reads_as_format_1(bl, installed):
-    storage = importlib.import_module(f"{installed.package}.blender.storage")
+    storage = importlib.import_module(f"{installed.package}.blender.files.storage")
     target = bl.uv_sphere()
     deformer = bl.add_probe_deformer(target, [bl.empty("P", (1.2, 0.0, 0.0))])
     del deformer[storage.FORMAT_KEY]  # what 0.1.x wrote

@@ -16,7 +16,7 @@ from tests.blender.test_animation import _animated_scene
 
 
 def _frame_check(installed):
-    return importlib.import_module(f"{installed.package}.blender.frame_check")
+    return importlib.import_module(f"{installed.package}.blender.update.frame_check")
 
 
 def _stamp(obj, deformer) -> np.ndarray:

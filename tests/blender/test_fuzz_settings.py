@@ -219,7 +219,7 @@ def _update(fz: Fuzz, rig: Rig) -> tuple[np.ndarray, str]:
     """The update through the handlers, then directly; the evaluated positions and the status."""
     scene = bpy.context.scene
     scene.frame_set(2 if scene.frame_current == 1 else 1)
-    fz.module("blender.evaluate").evaluate_object(rig.target, bpy.context.evaluated_depsgraph_get())
+    fz.module("blender.update.evaluate").evaluate_object(rig.target, bpy.context.evaluated_depsgraph_get())
     co = _positions(rig.target)
     return co, rig.deformer.status
 
@@ -236,8 +236,8 @@ def _fresh(fz: Fuzz, rig: Rig, reweighted: bool) -> np.ndarray:
     case re-weighted). ValueError / BindError from re-weighting propagate."""
     if reweighted:
         fz.module("blender.binding").reweight(rig.target, rig.deformer)
-    fz.module("blender.evaluate").forget()
-    fz.module("blender.evaluate").evaluate_object(rig.target, bpy.context.evaluated_depsgraph_get())
+    fz.module("blender.update.evaluate").forget()
+    fz.module("blender.update.evaluate").evaluate_object(rig.target, bpy.context.evaluated_depsgraph_get())
     return _positions(rig.target)
 
 
@@ -300,7 +300,7 @@ def _case(fz: Fuzz, rig: Rig, what: str, names: tuple[str, ...], apply: Callable
     try:
         apply()
         if stored:
-            fz.module("blender.evaluate").forget()
+            fz.module("blender.update.evaluate").forget()
         problems += _check(fz, rig, names, no_input, len(fz.reweights) > before)
     except Exception as exc:
         problems.append(f"raised {type(exc).__name__}: {exc}")
@@ -309,14 +309,14 @@ def _case(fz: Fuzz, rig: Rig, what: str, names: tuple[str, ...], apply: Callable
         if len(fz.reweights) > before:
             fz.module("blender.binding").reweight(rig.target, rig.deformer)
         if stored:
-            fz.module("blender.evaluate").forget()
+            fz.module("blender.update.evaluate").forget()
     err = fz.capfd.readouterr().err
     if "Traceback" in err:
         problems.append("printed a traceback: " + err.strip().splitlines()[-1])
     got, status = _update(fz, rig)
     if status != rig.status or not np.allclose(got, rig.baseline, rtol=0.0, atol=1e-6):
         problems.append(f"not restored ({status!r})")
-        fz.module("blender.evaluate").forget()
+        fz.module("blender.update.evaluate").forget()
         fz.module("blender.binding").reweight(rig.target, rig.deformer)
     fz.capfd.readouterr()
     if problems:
@@ -442,7 +442,7 @@ def test_hostile_settings_and_stored_data(bl, fuzz, build):
     reach = _reach(rig, rig.deformer.strength)
     moved = float(np.linalg.norm(rig.baseline - rig.rest, axis=1).max())
     assert moved <= MARGIN * reach, (moved, reach)  # the bound holds for the correct shape
-    snapshot = fuzz.module("blender.snapshot")
+    snapshot = fuzz.module("blender.update.snapshot")
     kinds = fuzz.module("blender.kinds")
     base = fuzz.module("blender.kinds.base")
     own = set(kinds.get(rig.kind).properties())
@@ -467,12 +467,12 @@ def _damaged(fz: Fuzz, rig: Rig, damage: Callable[[], None], repair: Callable[[]
     """`damage` the stored data (caches dropped, as a file load does): the status names `named`, the
     mesh shows its input, nothing prints a traceback; `repair` brings the baseline back."""
     damage()
-    fz.module("blender.evaluate").forget()
+    fz.module("blender.update.evaluate").forget()
     got, status = _update(fz, rig)
     assert named in status and np.array_equal(got, rig.rest), (named, status)
     assert "Traceback" not in fz.capfd.readouterr().err
     repair()
-    fz.module("blender.evaluate").forget()
+    fz.module("blender.update.evaluate").forget()
     got, status = _update(fz, rig)
     assert status == rig.status and np.allclose(got, rig.baseline, rtol=0.0, atol=1e-6), status
 

@@ -16,7 +16,7 @@ ADDON = "bl_ext.user_default.affine_deformers"
 def _modules():
     """(accel, prefs) of the installed package (importable once the session fixture installed it)."""
     return (importlib.import_module(f"{ADDON}.affine_deformers.accel"),
-            importlib.import_module(f"{ADDON}.affine_deformers.blender.prefs"))
+            importlib.import_module(f"{ADDON}.affine_deformers.blender.ui.prefs"))
 
 
 def _bundles_kernel(zip_path) -> bool:

@@ -19,7 +19,7 @@ FRAMES = (7, 1, 12, 7)
 
 @pytest.fixture
 def store(installed, monkeypatch):
-    module = importlib.import_module(f"{installed.package}.blender.output_store")
+    module = importlib.import_module(f"{installed.package}.blender.update.output_store")
     if not module.POSITIONS_TAG_THEMSELVES:
         pytest.skip(f"Blender {bpy.app.version_string} does not see a position write without a full tag: "
                     "the attributes are its only store (output_store.POSITIONS_TAG_THEMSELVES)")
@@ -225,7 +225,7 @@ def test_a_bake_captures_the_output_of_a_position_carrier(bl, installed, store, 
     assert found is not None and len(found.data.vertices) > 0, "the live output is in a carrier"
     bpy.context.scene.frame_set(7)
     assert _bake(bl, target, index=0, mode="PC2") == {"FINISHED"}
-    pc2 = importlib.import_module(f"{installed.package}.blender.pc2")
+    pc2 = importlib.import_module(f"{installed.package}.blender.tools.pc2")
     samples, _start, _rate = pc2.read_pc2(tmp_path / "Cube_Probe_Deformer.pc2")
     for frame in frames:
         assert np.abs(samples[frame - 1] - live[frame]).max() <= 1e-5, frame

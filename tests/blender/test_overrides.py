@@ -384,7 +384,7 @@ def _copy(how: str, source, targets) -> None:
 def test_a_copied_modifier_becomes_a_deformer_bound_to_its_own_mesh(bl, installed, capfd, how):
     import importlib
 
-    copies = importlib.import_module(f"{installed.package}.blender.copies")
+    copies = importlib.import_module(f"{installed.package}.blender.files.copies")
     a, b = _deformed_pair(bl)
     _copy(how, a, [b])
     assert len(b.affine_deformers) == 1 and len(b.modifiers) == 1
@@ -701,7 +701,7 @@ _PREVIOUS_SHOT = _COMMON + _LINK + """
 bpy.ops.wm.read_homefile(use_empty=True)
 link_and_override({asset!r})
 bpy.context.scene.frame_set(12)
-nodes = __import__({package!r} + ".blender.nodes", fromlist=["nodes"])
+nodes = __import__({package!r} + ".blender.files.nodes", fromlist=["nodes"])
 for name in BODIES:  # what a shot saved by 0.2.0 holds: the carrier named on our modifier itself
     body = override(name)
     inputs = [m for m in body.modifiers if m.name.endswith(" Input")]

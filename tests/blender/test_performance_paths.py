@@ -20,8 +20,9 @@ import pytest
 def ns(bl, installed) -> SimpleNamespace:
     """The test helpers plus the installed layer's evaluate, storage, bind-data and blend modules."""
     return SimpleNamespace(**vars(bl), evaluate=installed.evaluate, storage=installed.storage,
-                           bound=importlib.import_module(f"{installed.package}.blender.bound"),
-                           blend=importlib.import_module(f"{installed.package}.blender.blend"))
+                           bound=importlib.import_module(f"{installed.package}.blender.update.bound"),
+                           blend=importlib.import_module(f"{installed.package}.blender.update.blend"),
+                           package=installed.package)
 
 
 def _rig(ns, n_probes: int = 6):
@@ -130,7 +131,7 @@ def test_affected_rows_of_few_and_of_many_controls(ns):
     values = np.where(rng.random((n, k)) < 0.3, 0.0, rng.random((n, k)))
     points = rng.normal(size=(n, 3))
     bound = ns.bound.BindRecord(("test",), 1, points.astype(np.float32), points, indices, values, columns=m)
-    accel = importlib.import_module(f"{ns.evaluate.__package__.rsplit('.', 1)[0]}.accel")
+    accel = importlib.import_module(f"{ns.package}.accel")
     try:
         for compiled in (True, False):  # many controls: the compiled pass, or numpy's
             accel.set_enabled(compiled)
@@ -183,7 +184,7 @@ def test_group_input_identifiers_follow_edits_of_the_interface(ns):
     """nodes._input_identifiers keeps its map per group and item names: a socket added, removed,
     renamed or moved is seen at the next call, and one replaced by a socket of the same name and
     place after the next depsgraph update."""
-    nodes = importlib.import_module(f"{ns.evaluate.__package__}.nodes")
+    nodes = importlib.import_module(f"{ns.package}.blender.files.nodes")
     ng = bpy.data.node_groups.new("interface", "GeometryNodeTree")
     ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
     ns.grid_cube(cuts=1).modifiers.new("uses the group", "NODES").node_group = ng  # in the depsgraph
@@ -214,7 +215,7 @@ def test_modifier_controls_of_the_wrong_type_are_ignored(ns):
     deformer = ns.add_probe_deformer(target, [probe], radius=1.2)
     probe.hide_viewport = True  # named on the modifier: the depsgraph would not evaluate it otherwise
     bpy.context.view_layer.update()
-    nodes = importlib.import_module(f"{ns.evaluate.__package__}.nodes")
+    nodes = importlib.import_module(f"{ns.package}.blender.files.nodes")
     mod = nodes.find_modifier(target, ns.storage.offset_name(deformer.uid))
     cage, probes = nodes.controls(mod)
     assert cage is None and probe.name in probes.objects

@@ -340,7 +340,7 @@ def test_pooled_weight_of_a_ring_of_probes(bl, installed):
     bpy.context.view_layer.update()
     assert np.array_equal(bl.stored_offsets(target, deformer), bl.recomputed_offsets(target, deformer))
 
-    preview = importlib.import_module(f"{installed.package}.blender.weight_preview")
+    preview = importlib.import_module(f"{installed.package}.blender.tools.weight_preview")
     shares = np.stack([preview.control_weights(target, deformer, i) for i in range(12)], axis=1)
     np.testing.assert_allclose(shares, bl.dense_weights(target, deformer), atol=1e-12)
     assert np.abs(shares.sum(axis=1) - 1.0).max() < 1e-5

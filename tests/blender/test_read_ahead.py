@@ -107,8 +107,8 @@ def _play(bl, bodies) -> dict:
 
 @pytest.fixture
 def modules(installed, monkeypatch):
-    ahead = importlib.import_module(f"{installed.package}.blender.read_ahead")
-    evaluate = importlib.import_module(f"{installed.package}.blender.evaluate")
+    ahead = importlib.import_module(f"{installed.package}.blender.update.read_ahead")
+    evaluate = importlib.import_module(f"{installed.package}.blender.update.evaluate")
     monkeypatch.setattr(ahead, "enabled", True)
     monkeypatch.setattr(ahead, "always", True)  # these scenes are small: read ahead all the same
     return ahead, evaluate
@@ -132,7 +132,7 @@ def _count_writes(evaluate, monkeypatch) -> list:
 def test_frames_read_ahead_are_the_frames_written_after_bit_for_bit(bl, installed, modules, monkeypatch,
                                                                    store):
     ahead, evaluate = modules
-    output_store = importlib.import_module(f"{installed.package}.blender.output_store")
+    output_store = importlib.import_module(f"{installed.package}.blender.update.output_store")
     if store == "POSITIONS" and not output_store.POSITIONS_TAG_THEMSELVES:
         pytest.skip(f"no position store on Blender {bpy.app.version_string}")
     monkeypatch.setattr(output_store, "forced", store)

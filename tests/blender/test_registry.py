@@ -13,8 +13,8 @@ import numpy as np
 
 
 def _modules(installed):
-    return (importlib.import_module(f"{installed.package}.blender.registry"),
-            importlib.import_module(f"{installed.package}.blender.evaluate"))
+    return (importlib.import_module(f"{installed.package}.blender.update.registry"),
+            importlib.import_module(f"{installed.package}.blender.update.evaluate"))
 
 
 def _rig(bl, name: str, x: float = 0.0):

@@ -14,6 +14,7 @@ would get it. Evaluated vertex positions come back as .npz files and are checked
   and the Armature modifier with Preserve Volume agree while the tail's tip has turned less than 180°;
   past it the Armature modifier takes the short way round (its middle of the twist is turned by 180°
   against ours) and jumps as the tip passes 180°, while ours turns on at constant speed;
+- made_cage.blend's cage was made by the add operator (no cage selected): "<mesh> Cage";
 - render_samples.py writes non-empty PNGs that differ between frames and a contact sheet made of them.
 """
 
@@ -30,7 +31,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES_DIR = ROOT / "samples"
-SAMPLE_NAMES = ("probe_bend", "probe_vortex", "cage_deform", "comparison", "stack", "bone_tail", "shape_pass")
+SAMPLE_NAMES = ("probe_bend", "probe_vortex", "cage_deform", "comparison", "stack", "bone_tail", "shape_pass",
+                "made_cage")
 TIMEOUT = 600
 
 # The vortex probe passes 180° between frames 39 and 40 (450° over frames 1..97).
@@ -64,7 +66,8 @@ for name, extra_frames in args["samples"].items():
         info["targets"][obj.name] = {
             "method": obj["affdef_sample_target"],
             "deformers": [
-                {"kind": d.kind, "is_bound": bool(d.is_bound), "blend_mode": d.blend_mode}
+                {"kind": d.kind, "is_bound": bool(d.is_bound), "blend_mode": d.blend_mode,
+                 "cage": getattr(getattr(d, "cage", None), "name", None)}
                 for d in getattr(obj, "affine_deformers", ())
             ],
             "status": {},
@@ -314,6 +317,12 @@ def test_bone_tail_ours_twists_on_where_preserve_volume_takes_the_short_way(
     # Across 180° (frame 59) the Armature modifier's skin jumps; ours moves as much every frame.
     assert steps(theirs).max() > 5.0 * np.median(steps(theirs)), steps(theirs)
     assert steps(ours).max() < 1.2 * steps(ours).min(), steps(ours)
+
+
+def test_made_cage_sample_is_driven_by_the_cage_made_for_it(evaluated: tuple[dict, dict]) -> None:
+    summary, _ = evaluated
+    (target, info), = summary["made_cage"]["targets"].items()
+    assert [(d["kind"], d["cage"]) for d in info["deformers"]] == [("CAGE", f"{target} Cage")], info
 
 
 def test_render_samples_writes_differing_frames_and_a_contact_sheet(

@@ -44,7 +44,7 @@ def rig(bl, **options):
 
 
 def shape_pass():
-    return importlib.import_module(f"{PACKAGE}.blender.shape_pass")
+    return importlib.import_module(f"{PACKAGE}.blender.update.shape_pass")
 
 
 def signed_volume(obj, points: np.ndarray) -> float:

@@ -61,8 +61,8 @@ def _apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
 def _our_modifier(target, deformer):
     package = bpy.context.preferences.addons[next(a.module for a in bpy.context.preferences.addons
                                                   if a.module.endswith("affine_deformers"))].module
-    nodes = importlib.import_module(f"{package}.affine_deformers.blender.nodes")
-    storage = importlib.import_module(f"{package}.affine_deformers.blender.storage")
+    nodes = importlib.import_module(f"{package}.affine_deformers.blender.files.nodes")
+    storage = importlib.import_module(f"{package}.affine_deformers.blender.files.storage")
     return nodes.find_modifier(target, storage.offset_name(deformer.uid))
 
 

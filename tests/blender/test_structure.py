@@ -1,5 +1,5 @@
-"""One input snapshot per update (blender/snapshot.py): every property of a deformer is either read into
-it or declared with the reason it need not be, and each declaration is checked by changing the
+"""One input snapshot per update (blender/update/snapshot.py): every property of a deformer is either
+read into it or declared with the reason it need not be, and each declaration is checked by changing the
 property. Plus the kind interface: every registered kind implements the whole DeformerKind interface."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import bpy
 
 def _modules(installed):
     load = lambda name: importlib.import_module(f"{installed.package}.blender.{name}")  # noqa: E731
-    return load("snapshot"), load("props"), load("kinds")
+    return load("update.snapshot"), load("props"), load("kinds")
 
 
 def _rig(bl):

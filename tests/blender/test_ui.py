@@ -69,7 +69,7 @@ class RecordingLayout:
 
 @pytest.fixture
 def panels(installed):
-    return importlib.import_module(f"{installed.package}.blender.panels")
+    return importlib.import_module(f"{installed.package}.blender.ui.panels")
 
 
 def _draw_panel(panels, obj) -> list:

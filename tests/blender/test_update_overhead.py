@@ -24,7 +24,7 @@ def _rig(bl, n_probes: int = 5):
 
 def test_only_changed_controls_are_recomputed(bl, installed, monkeypatch):
     kinds = importlib.import_module(f"{installed.package}.blender.kinds.probe")
-    evaluate = importlib.import_module(f"{installed.package}.blender.params")
+    evaluate = importlib.import_module(f"{installed.package}.blender.update.params")
     _target, probes, deformer = _rig(bl)
     probes[0].location.x += 0.2
     bpy.context.view_layer.update()
@@ -139,7 +139,7 @@ def test_rest_shape_edit_by_script_is_seen_with_the_cached_copy(bl, installed):
 def test_finiteness_check_of_changed_rows(installed):
     """Only the recomputed rows are checked on an incremental result (the rest were checked before);
     a full result is checked whole; NaN, ±inf and float32-overflowing offsets are all caught."""
-    outputs = importlib.import_module(f"{installed.package}.blender.outputs")
+    outputs = importlib.import_module(f"{installed.package}.blender.update.outputs")
     offsets = np.zeros((100, 3))
     assert outputs.finite_offsets(offsets, None)
     assert outputs.finite_offsets(offsets, np.array([], dtype=np.intp))
@@ -158,7 +158,7 @@ def test_bounded_results_skip_the_pass_and_overflow_is_still_caught(bl, installe
     written without the pass over its vertices; a probe scaled so far that the offsets overflow
     float32 is not proven, takes the full check, and the deformer says so and passes its input
     through (offsets zero)."""
-    outputs = importlib.import_module(f"{installed.package}.blender.outputs")
+    outputs = importlib.import_module(f"{installed.package}.blender.update.outputs")
     target, probes, deformer = _rig(bl, n_probes=2)
     passes = []
     real = outputs.finite_offsets
@@ -235,7 +235,7 @@ def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, install
     copy of the attribute (no cast of the whole array): after a sequence of them, with rows shared
     between updates and rows no update touched, the attribute is bit for bit float32 of a fresh full
     evaluation, on both backends."""
-    accel = importlib.import_module(f"{installed.package}.blender.blend").accel
+    accel = importlib.import_module(f"{installed.package}.blender.update.blend").accel
     monkeypatch.setattr(accel._state, "enabled", compiled)
     if accel.active() != compiled:
         pytest.skip(f"backend: {accel.backend()}")
@@ -243,7 +243,7 @@ def test_incremental_updates_write_the_float32_of_a_fresh_evaluation(bl, install
     deformer.radius = 1.0
     probes[0].location.x += 0.2  # the first result is a full one: it makes the copy
     bpy.context.view_layer.update()
-    bound = importlib.import_module(f"{installed.package}.blender.bound")._bound[
+    bound = importlib.import_module(f"{installed.package}.blender.update.bound")._bound[
         (target.session_uid, deformer.uid)]
     copy = bound.result.written
     assert copy is not None
@@ -282,7 +282,7 @@ def test_two_scenes_at_different_frames_do_not_fight_over_the_mesh(bl, installed
     the mesh to the scene the artist is in (one write, not one per alternate update); a render of the
     other scene still evaluates it there, and a scene that alone shows the object deforms it."""
     storage = installed.storage
-    handlers = importlib.import_module(f"{installed.package}.blender.handlers")
+    handlers = importlib.import_module(f"{installed.package}.blender.update.handlers")
     target, probes, deformer = _rig(bl)
     scene_a = bpy.context.scene
     probes[0].keyframe_insert("location", frame=1)
@@ -375,7 +375,7 @@ def test_viewport_updates_list_the_named_controls_only_for_a_disabled_probe(bl, 
     """The viewport's per-probe test is one flag: while every probe passes it, an update does not list
     the controls the modifier names (nodes.named_controls); a probe disabled in viewports is checked
     against that list, and is fine when the modifier names it."""
-    nodes = importlib.import_module(f"{installed.package}.blender.nodes")
+    nodes = importlib.import_module(f"{installed.package}.blender.files.nodes")
     target, probes, deformer = _rig(bl, n_probes=3)
     calls = []
     real = nodes.named_controls
@@ -431,7 +431,7 @@ def test_a_disabled_deformer_costs_nothing_and_catches_up_when_enabled(bl, insta
     """As a disabled built-in modifier: the handlers skip a deformer whose modifier is off in the
     viewport (a baked crowd, a deformer muted for speed), and enabling it again shows the shape of the
     controls' current poses, moved while it was off."""
-    evaluate = importlib.import_module(f"{installed.package}.blender.evaluate")
+    evaluate = importlib.import_module(f"{installed.package}.blender.update.evaluate")
     target, probes, deformer = _rig(bl)
     rest = bl.rest_positions(target)
     calls = []
@@ -466,7 +466,7 @@ def test_an_update_of_many_deformed_objects_shares_their_probes_numerics(bl, ins
     bit for bit the offsets it gets evaluated alone; a deformer with a bad probe reports it and leaves
     the others alone."""
     kinds = importlib.import_module(f"{installed.package}.blender.kinds.probe")
-    params = importlib.import_module(f"{installed.package}.blender.params")
+    params = importlib.import_module(f"{installed.package}.blender.update.params")
     rng = np.random.default_rng(3)
     rigs = []
     layouts = [("CHANNELS", ["XYZ", "QUATERNION", "AXIS_ANGLE"]), ("SHORTEST", ["ZXY", "XYZ"]),

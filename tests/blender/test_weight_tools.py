@@ -29,8 +29,8 @@ PROBES = (("Top", (0.0, 0.0, 1.2)), ("Side", (1.2, 0.0, 0.0)), ("Back", (0.0, -1
 def mods(installed):
     package = installed.package
     return SimpleNamespace(
-        preview=importlib.import_module(f"{package}.blender.weight_preview"),
-        groups=importlib.import_module(f"{package}.blender.weight_groups"),
+        preview=importlib.import_module(f"{package}.blender.tools.weight_preview"),
+        groups=importlib.import_module(f"{package}.blender.tools.weight_groups"),
         evaluate=installed.evaluate,
     )
 
@@ -530,7 +530,7 @@ def test_panel_draws_the_weight_tools(bl, installed):
     spec = importlib.util.spec_from_file_location("weight_ui", Path(__file__).with_name("test_ui.py"))
     ui = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ui)
-    panels = importlib.import_module(f"{installed.package}.blender.panels")
+    panels = importlib.import_module(f"{installed.package}.blender.ui.panels")
     target, _probes, deformer = _rig(bl)
     log = ui._draw_panel(panels, target)
     assert ("prop", "show_weights") in log and ("inactive", "weight_preview") in log

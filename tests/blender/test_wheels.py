@@ -245,7 +245,7 @@ class Layout:
         return self
     def label(self, text="", **kwargs):
         self.labels.append(text)
-prefs = importlib.import_module(pkg + ".blender.prefs")
+prefs = importlib.import_module(pkg + ".blender.ui.prefs")
 layout = Layout()
 prefs.AFFINE_AddonPreferences.draw(types.SimpleNamespace(layout=layout), bpy.context)
 print("PREFS:", " | ".join(layout.labels))

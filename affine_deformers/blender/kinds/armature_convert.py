@@ -12,8 +12,15 @@ from __future__ import annotations
 import bpy
 from bpy.props import StringProperty
 
-from .. import nodes, storage
-from ..addressing import UNDOABLE, DeformerIndexed, active_target, deformer_at, deformer_index, target_problem
+from ..files import nodes, storage
+from ..ui.addressing import (
+    UNDOABLE,
+    DeformerIndexed,
+    active_target,
+    deformer_at,
+    deformer_index,
+    target_problem,
+)
 from .base import BindError
 from .bone_tools import BONE, DEFAULT_INFLUENCES, deform_bones
 from .services import services

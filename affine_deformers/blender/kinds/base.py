@@ -23,7 +23,7 @@ from typing import Any, ClassVar, NamedTuple
 import bpy
 import numpy as np
 
-from .. import storage
+from ..files import storage
 
 #: `override=` of the deformer's control pointers and of every collection holding them: a library
 #: override of a rig then keeps them pointed at the overridden controls, and saves that.

@@ -39,8 +39,9 @@ import numpy as np
 from bpy.props import CollectionProperty, IntProperty, PointerProperty
 
 from ...core import hierarchy, unwrap
-from .. import caches, storage
-from ..validation import coordinates_problem, stored_array
+from .. import caches
+from ..files import storage
+from ..update.validation import coordinates_problem, stored_array
 from . import armature_convert, bone_tools
 from .base import (
     INTERFACE,

@@ -8,7 +8,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import FloatProperty, IntProperty, StringProperty
 
-from ..addressing import DeformerIndexed, active_target, addressed_deformer
+from ..ui.addressing import DeformerIndexed, active_target, addressed_deformer
 from .base import BindError
 from .services import on_item_weight_option, services
 

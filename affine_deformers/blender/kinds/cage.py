@@ -68,8 +68,9 @@ from ...core.cage import (
 )
 from ...core.cage import pool as cage_pool
 from ...core.cage.harmonic import harmonic_weights
-from .. import caches, nodes, storage
-from ..validation import (
+from .. import caches
+from ..files import nodes, storage
+from ..update.validation import (
     MAX_WEIGHT,
     coordinates_problem,
     settings_problem,

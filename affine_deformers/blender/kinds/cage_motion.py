@@ -12,7 +12,7 @@ from ... import accel
 from ...core import aff3
 from ...core.cage import CageTopology, FaceMotions, affected_faces, face_motions
 from ...core.cage.harmonic import node_matrices_linear
-from ..validation import channels_problem, rest_matrix_problem
+from ..update.validation import channels_problem, rest_matrix_problem
 from .base import BindError, Motions
 from .transforms import (
     channel_frame,

@@ -16,9 +16,9 @@ import bpy
 import numpy as np
 from bpy.props import IntProperty
 
-from ...core.cage.enclose import enclosing_cage
-from .. import storage
-from ..addressing import UNDOABLE, DeformerIndexed, addressed_deformer
+from ...core.cage.enclose import EnclosingCage, enclosing_cage
+from ..files import storage
+from ..ui.addressing import UNDOABLE, DeformerIndexed, addressed_deformer
 from .base import BindError
 from .services import services
 
@@ -34,9 +34,9 @@ def _triangles(mesh: bpy.types.Mesh) -> np.ndarray:
     return storage.corner_vertices(mesh)[loops].reshape(-1, 3)
 
 
-def cage_mesh(target: bpy.types.Object, faces: int, name: str) -> bpy.types.Mesh:
-    """A new mesh datablock: the cage made around `target`'s rest mesh with at most `faces` quads, in
-    its local space. BindError (nothing made) when no cage can be made, saying why."""
+def made_cage(target: bpy.types.Object, faces: int) -> EnclosingCage:
+    """The cage made around `target`'s rest mesh with at most `faces` quads, in its local space.
+    BindError (nothing made) when no cage can be made, saying why."""
     mesh = target.data
     if target.type != "MESH":
         raise BindError(f"'{target.name}' is not a mesh: a cage is made around a mesh's vertices")
@@ -48,19 +48,29 @@ def cage_mesh(target: bpy.types.Object, faces: int, name: str) -> bpy.types.Mesh
     if np.ptp(points, axis=0).max() == 0.0:
         raise BindError(f"All vertices of '{target.name}' are at one place: a cage needs a shape to follow")
     try:
-        made = enclosing_cage(points, _triangles(mesh) if len(mesh.polygons) else None, budget=faces)
+        return enclosing_cage(points, _triangles(mesh) if len(mesh.polygons) else None, budget=faces)
     except ValueError as exc:
         raise BindError(f"No cage can be made around '{target.name}': {exc}") from None
+
+
+def fill_mesh(mesh: bpy.types.Mesh, made: EnclosingCage) -> None:
+    """Give the empty `mesh` the made cage's vertices and quads."""
+    mesh.vertices.add(len(made.vertices))
+    mesh.vertices.foreach_set("co", made.vertices.astype(np.float32).ravel())
+    mesh.loops.add(len(made.loop_vertices))
+    mesh.loops.foreach_set("vertex_index", np.asarray(made.loop_vertices, dtype=np.int32))
+    mesh.polygons.add(len(made.loop_start))
+    mesh.polygons.foreach_set("loop_start", np.asarray(made.loop_start, dtype=np.int32))
+    mesh.polygons.foreach_set("loop_total", np.asarray(made.loop_total, dtype=np.int32))
+    mesh.update(calc_edges=True)
+    mesh.validate(clean_customdata=False)
+
+
+def cage_mesh(target: bpy.types.Object, faces: int, name: str) -> bpy.types.Mesh:
+    """A new mesh datablock: the cage made around `target` (made_cage)."""
+    made = made_cage(target, faces)
     result = bpy.data.meshes.new(name)
-    result.vertices.add(len(made.vertices))
-    result.vertices.foreach_set("co", made.vertices.astype(np.float32).ravel())
-    result.loops.add(len(made.loop_vertices))
-    result.loops.foreach_set("vertex_index", np.asarray(made.loop_vertices, dtype=np.int32))
-    result.polygons.add(len(made.loop_start))
-    result.polygons.foreach_set("loop_start", np.asarray(made.loop_start, dtype=np.int32))
-    result.polygons.foreach_set("loop_total", np.asarray(made.loop_total, dtype=np.int32))
-    result.update(calc_edges=True)
-    result.validate(clean_customdata=False)
+    fill_mesh(result, made)
     return result
 
 
@@ -79,7 +89,7 @@ def make_cage(context: bpy.types.Context, target: bpy.types.Object,
 
 class AFFINE_OT_cage_remake(DeformerIndexed, bpy.types.Operator):
     """Make the deformer's cage again around the mesh's rest shape with at most Cage Faces quads (the cage
-    object keeps its name and place; its mesh is replaced), and rebind"""
+    object and its mesh keep their names; a cage with shape keys is refused), and rebind"""
 
     bl_idname = "object.affine_cage_remake"
     bl_label = "Remake Cage"
@@ -99,17 +109,22 @@ class AFFINE_OT_cage_remake(DeformerIndexed, bpy.types.Operator):
         if cage.library is not None or cage.data.library is not None:
             self.report({"ERROR"}, f"Cage '{cage.name}' is linked from a library: remake it in that file")
             return {"CANCELLED"}
+        mesh = cage.data
+        if mesh.shape_keys is not None:
+            # A new cage has other vertices: the keys (a keyed cage edit) could not follow it.
+            self.report({"ERROR"}, f"Cage '{cage.name}' has shape keys, which a remade cage would lose: "
+                                   "remove them first, or add a new cage deformer")
+            return {"CANCELLED"}
         faces = self.faces or deformer.cage_faces
         try:
-            mesh = cage_mesh(obj, faces, cage.data.name)
+            made = made_cage(obj, faces)
         except BindError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        old = cage.data
-        cage.data = mesh
+        # Filled in place: the mesh keeps its name, and objects sharing it show the new cage too.
+        mesh.clear_geometry()
+        fill_mesh(mesh, made)
         cage.matrix_world = obj.matrix_world
-        if old.users == 0:
-            bpy.data.meshes.remove(old)
         deformer.cage_faces = faces
         try:
             services().bind(obj, deformer, context.evaluated_depsgraph_get())

@@ -18,8 +18,15 @@ from bpy.props import CollectionProperty, IntProperty
 
 from ... import accel
 from ...core import weights
-from .. import caches, storage
-from ..validation import channels_problem, channels_usable, rest_matrices_usable, rest_matrix_problem, shown
+from .. import caches
+from ..files import storage
+from ..update.validation import (
+    channels_problem,
+    channels_usable,
+    rest_matrices_usable,
+    rest_matrix_problem,
+    shown,
+)
 from . import probe_tools
 from .base import (
     INTERFACE,

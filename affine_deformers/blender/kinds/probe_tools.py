@@ -31,8 +31,8 @@ from mathutils import Vector
 
 from ...core import aff3
 from .. import caches
-from ..addressing import DeformerIndexed, active_deformer, addressed_deformer
-from ..validation import rest_matrix_problem
+from ..ui.addressing import DeformerIndexed, active_deformer, addressed_deformer
+from ..update.validation import rest_matrix_problem
 from .base import IDENTITY16, OVERRIDABLE, ROTATION_MODES, BindError
 from .services import on_item_weight_option, owner, reweight, search_vertex_groups, services
 from .transforms import finite_transform, in_a_scene, local_matrix, relative_motion, world_matrix

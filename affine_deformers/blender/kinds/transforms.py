@@ -15,8 +15,8 @@ import numpy as np
 
 from ... import accel
 from ...core import aff3, unwrap
-from .. import nodes
-from ..validation import MAX_COORDINATE, transform_problem
+from ..files import nodes
+from ..update.validation import MAX_COORDINATE, transform_problem
 
 
 def world_matrix(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> np.ndarray:

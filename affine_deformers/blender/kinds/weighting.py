@@ -13,8 +13,9 @@ import bpy
 import numpy as np
 
 from ...core import surface, weights
-from .. import caches, nodes
-from ..validation import items_problem, settings_problem
+from .. import caches
+from ..files import nodes
+from ..update.validation import items_problem, settings_problem
 
 
 def draw_weight_options(layout: bpy.types.UILayout, deformer) -> None:
