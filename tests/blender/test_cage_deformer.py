@@ -1377,6 +1377,7 @@ def test_a_cage_is_made_when_none_is_selected_and_remade_at_another_budget(bl, i
     faces = len(cage.data.polygons)
     assert 6 <= faces <= 300 and deformer.cage_faces == faces
     assert cage.display_type == "WIRE" and cage.hide_render
+    assert cage.data["affine_made_margin"] > 0.0  # the stated margin, in the operator's report too
     assert np.allclose(np.array(cage.matrix_world), np.array(target.matrix_world))
     mesh = cage.data
     points = np.empty(len(mesh.vertices) * 3, np.float32)

@@ -445,8 +445,11 @@ class CageKind(DeformerKind):
 
     def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
         faces = len(deformer[LOOP_TOTAL])
-        made = (" (made around the mesh: Remake Cage makes it again at another budget)"
-                if adopted.created else "")
+        made = ""
+        if adopted.created:
+            margin = adopted.created[0].data.get(cage_tools.MARGIN_KEY, 0.0)
+            made = (f" (made around the mesh, every vertex at least {margin:.3g} inside: Remake Cage makes "
+                    "it again at another budget)")
         return (f"Added a cage deformer to '{target.name}' driven by '{adopted.controls[0].name}' "
                 f"({faces} faces){made}")
 

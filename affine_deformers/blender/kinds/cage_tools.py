@@ -53,8 +53,13 @@ def made_cage(target: bpy.types.Object, faces: int) -> EnclosingCage:
         raise BindError(f"No cage can be made around '{target.name}': {exc}") from None
 
 
+#: The made cage's margin (every vertex of the mesh at least this far inside), kept on its mesh.
+MARGIN_KEY = "affine_made_margin"
+
+
 def fill_mesh(mesh: bpy.types.Mesh, made: EnclosingCage) -> None:
-    """Give the empty `mesh` the made cage's vertices and quads."""
+    """Give the empty `mesh` the made cage's vertices and quads, and its margin (MARGIN_KEY)."""
+    mesh[MARGIN_KEY] = float(made.margin)
     mesh.vertices.add(len(made.vertices))
     mesh.vertices.foreach_set("co", made.vertices.astype(np.float32).ravel())
     mesh.loops.add(len(made.loop_vertices))
@@ -132,7 +137,8 @@ class AFFINE_OT_cage_remake(DeformerIndexed, bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         services().evaluate(obj, context.evaluated_depsgraph_get())
-        self.report({"INFO"}, f"Made a cage of {len(mesh.polygons)} faces around '{obj.name}' and rebound")
+        self.report({"INFO"}, f"Made a cage of {len(mesh.polygons)} faces around '{obj.name}' (every vertex "
+                              f"at least {made.margin:.3g} inside) and rebound")
         return {"FINISHED"}
 
 
