@@ -60,7 +60,8 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         error = snapshot.precheck(obj, deformer)
         set_status(deformer, error)
         return error
-    if obj.library is not None or carrier.needs_carrier(obj):
+    carried = carrier.needs_carrier(obj)  # looked up once: the write and the stamp go by it too
+    if obj.library is not None or carried:
         problem = carrier.problem(obj, deformer)
         if problem:
             key = (obj.session_uid, deformer.uid)
@@ -81,7 +82,7 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     signature = snap.signature()
     create = depsgraph.mode != "RENDER"  # no ID is made during a render frame (on_render_start makes them)
     if caches.signatures.get(key) == signature:
-        _stamp(obj, deformer, depsgraph, create, snap.modifier)  # the same output may be right now too
+        _stamp(obj, deformer, depsgraph, create, snap.modifier, carried)  # the same output, right now too
         return deformer.status
     error, path, bound = snap.error, snap.path, snap.bound
     output = rows = None
@@ -96,7 +97,8 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         cached = bound_data.cached(obj, deformer)
         if cached is not None:
             cached.result.forget_written()  # written below without it
-    _write(obj, deformer, snap.modifier, path, output, rows, None if error else bound, depsgraph, create)
+    _write(obj, deformer, snap.modifier, path, output, rows, None if error else bound, depsgraph, create,
+           carried)
     warning = snap.motions.warning if snap.motions is not None else ""
     status = error or "; ".join(m for m in (warning, deformer.bind_warning) if m)
     set_status(deformer, status)
@@ -137,15 +139,16 @@ def _compute(obj: bpy.types.Object, deformer,
 
 def _write(obj: bpy.types.Object, deformer, mod: bpy.types.Modifier | None, path: str, output: np.ndarray,
            rows: np.ndarray | None, bound: bound_data.BindRecord | None, depsgraph: bpy.types.Depsgraph,
-           create: bool) -> None:
+           create: bool, carried: bool) -> None:
     """Write the output of `path` and its frame stamp where it goes (output_store.py): a library
     override's carrier (attributes), else the mesh's attributes or the deformer's position carrier,
     whichever costs less; the store not chosen is emptied. Nothing is written to a linked mesh (Blender
-    would drop it) or when there is nothing to write to: the modifier shows what is there."""
+    would drop it) or when there is nothing to write to: the modifier shows what is there. `carried`:
+    carrier.needs_carrier(obj), as the update found it."""
     uid = deformer.uid
     stamp = _stamp_value(obj, deformer, depsgraph)
     result = bound.result if bound is not None else None
-    if carrier.needs_carrier(obj):
+    if carried:
         _write_attributes(carrier.output_mesh(obj, create), uid, path, output, rows, result, stamp)
         return
     holder = None
@@ -200,10 +203,10 @@ def _stamp_value(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph
 
 
 def _stamp(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph, create: bool,
-           mod: bpy.types.Modifier | None) -> None:
-    """Re-stamp an output that is right at a new time too, where it lives."""
+           mod: bpy.types.Modifier | None, carried: bool) -> None:
+    """Re-stamp an output that is right at a new time too, where it lives (`carried`: as _write)."""
     stamp = _stamp_value(obj, deformer, depsgraph)
-    if carrier.needs_carrier(obj):
+    if carried:
         mesh = carrier.output_mesh(obj, create)
         if mesh is not None and mesh.library is None and mesh.override_library is None:
             frame_check.stamp(mesh, deformer.uid, stamp)
