@@ -14,6 +14,8 @@ The modules, one concern each:
 * `state` — whether calls go to the library now (`active`, `backend`, `set_enabled`,
   AFFINE_DEFORMERS_ACCEL), loading it on first use, the lock, and how a call reaches an entry;
 * `threads` — the helper threads a chunked call runs on (`_run_chunks`, `_Helper`);
+* `batch` — the row calls of many deformers collected during an update and run in one hand-over
+  (`KernelBatch`, `collecting`);
 * `vertex` — the per-vertex map (`deform_points_params(_rows)`, `vertex_motions`, `linear_maps`) and
   the incremental update's passes (`rows_reading`, `same_bits`);
 * `chains` — the bone blend's products of passes (`chain_points`, `chain_motions`);
@@ -40,6 +42,7 @@ from ..core import cage as _cage
 from ..core import unwrap as _unwrap  # noqa: F401
 from . import arap, native, state
 from .arap import _warm_arap, arap_bind
+from .batch import KernelBatch, collecting
 from .cage import cage_faces, cage_nodes
 from .chains import chain_motions, chain_points
 from .controls import node_params, params_from_matrices, polar_log
@@ -60,6 +63,7 @@ from .vertex import (
 
 __all__ = [
     "ACCEL_ENV",
+    "KernelBatch",
     "active",
     "arap",
     "arap_bind",
@@ -68,6 +72,7 @@ __all__ = [
     "cage_nodes",
     "chain_motions",
     "chain_points",
+    "collecting",
     "deform_points_params",
     "deform_points_params_rows",
     "linear_maps",

@@ -39,7 +39,8 @@ import numpy as np
 Arr = np.ndarray
 
 __all__ = [
-    "EXPORTS", "LIBRARY_NAMES", "PLATFORMS", "Kernel", "KernelUnavailableError", "host_platform", "load",
+    "EXPORTS", "LIBRARY_NAMES", "PLATFORMS", "Call", "Kernel", "KernelUnavailableError", "host_platform",
+    "load",
 ]
 
 #: The C entries the library exports, exactly (tests/core/test_native_binaries.py checks every build).
@@ -209,6 +210,27 @@ def _weights_ok(table: Arr, idx: Arr, val: Arr, n: int | None = None) -> tuple[i
 # the kernel
 
 
+@dataclass(frozen=True)
+class Call:
+    """A chunked entry checked and bound to its arguments (`Kernel.<entry>_call`): `call(counter)` or
+    `call.at(address)` runs it on this thread, claiming chunks from that counter, and returns how many
+    it did. `arrays` keeps the arrays the addresses point into alive until the call is gone."""
+
+    fn: ctypes._CFuncPtr
+    args: tuple
+    n: int
+    arrays: tuple
+
+    def __call__(self, counter: Arr) -> int:
+        return _done(self.fn(*self.args, _counter(counter)), self.n)
+
+    def at(self, address: int) -> int:
+        """Run with the counter at `address` (an int64 of a live array the caller owns)."""
+        return _done(self.fn(*self.args, address), self.n)
+
+
+
+
 @dataclass
 class Kernel:
     """The loaded library's entries as numpy functions (the names `affine_deformers.accel` calls)."""
@@ -238,6 +260,13 @@ class Kernel:
         """out[v] = φ(Σ_k val[v, k] table[idx[v, k]]) points[v] (minus points[v] when offsets; with use32
         also out32[v] = float32(out[v])) for every row v, or v in rows when use_rows; the chunks this
         thread claimed from counter (int64 (1,), 0 at the start of a call). Returns how many it did."""
+        return self.deform_points_call(points, table, idx, val, rows, use_rows, offsets, out, out32,
+                                       use32)(counter)
+
+    def deform_points_call(self, points: Arr, table: Arr, idx: Arr, val: Arr, rows: Arr, use_rows: bool,
+                           offsets: bool, out: Arr, out32: Arr, use32: bool) -> Call:
+        """`deform_points_entry` checked and bound to its arguments, waiting for a counter (a batch
+        of calls run together: accel/batch.py)."""
         n_points = points.shape[0]
         m, _, K = _weights_ok(table, idx, val, n_points)
         _shape(points, (n_points, 3), "points")
@@ -245,25 +274,28 @@ class Kernel:
         if use32:
             _shape(out32, (n_points, 3), "out32")
         n_rows = _rows_ok(rows, use_rows, n_points)
-        done = self._fns["ak_deform_points"](
-            _ptr(points, _F64, "points"), n_points, _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"),
-            _ptr(val, _F64, "val"), K, _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), bool(offsets),
-            _ptr(out, _F64, "out", True), _ptr(out32, _F32, "out32", True), bool(use32),
-            _counter(counter))
-        return _done(done, n_points)
+        args = (_ptr(points, _F64, "points"), n_points, _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"),
+                _ptr(val, _F64, "val"), K, _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), bool(offsets),
+                _ptr(out, _F64, "out", True), _ptr(out32, _F32, "out32", True), bool(use32))
+        return Call(self._fns["ak_deform_points"], args, n_points,
+                    (points, table, idx, val, rows, out, out32))
 
     def motion_params(self, table: Arr, idx: Arr, val: Arr, rows: Arr, use_rows: bool,
                       out: Arr, out32: Arr, use32: bool, counter: Arr) -> int:
         """out[:, v] = (M e_x, M e_y, M e_z, t) of φ(Σ_k val[v, k] table[idx[v, k]]) (float64 out, or
         float32 out32 with use32), every v or v in rows; chunks claimed from counter."""
+        return self.motion_params_call(table, idx, val, rows, use_rows, out, out32, use32)(counter)
+
+    def motion_params_call(self, table: Arr, idx: Arr, val: Arr, rows: Arr, use_rows: bool, out: Arr,
+                           out32: Arr, use32: bool) -> Call:
+        """`motion_params` checked and bound to its arguments, waiting for a counter."""
         m, N, K = _weights_ok(table, idx, val)
         _shape(out32 if use32 else out, (4, N, 3), "out32" if use32 else "out")
         n_rows = _rows_ok(rows, use_rows, N)
-        done = self._fns["ak_motion_params"](
-            _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"), _ptr(val, _F64, "val"), N, K,
-            _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), _ptr(out, _F64, "out", True),
-            _ptr(out32, _F32, "out32", True), bool(use32), _counter(counter))
-        return _done(done, N)
+        args = (_ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"), _ptr(val, _F64, "val"), N, K,
+                _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), _ptr(out, _F64, "out", True),
+                _ptr(out32, _F32, "out32", True), bool(use32))
+        return Call(self._fns["ak_motion_params"], args, N, (table, idx, val, rows, out, out32))
 
     def _chain_shapes(self, table: Arr, idx: Arr, val: Arr, prefix: Arr,
                       mats: Arr) -> tuple[int, int, int, int, int]:

@@ -71,6 +71,8 @@ class _State:
         self.enabled = True
         self.warming: threading.Thread | None = None  # the thread running `warm_up`
         self.spin: threads.Spin | bool | None = None  # `_spin`'s measurement (False: unavailable)
+        #: (thread, batch) while that thread collects deferrable calls into a batch (batch.collecting)
+        self.collecting: tuple[threading.Thread, Any] | None = None
 
 
 _state = _State()
@@ -170,14 +172,23 @@ def _spin(module: Kernel) -> threads.Spin | None:
     return (_state.spin or None) if threads.SPIN_MS > 0.0 else None
 
 
-def _run(name: str, n: int, *args: object) -> bool:
+def _run(name: str, n: int, *args: object, defer: bool = False) -> bool:
     """Kernel.<name>(*args, counter) for an n-row work list (⌈n/CHUNK⌉ chunks) on `threads._threads`
     threads (`threads._run_chunks`; an entry's first call, which checks it, on this thread alone);
     False if the backend is (or just became) unavailable, in which case the caller recomputes with
-    numpy."""
+    numpy.
+
+    `defer`: the caller reads none of the call's outputs before the batch this thread is collecting
+    runs (batch.collecting): then a checked entry is only checked and bound to its arguments here, and
+    runs with the batch's other calls (`Kernel.<name>_call`, batch.KernelBatch)."""
     module = _load()
     if module is None:
         return False
+    collecting = _state.collecting
+    if (defer and collecting is not None and collecting[0] is threading.current_thread()
+            and name in _state.compiled):
+        collecting[1].add(getattr(module, name.removesuffix("_entry") + "_call")(*args), n, module.CHUNK)
+        return True
     entry = getattr(module, name)
     n_chunks = -(-n // module.CHUNK)
 

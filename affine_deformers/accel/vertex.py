@@ -173,6 +173,9 @@ def deform_points_params_rows(
     array that also gets out[v] rounded to float32 (bit for bit what out.astype(np.float32) holds
     there) for v in rows, and nothing elsewhere: a float32 copy of `out` is kept up to date without
     converting the whole array.
+
+    Inside `batch.collecting` the rows are computed when the batch runs (out and out32 must not be
+    read before), unless `out` is not C-contiguous.
     """
     if out32 is not None:
         _check_out32(out32, np.shape(out))
@@ -194,7 +197,7 @@ def deform_points_params_rows(
     dst32 = _NO_OUT32 if out32 is None else out32
     args = (p, _c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), sel, True, bool(offsets), dst,
             dst32, out32 is not None)
-    if not _run("deform_points_entry", sel.shape[0], *args):
+    if not _run("deform_points_entry", sel.shape[0], *args, defer=dst is out):
         return _numpy_rows(points, params, indices, values, rows, out, offsets, key, out32)
     if dst is not out:
         out[sel] = dst[sel]
@@ -228,7 +231,8 @@ def vertex_motions(
     identity at rest) on the compiled kernel when it is active; written rows are bit-identical to the
     same rows of a full call with the same backend. `key`: as in `deform_points_params` (naming the
     indices and values); a call with the key of an earlier checked call skips re-validating them.
-    `out` must be writable."""
+    `out` must be writable. Inside `batch.collecting` a call with `rows` into a C-contiguous `out` is
+    computed when the batch runs (out must not be read before)."""
     def numpy() -> FloatArray | NDArray[np.float32]:
         return _np_kernel.vertex_motions(params, indices, values, out, rows=rows, key=key)
 
@@ -245,7 +249,8 @@ def vertex_motions(
     use32 = dst.dtype == np.float32
     args = (_c(table, np.float64), _c(idx, np.int32), _c(val, np.float64), _NO_ROWS if sel is None else sel,
             sel is not None, _NO_MOTIONS if use32 else dst, dst if use32 else _NO_MOTIONS32, bool(use32))
-    if not _run("motion_params", n if sel is None else sel.shape[0], *args):
+    if not _run("motion_params", n if sel is None else sel.shape[0], *args,
+                defer=dst is out and sel is not None):
         return numpy()
     if dst is not out:
         if sel is None:

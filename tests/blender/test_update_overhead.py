@@ -435,9 +435,8 @@ def test_a_disabled_deformer_costs_nothing_and_catches_up_when_enabled(bl, insta
     target, probes, deformer = _rig(bl)
     rest = bl.rest_positions(target)
     calls = []
-    real = evaluate.evaluate_deformer
-    monkeypatch.setattr(evaluate, "evaluate_deformer",
-                        lambda o, d, g, r=None: calls.append(d.uid) or real(o, d, g, r))
+    real = evaluate._begin
+    monkeypatch.setattr(evaluate, "_begin", lambda o, d, *a: calls.append(d.uid) or real(o, d, *a))
     deformer.show_viewport = False
     bpy.context.view_layer.update()
     for step in range(3):
@@ -461,12 +460,14 @@ def test_a_disabled_deformer_costs_nothing_and_catches_up_when_enabled(bl, insta
 
 
 def test_an_update_of_many_deformed_objects_shares_their_probes_numerics(bl, installed, monkeypatch):
-    """One update of several deformed objects computes the rows of all their moved probes in one batch
-    and their parameters in one batch per branch treatment (evaluate._prefetch), and every object gets
+    """One update of several deformed objects computes the rows of all their moved probes in one batch,
+    their parameters in one batch per branch treatment (evaluate._prefetch) and their vertices in one
+    kernel batch (accel.KernelBatch: one hand-over to the kernel's threads), and every object gets
     bit for bit the offsets it gets evaluated alone; a deformer with a bad probe reports it and leaves
     the others alone."""
     kinds = importlib.import_module(f"{installed.package}.blender.kinds.probe")
     params = importlib.import_module(f"{installed.package}.blender.update.params")
+    batch = importlib.import_module(f"{installed.package}.accel.batch")
     rng = np.random.default_rng(3)
     rigs = []
     layouts = [("CHANNELS", ["XYZ", "QUATERNION", "AXIS_ANGLE"]), ("SHORTEST", ["ZXY", "XYZ"]),
@@ -488,9 +489,20 @@ def test_an_update_of_many_deformed_objects_shares_their_probes_numerics(bl, ins
     bad_probe = bl.empty("BadProbe", (-4.0, 0.0, 1.0))
     bad = bl.add_probe_deformer(bad_target, [bad_probe], radius=1.5, weight_mode="FALLOFF")
     bpy.context.view_layer.update()
+    for _target, probes, _deformer in rigs:  # an update after the bind's: the next ones are incremental
+        probes[0].location.x += 0.01
+    bpy.context.view_layer.update()
 
-    batches, param_batches = [], []
+    batches, param_batches, kernel_batches = [], [], []
     real_rows, real_params = kinds._probe_rows, params._params_of_rows
+    real_run = batch.KernelBatch.run
+
+    def run(self) -> None:
+        if len(self):
+            kernel_batches.append(len(self))
+        real_run(self)
+
+    monkeypatch.setattr(batch.KernelBatch, "run", run)
     monkeypatch.setattr(kinds, "_probe_rows", lambda *a: batches.append(len(a[1])) or real_rows(*a))
     monkeypatch.setattr(params, "_params_of_rows",
                         lambda m, r, *a: param_batches.append(len(r)) or real_params(m, r, *a))
@@ -508,6 +520,8 @@ def test_an_update_of_many_deformed_objects_shares_their_probes_numerics(bl, ins
     moved = sum(len(probes) for _t, probes, _d in rigs)
     assert batches == [moved + 1], "every moved probe, the bad one too, in one batch"
     assert len(param_batches) == 2, "one batch per branch treatment (lifted, shortest)"
+    if importlib.import_module(f"{installed.package}.accel").active():
+        assert kernel_batches == [len(rigs)], "every moved object's vertices in one kernel batch"
     assert "mirrored" in bad.status
     shown = [bl.stored_offsets(target, deformer) for target, _p, deformer in rigs]
     assert all(deformer.status == "" for _t, _p, deformer in rigs)
@@ -515,3 +529,38 @@ def test_an_update_of_many_deformed_objects_shares_their_probes_numerics(bl, ins
         assert np.abs(offsets).max() > 0.05
         alone = bl.recomputed_offsets(target, deformer)  # every cache dropped, this object alone
         assert offsets.tobytes() == alone.tobytes(), target.name
+
+
+def test_a_kernel_batch_that_fails_leaves_every_deformer_right(bl, installed):
+    """Should the update's kernel batch fail (evaluate._Update.finish), each deformer is blended again
+    on its own from a full recompute: every object shows what it shows evaluated alone, no status."""
+    batch = importlib.import_module(f"{installed.package}.accel.batch")
+    rigs = []
+    for n in range(3):
+        target = bl.grid_cube(cuts=4, name=f"Body{n}")
+        target.location = (4.0 * n, 0.0, 0.0)
+        probes = [bl.empty(f"P{n}{i}", (4.0 * n + 0.5 * i, 0.0, 0.8)) for i in range(2)]
+        deformer = bl.add_probe_deformer(target, probes, radius=1.5, weight_mode="FALLOFF")
+        rigs.append((target, probes, deformer))
+    failed: list[int] = []
+
+    def run(self) -> None:  # the rows collected are never computed
+        if len(self):
+            failed.append(len(self))
+            raise MemoryError("no scratch memory")
+
+    for step in range(3):  # the batch fails in the third update, incremental by then
+        for _target, probes, _deformer in rigs:
+            probes[0].location.z += 0.2
+            probes[1].rotation_euler.x += 0.3
+        with pytest.MonkeyPatch.context() as patch:
+            if step == 2:
+                patch.setattr(batch.KernelBatch, "run", run)
+            bpy.context.view_layer.update()
+    if importlib.import_module(f"{installed.package}.accel").active():
+        assert failed == [len(rigs)]
+    shown = [bl.stored_offsets(target, deformer) for target, _probes, deformer in rigs]
+    for (target, _probes, deformer), offsets in zip(rigs, shown, strict=True):
+        assert deformer.status == ""
+        assert np.abs(offsets).max() > 0.05
+        assert offsets.tobytes() == bl.recomputed_offsets(target, deformer).tobytes(), target.name

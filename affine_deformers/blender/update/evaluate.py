@@ -21,10 +21,12 @@ from __future__ import annotations
 import contextlib
 import traceback
 from collections.abc import Container
+from dataclasses import dataclass
 
 import bpy
 import numpy as np
 
+from ... import accel
 from .. import binding, caches, kinds
 from ..caches import forget
 from ..files import carrier, storage
@@ -56,6 +58,33 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
     `read`: a depsgraph to read the controls from instead of `depsgraph`, ahead of the frame's
     evaluation (read_ahead.py): then only a clean result is written (an error, a control it does not
     evaluate, is left to the update after the frame), and no status or hook is touched."""
+    step = _begin(obj, deformer, depsgraph, read, None)
+    return step if isinstance(step, str) else _finish(step)
+
+
+@dataclass
+class _Blended:
+    """A deformer between its blend and its write (`_begin` → `_finish`): while its update's kernel
+    batch has not run, `output` holds rows still to be computed."""
+
+    obj: bpy.types.Object
+    deformer: object
+    depsgraph: bpy.types.Depsgraph
+    ahead: bool
+    snap: snapshot.Snapshot
+    signature: tuple
+    carried: bool
+    create: bool
+    output: np.ndarray | None
+    rows: np.ndarray | None
+    error: str
+
+
+def _begin(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph, read: bpy.types.Depsgraph | None,
+           batch: accel.KernelBatch | None) -> str | _Blended:
+    """Everything of `evaluate_deformer` up to the blend: its status when the deformer is done (an
+    error found before the blend, or the same inputs as the output written last), else the blend,
+    whose kernel rows go into `batch` when one is given (accel.collecting)."""
     if obj.type != "MESH":
         error = snapshot.precheck(obj, deformer)
         set_status(deformer, error)
@@ -78,42 +107,55 @@ def evaluate_deformer(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Deps
         return deformer.status
     if not ahead:
         hooks.run_inputs_read(obj, deformer, snap, depsgraph)  # e.g. the controls' states (weight_groups.py)
-    key = (obj.session_uid, deformer.uid)
     signature = snap.signature()
     create = depsgraph.mode != "RENDER"  # no ID is made during a render frame (on_render_start makes them)
-    if caches.signatures.get(key) == signature:
+    if caches.signatures.get((obj.session_uid, deformer.uid)) == signature:
         _stamp(obj, deformer, depsgraph, create, snap.modifier, carried)  # the same output, right now too
         return deformer.status
-    error, path, bound = snap.error, snap.path, snap.bound
     output = rows = None
+    error = snap.error
     if not error:
-        output, rows, error = _compute(obj, deformer, snap)
-    if ahead and error:
+        output, rows, error = _compute(obj, deformer, snap, batch)
+    return _Blended(obj, deformer, depsgraph, ahead, snap, signature, carried, create, output, rows, error)
+
+
+def _finish(step: _Blended) -> str:
+    """The rest of `evaluate_deformer` once the blend's rows are computed: the output checked, written
+    where it goes with its stamp, and the status set (nothing but a clean result ahead of the frame)."""
+    obj, deformer, snap, depsgraph = step.obj, step.deformer, step.snap, step.depsgraph
+    error, output, rows = step.error, step.output, step.rows
+    finite = outputs.finite_motions if snap.path == "MOTION" else outputs.finite_offsets
+    # A result the blend proved bounded (result.Result.proven) needs no pass over its vertices.
+    if not error and not snap.bound.result.proven and not finite(output, rows):
+        error = "The deformation is not finite: the mesh shows its rest shape"
+        snap.bound.result.forget()
+    if step.ahead and error:
         return deformer.status
-    mesh = obj.data
+    path, bound = snap.path, snap.bound
     if error:
         # Zero offsets and no motions: the modifier passes its input through, wherever it stands.
-        path, output, rows = "OFFSET", np.zeros((len(mesh.vertices), 3)), None
+        path, output, rows = "OFFSET", np.zeros((len(obj.data.vertices), 3)), None
         cached = bound_data.cached(obj, deformer)
         if cached is not None:
             cached.result.forget_written()  # written below without it
-    _write(obj, deformer, snap.modifier, path, output, rows, None if error else bound, depsgraph, create,
-           carried)
+    _write(obj, deformer, snap.modifier, path, output, rows, None if error else bound, depsgraph, step.create,
+           step.carried)
     warning = snap.motions.warning if snap.motions is not None else ""
     status = error or "; ".join(m for m in (warning, deformer.bind_warning) if m)
     set_status(deformer, status)
-    caches.signatures[key] = signature
+    key = (obj.session_uid, deformer.uid)
+    caches.signatures[key] = step.signature
     caches.errors[key] = error
     return status
 
 
-def _compute(obj: bpy.types.Object, deformer,
-             snap: snapshot.Snapshot) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+def _compute(obj: bpy.types.Object, deformer, snap: snapshot.Snapshot,
+             batch: accel.KernelBatch | None) -> tuple[np.ndarray | None, np.ndarray | None, str]:
     """(output, rows, error) of the blend for the snapshot's path — followed by the shape-preserving
     pass when it is on (shape_pass.py) — ; on an error the cached result is dropped, so the next update
-    starts from a full recompute."""
-    compute, finite = ((blend.blend_motions, outputs.finite_motions) if snap.path == "MOTION"
-                       else (blend.blend_offsets, outputs.finite_offsets))
+    starts from a full recompute. The plain blend's kernel rows go into `batch` when one is given (the
+    output is then read only after it ran); the pass reads its field at once, so it is computed here."""
+    compute = blend.blend_motions if snap.path == "MOTION" else blend.blend_offsets
     shaped = deformer.preserve_shape and kinds.get(deformer.kind).shape_pass
     error = ""
     output = rows = None
@@ -124,14 +166,12 @@ def _compute(obj: bpy.types.Object, deformer,
             output, rows = shape_pass.apply(obj, deformer, snap.bound, controls, field, snap.path), None
             snap.bound.result.forget()  # the per-vertex caches must not meet the pass's output
         else:
-            output, rows = compute(deformer, snap.motions, snap.bound, snap.result_state())
+            with accel.collecting(batch):
+                output, rows = compute(deformer, snap.motions, snap.bound, snap.result_state())
     except (storage.StorageError, shape_pass.ShapePassError) as exc:
         error = str(exc)
     except ValueError as exc:  # core refuses to blend (e.g. a motion too degenerate for its log)
         error = f"The controls' motions cannot be blended ({exc}): the mesh shows its rest shape"
-    # A result the blend proved bounded (result.Result.proven) needs no pass over its vertices.
-    if not error and not snap.bound.result.proven and not finite(output, rows):
-        error = "The deformation is not finite: the mesh shows its rest shape"
     if error:
         snap.bound.result.forget()
     return output, rows, error
@@ -237,43 +277,94 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
     it, and its signature (caches.signatures) says whether the kept output is still right."""
     if depsgraph is None:
         depsgraph = bpy.context.evaluated_depsgraph_get()
-    if len(obj.affine_deformers):
-        registry.add(obj)  # a deformer a script made without our operators is updated from now on
-    if obj.mode == "EDIT":
-        return [d.status for d in obj.affine_deformers]
+    update = _Update(depsgraph, read)
     try:
-        binding.separate_shared_ids(obj)  # linked duplicates must not share output attributes
-    except Exception:  # never let it stop the evaluation; the ids stay shared and the next update retries
-        traceback.print_exc()
-    if read is None:
-        hooks.run_before_object(obj)  # e.g. renamed controls' groups, the weight preview (weight_groups.py)
-    statuses = []
-    for deformer in obj.affine_deformers:
-        if (obj.session_uid, deformer.uid) in skip:
-            statuses.append(deformer.status)
-            continue
+        return update.add(obj, skip)
+    finally:
+        update.finish()  # fills the statuses of the deformers it blended
+
+
+class _Update:
+    """One update of many deformers, in three passes so the kernel runs once for all of them: each
+    deformer's inputs read and blended in turn (`_begin`), its kernel rows collected in one
+    accel.KernelBatch; the batch run (one hand-over to the kernel's threads); then each deformer's
+    output checked, written and its status set (`_finish`), in the same order. A deformer's result
+    does not depend on the others in its batch (bit for bit)."""
+
+    def __init__(self, depsgraph: bpy.types.Depsgraph, read: bpy.types.Depsgraph | None) -> None:
+        self.depsgraph, self.read = depsgraph, read
+        self.batch = accel.KernelBatch()
+        #: (statuses of its object, index there, the blended deformer) waiting for the batch
+        self.blended: list[tuple[list[str], int, _Blended]] = []
+
+    def add(self, obj: bpy.types.Object, skip: Container[tuple[int, str]] = ()) -> list[str]:
+        """Begin every deformer of `obj`; returns its statuses, those of deformers still blending
+        filled in by `finish`."""
+        if len(obj.affine_deformers):
+            registry.add(obj)  # a deformer a script made without our operators is updated from now on
+        if obj.mode == "EDIT":
+            return [d.status for d in obj.affine_deformers]
         try:
-            statuses.append(evaluate_deformer(obj, deformer, depsgraph, read))
-        except Exception as exc:  # never let bad data take the handler (or Blender) down
-            if read is not None:  # ahead of the frame: the update after it says what went wrong
+            binding.separate_shared_ids(obj)  # linked duplicates must not share output attributes
+        except Exception:  # never let it stop the evaluation; the ids stay shared and the next update retries
+            traceback.print_exc()
+        if self.read is None:
+            hooks.run_before_object(obj)  # e.g. renamed controls' groups, the weight preview
+        statuses: list[str] = []
+        for deformer in obj.affine_deformers:
+            if (obj.session_uid, deformer.uid) in skip:
                 statuses.append(deformer.status)
                 continue
-            message = f"Internal error ({type(exc).__name__}: {exc}): the mesh shows its rest shape"
-            if deformer.status != message:  # print once, not at every depsgraph update
-                traceback.print_exc()
             try:
-                bound_data.forget((obj.session_uid, deformer.uid))  # its copy of the attribute is stale
-                if obj.type == "MESH":  # a position carrier would go on showing its last output
-                    output_store.empty_carrier(obj, outputs.modifier(obj, deformer.uid))
-                mesh = carrier.output_mesh(obj, create=False) if obj.type == "MESH" else None
-                if mesh is not None and mesh.library is None and mesh.override_library is None:
-                    storage.remove_output(mesh, deformer.uid, keep="OFFSET")
-                    storage.write_offsets(mesh, deformer.uid, np.zeros((len(obj.data.vertices), 3)))
-                set_status(deformer, message)
-            except Exception:
-                traceback.print_exc()
-            statuses.append(message)
-    return statuses
+                step = _begin(obj, deformer, self.depsgraph, self.read, self.batch)
+            except Exception as exc:  # never let bad data take the handler (or Blender) down
+                step = _failed(obj, deformer, exc, self.read is not None)
+            if isinstance(step, _Blended):
+                self.blended.append((statuses, len(statuses), step))
+                step = deformer.status  # until `finish`
+            statuses.append(step)
+        return statuses
+
+    def finish(self) -> None:
+        """Run the batch, then finish every blended deformer. Should the batch fail, each deformer is
+        blended again on its own from a full recompute (the rows it collected are undefined)."""
+        blended, self.blended = self.blended, []
+        try:
+            self.batch.run()
+        except Exception:
+            traceback.print_exc()
+            for _statuses, _index, step in blended:
+                step.snap.bound.result.forget()
+                if not step.error:
+                    step.output, step.rows, step.error = _compute(step.obj, step.deformer, step.snap, None)
+        for statuses, index, step in blended:
+            try:
+                statuses[index] = _finish(step)
+            except Exception as exc:  # never let bad data take the handler (or Blender) down
+                statuses[index] = _failed(step.obj, step.deformer, exc, step.ahead)
+
+
+def _failed(obj: bpy.types.Object, deformer, exc: Exception, ahead: bool) -> str:
+    """The status of a deformer whose update raised `exc`: ahead of the frame its current one (the
+    update after the frame says what went wrong); otherwise an internal error, its output emptied so
+    the modifier passes its input through."""
+    if ahead:
+        return deformer.status
+    message = f"Internal error ({type(exc).__name__}: {exc}): the mesh shows its rest shape"
+    if deformer.status != message:  # print once, not at every depsgraph update
+        traceback.print_exception(exc)
+    try:
+        bound_data.forget((obj.session_uid, deformer.uid))  # its copy of the attribute is stale
+        if obj.type == "MESH":  # a position carrier would go on showing its last output
+            output_store.empty_carrier(obj, outputs.modifier(obj, deformer.uid))
+        mesh = carrier.output_mesh(obj, create=False) if obj.type == "MESH" else None
+        if mesh is not None and mesh.library is None and mesh.override_library is None:
+            storage.remove_output(mesh, deformer.uid, keep="OFFSET")
+            storage.write_offsets(mesh, deformer.uid, np.zeros((len(obj.data.vertices), 3)))
+        set_status(deformer, message)
+    except Exception:
+        traceback.print_exc()
+    return message
 
 
 def disabled(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> bool:
@@ -318,8 +409,12 @@ def run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None,
         off = {(obj.session_uid, deformer.uid) for obj in objects for deformer in obj.affine_deformers
                if disabled(obj, deformer, depsgraph)}
         _prefetch(objects, read or depsgraph, off)
-        for obj in objects:
-            evaluate_object(obj, depsgraph, skip=off, read=read)
+        update = _Update(depsgraph, read)
+        try:
+            for obj in objects:
+                update.add(obj, off)
+        finally:
+            update.finish()  # what was blended is written, even when a later object failed
     except Exception:
         traceback.print_exc()
     finally:
