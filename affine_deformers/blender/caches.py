@@ -9,12 +9,15 @@ forgetting only costs a recomputation. tests/blender/test_caches.py finds every 
 of blender/ from the source and checks that `forget()` empties it.
 
 This module imports nothing of the add-on (every layer registers into it). It holds the update's own
-memo: the signature and the error of each deformer's last update (evaluate.py).
+memo: the signature and the error of each deformer's last update (evaluate.py), and the lookups one
+update makes once (`update_scope`, `scoped`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Hashable, Iterator
+from contextlib import contextmanager
+from typing import Any
 
 import bpy
 
@@ -57,3 +60,36 @@ errors: dict[Key, str] = {}
 def _forget_updates(key: Key | None) -> None:
     drop(signatures, key)
     drop(errors, key)
+
+
+#: Lookups valid for the update running now (`update_scope`), None between updates.
+_scope: dict[Hashable, Any] | None = None
+
+
+@contextmanager
+def update_scope() -> Iterator[None]:
+    """Within the block (one update: evaluate.run, evaluate_object) `scoped` lookups are made once:
+    a deformer's modifier, a node group's inputs — what each step of an update would otherwise ask
+    the RNA again. Nothing an update does changes them (it writes outputs, stamps and statuses; it
+    adds no modifier and edits no group). Nested blocks share the outer one."""
+    global _scope
+    outer = _scope
+    if outer is None:
+        _scope = {}
+    try:
+        yield
+    finally:
+        if outer is None:
+            _scope = None
+
+
+def scoped(key: Hashable, compute: Callable[[], Any]) -> Any:
+    """`compute()`, made once per `update_scope` for `key` (every time outside one)."""
+    scope = _scope
+    if scope is None:
+        return compute()
+    try:
+        return scope[key]
+    except KeyError:
+        value = scope[key] = compute()
+        return value

@@ -137,7 +137,12 @@ def _input_identifiers(ng: bpy.types.NodeTree) -> dict[tuple[str, str], str]:
     so the map is kept per group and the names of its items in order (one call): adding, removing,
     renaming or reordering items reads it anew. An edit the names do not show (a socket replaced by
     one of the same name, type and place) is seen after the next depsgraph update, whose handler
-    forgets the map when a node tree changed; so do undo and file load (caches.forget)."""
+    forgets the map when a node tree changed; so do undo and file load (caches.forget). Within one
+    update the map of a group is looked up once (caches.scoped)."""
+    return caches.scoped(("inputs", ng.session_uid), lambda: _read_identifiers(ng))
+
+
+def _read_identifiers(ng: bpy.types.NodeTree) -> dict[tuple[str, str], str]:
     items = ng.interface.items_tree
     key = (ng.session_uid, tuple(items.keys()))
     found = _identifier_memo.get(key)

@@ -278,10 +278,11 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
     if depsgraph is None:
         depsgraph = bpy.context.evaluated_depsgraph_get()
     update = _Update(depsgraph, read)
-    try:
-        return update.add(obj, skip)
-    finally:
-        update.finish()  # fills the statuses of the deformers it blended
+    with caches.update_scope():
+        try:
+            return update.add(obj, skip)
+        finally:
+            update.finish()  # fills the statuses of the deformers it blended
 
 
 class _Update:
@@ -398,28 +399,37 @@ def run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None,
         return
     _busy = True
     try:
-        if read is None:  # ahead of the frame `depsgraph` still lists the last evaluation's updates,
-            # whose IDs may be gone since: only an evaluated depsgraph is asked what changed
-            registry.note(depsgraph)  # objects added since (append, link, Shift+D, a script)
-            output_store.note(depsgraph)
-        shown = _shown_elsewhere(scene, depsgraph)
-        objects = [obj for obj in registry.in_scene(scene) if not shown(obj)]
-        if not objects:
-            return
-        off = {(obj.session_uid, deformer.uid) for obj in objects for deformer in obj.affine_deformers
-               if disabled(obj, deformer, depsgraph)}
-        _prefetch(objects, read or depsgraph, off)
-        update = _Update(depsgraph, read)
-        try:
-            for obj in objects:
-                update.add(obj, off)
-        finally:
-            update.finish()  # what was blended is written, even when a later object failed
+        with caches.update_scope():
+            _run(scene, depsgraph, read)
     except Exception:
         traceback.print_exc()
     finally:
         _drop_prefetched()
         _busy = False
+
+
+def _run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph, read: bpy.types.Depsgraph | None) -> None:
+    """`run`'s update, in order: the deformers it evaluates (the registry's objects of the scene,
+    less those another scene shows and the disabled ones), their controls read and ψ of the moved
+    ones for all (`_prefetch`), then `_Update`: each deformer blended, the kernel rows of all in one
+    batch, each output written and status set."""
+    if read is None:  # ahead of the frame `depsgraph` still lists the last evaluation's updates,
+        # whose IDs may be gone since: only an evaluated depsgraph is asked what changed
+        registry.note(depsgraph)  # objects added since (append, link, Shift+D, a script)
+        output_store.note(depsgraph)
+    shown = _shown_elsewhere(scene, depsgraph)
+    objects = [obj for obj in registry.in_scene(scene) if not shown(obj)]
+    if not objects:
+        return
+    off = {(obj.session_uid, deformer.uid) for obj in objects for deformer in obj.affine_deformers
+           if disabled(obj, deformer, depsgraph)}
+    _prefetch(objects, read or depsgraph, off)
+    update = _Update(depsgraph, read)
+    try:
+        for obj in objects:
+            update.add(obj, off)
+    finally:
+        update.finish()  # what was blended is written, even when a later object failed
 
 
 def _prefetch(objects: list[bpy.types.Object], depsgraph: bpy.types.Depsgraph,

@@ -30,7 +30,12 @@ _modifiers: dict[tuple[int, str], str] = {}
 def modifier(obj: bpy.types.Object, uid: str) -> bpy.types.Modifier | None:
     """`nodes.find_modifier(obj, offset attribute of uid)`, trying the modifier found last time first:
     it still counts when it is still ours and still reads this deformer's attribute (the same test
-    find_modifier applies), otherwise the stack is searched again."""
+    find_modifier applies), otherwise the stack is searched again. Looked up once per update
+    (caches.scoped)."""
+    return caches.scoped(("modifier", obj.session_uid, uid), lambda: _find_modifier(obj, uid))
+
+
+def _find_modifier(obj: bpy.types.Object, uid: str) -> bpy.types.Modifier | None:
     key = (obj.session_uid, uid)
     offset_attr = storage.offset_name(uid)
     name = _modifiers.get(key)
