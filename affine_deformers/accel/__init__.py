@@ -11,7 +11,7 @@ whichever call, thread count or row subset computes it; results cached across up
 
 The modules, one concern each:
 
-* `state` — whether calls go to the library now (`active`, `backend`, `set_enabled`,
+* `state` — whether calls go to the library now (`active`, `backend`, `set_enabled`, `pinned`,
   AFFINE_DEFORMERS_ACCEL), loading it on first use, the lock, and how a call reaches an entry;
 * `threads` — the helper threads a chunked call runs on (`_run_chunks`, `_Helper`);
 * `batch` — the row calls of many deformers collected during an update and run in one hand-over
@@ -46,7 +46,7 @@ from .batch import KernelBatch, collecting
 from .cage import cage_faces, cage_nodes
 from .chains import chain_motions, chain_points
 from .controls import node_params, params_from_matrices, polar_log
-from .state import ACCEL_ENV, _load, _spin, active, backend, set_enabled
+from .state import ACCEL_ENV, _load, _spin, active, backend, pinned, set_enabled
 from .state import _State as _State
 from .state import _state as _state
 from .threads import _Helper as _Helper
@@ -79,6 +79,7 @@ __all__ = [
     "native",
     "node_params",
     "params_from_matrices",
+    "pinned",
     "polar_log",
     "rows_reading",
     "same_bits",

@@ -21,7 +21,8 @@ from __future__ import annotations
 import os
 import threading
 import warnings
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -29,7 +30,7 @@ import numpy as np
 from . import native, threads
 from .native import Kernel, KernelUnavailableError
 
-__all__ = ["ACCEL_ENV", "active", "backend", "set_enabled"]
+__all__ = ["ACCEL_ENV", "active", "backend", "pinned", "set_enabled"]
 
 #: Environment variable: "0" disables the compiled kernel.
 ACCEL_ENV = "AFFINE_DEFORMERS_ACCEL"
@@ -73,6 +74,8 @@ class _State:
         self.spin: threads.Spin | bool | None = None  # `_spin`'s measurement (False: unavailable)
         #: (thread, batch) while that thread collects deferrable calls into a batch (batch.collecting)
         self.collecting: tuple[threading.Thread, Any] | None = None
+        #: (thread, what `_usable` gave it) while that thread runs in `pinned`
+        self.pinned: tuple[threading.Thread, Kernel | None] | None = None
 
 
 _state = _State()
@@ -96,7 +99,10 @@ def active() -> bool:
 def _usable() -> Kernel | None:
     """The compiled kernel if this thread may call it now. While another thread runs `warm_up`,
     None: an update then runs on numpy instead of waiting for it (the two kernels agree to ~1e-15;
-    callers that cache results key them on `active()`)."""
+    callers that cache results key them on `active()`). Within `pinned`, what it gave at the start."""
+    pin = _state.pinned
+    if pin is not None and pin[0] is threading.current_thread():
+        return pin[1]
     warming = _state.warming
     if warming is not None and warming is not threading.current_thread():
         return None
@@ -140,10 +146,29 @@ def _entry_call(name: str, call: Callable[[], Any]) -> Any:
     return result
 
 
+@contextmanager
+def pinned() -> Iterator[None]:
+    """Within the block this thread's calls find the backend as it was at the start (`_usable`: one
+    look at the environment and the preference instead of one per call), so an update runs on one
+    backend throughout. An entry failing inside still switches to numpy at once. Blocks nest."""
+    current = _state
+    outer = current.pinned
+    thread = threading.current_thread()
+    if outer is not None and outer[0] is thread:
+        yield
+        return
+    current.pinned = (thread, _usable())
+    try:
+        yield
+    finally:
+        current.pinned = outer
+
+
 def _fail(reason: str, warn: bool = True) -> None:
     """Stay on numpy for the rest of the process."""
     _state.failure = reason
     _state.module = None
+    _state.pinned = None
     if warn:
         warnings.warn(f"affine_deformers: compiled kernel disabled ({reason}); using numpy", stacklevel=3)
 

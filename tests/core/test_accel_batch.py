@@ -115,3 +115,23 @@ def test_without_the_compiled_kernel_nothing_is_deferred(monkeypatch) -> None:
         accel.deform_points_params_rows(pts, params, idx, val, np.arange(100), out)
     assert len(batch) == 0
     assert np.array_equal(out, accel.deform_points_params(pts, params, idx, val))
+
+
+def test_a_pinned_block_runs_on_the_backend_it_started_with(kernel, monkeypatch) -> None:  # noqa: F811
+    """accel.pinned: an update's calls all see the backend of its start, the environment read once;
+    other threads and the time after the block see the current one."""
+    seen = []
+    with accel.pinned():
+        monkeypatch.setenv(accel.ACCEL_ENV, "0")
+        assert accel.active()
+        with accel.pinned():  # nested: the outer pin holds
+            assert accel.active()
+        thread = threading.Thread(target=lambda: seen.append(accel.active()))
+        thread.start()
+        thread.join()
+    assert seen == [False]
+    assert not accel.active()
+    with accel.pinned():
+        monkeypatch.delenv(accel.ACCEL_ENV)
+        assert not accel.active()
+    assert accel.active()

@@ -278,7 +278,7 @@ def evaluate_object(obj: bpy.types.Object, depsgraph: bpy.types.Depsgraph | None
     if depsgraph is None:
         depsgraph = bpy.context.evaluated_depsgraph_get()
     update = _Update(depsgraph, read)
-    with caches.update_scope():
+    with caches.update_scope(), accel.pinned():
         try:
             return update.add(obj, skip)
         finally:
@@ -399,7 +399,7 @@ def run(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None,
         return
     _busy = True
     try:
-        with caches.update_scope():
+        with caches.update_scope(), accel.pinned():  # one lookup, one backend for the whole update
             _run(scene, depsgraph, read)
     except Exception:
         traceback.print_exc()
