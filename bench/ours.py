@@ -469,8 +469,9 @@ def write_only_updates():
 def kernel_seconds(targets: list[bpy.types.Object], reps: int = 20) -> float | None:
     """Median seconds of our compiled per-vertex map (φ of the blended parameters) over all `targets`
     once, each with its own bind's weights and a rigid motion of every control (the (m) rigs' probes
-    turn and shift): the kernel's share of a frame with no Python around it. None without the
-    weights or the compiled kernel."""
+    turn and shift), every vertex recomputed, all targets in one kernel batch as an update runs them:
+    the kernel's share of a frame with little Python around it. None without the weights or the
+    compiled kernel."""
     accel = sys.modules.get(f"{INNER}.accel")
     if accel is None or not accel.active():
         return None
@@ -495,11 +496,16 @@ def kernel_seconds(targets: list[bpy.types.Object], reps: int = 20) -> float | N
         target.data.vertices.foreach_get("co", points)
         jobs.append((points.reshape(-1, 3).astype(np.float64), table, np.ascontiguousarray(idx.T),
                      np.ascontiguousarray(val.T, dtype=np.float64), np.empty((n, 3))))
+    rows = [np.arange(len(points)) for points, *_ in jobs]
     times = []
     for _ in range(reps + 2):
         t0 = time.perf_counter()
-        for i, (points, table, idx, val, out) in enumerate(jobs):
-            accel.deform_points_params(points, table, idx, val, out, key=("bench kernel", i))  # checked once
+        batch = accel.KernelBatch()  # as an update runs them: one hand-over for all targets
+        with accel.collecting(batch):
+            for i, (points, table, idx, val, out) in enumerate(jobs):
+                accel.deform_points_params_rows(points, table, idx, val, rows[i], out,
+                                                 key=("bench kernel", i))  # checked once
+        batch.run()
         times.append(time.perf_counter() - t0)
     return float(np.median(times[2:]))
 
