@@ -87,7 +87,9 @@ def chain_points(
     `out32`: as in `deform_points_params_rows`. Each written row is bit-identical to the same row of
     a full call with the same backend; the numpy backend is core.hierarchy.chain_points. `key`: a
     hashable token naming these exact points, indices, values and prefix (as in
-    `deform_points_params`): a call with the key of the previous checked call skips re-validating them."""
+    `deform_points_params`): a call with the key of the previous checked call skips re-validating them.
+    Inside `batch.collecting` a call with `rows` into a C-contiguous `out` is computed when the batch
+    runs (out and out32 must not be read before)."""
     if key in state._state.checked_chain:
         pts = np.asarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -111,7 +113,7 @@ def chain_points(
     args = (p, _c(tab, np.float64), _c(idx, np.int32), _c(val, np.float64), _c(pre, np.int32),
             _c(mats, np.float64), _NO_ROWS if sel is None else sel, sel is not None, bool(offsets), dst,
             _NO_OUT32 if out32 is None else out32, out32 is not None)
-    if _usable() is None or not _run("chain_points_entry", n, *args):
+    if _usable() is None or not _run("chain_points_entry", n, *args, defer=dst is out and sel is not None):
         moved = _np_hierarchy.chain_points(p, tab, mats, _chain_layout(idx, val, pre), sel)
         target = slice(None) if sel is None else sel
         dst[target] = moved - p[target] if offsets else moved
@@ -140,7 +142,8 @@ def chain_motions(
     """The motions x ↦ M (F_(P−1) ∘ ⋯ ∘ F_0 x) + t of `chain_points` per vertex, in the column form of
     `vertex_motions` (out (4, N, 3) float64 or float32; `rows`: only those written, bit-identical
     to a full call's with the same backend); the numpy backend is core.hierarchy.chain_motions.
-    `key`: as in `chain_points` (naming the indices, values and prefix)."""
+    `key`: as in `chain_points` (naming the indices, values and prefix); deferred in a batch as
+    `chain_points` is."""
     tab, idx, val, pre, mats = _chain_inputs(params, indices, values, prefix, prefixes, key)
     n = pre.shape[0]
     out = check_motion_out(out, n)
@@ -151,7 +154,8 @@ def chain_motions(
     args = (_c(tab, np.float64), _c(idx, np.int32), _c(val, np.float64), _c(pre, np.int32),
             _c(mats, np.float64), _NO_ROWS if sel is None else sel, sel is not None,
             _NO_MOTIONS if use32 else dst, dst if use32 else _NO_MOTIONS32, bool(use32))
-    if _usable() is None or not _run("chain_motion_entry", n if sel is None else sel.shape[0], *args):
+    if _usable() is None or not _run("chain_motion_entry", n if sel is None else sel.shape[0], *args,
+                                     defer=dst is out and sel is not None):
         motions = _np_hierarchy.chain_motions(tab, mats, _chain_layout(idx, val, pre), sel)
         if sel is None:
             dst[...] = motions

@@ -313,33 +313,45 @@ class Kernel:
                            out: Arr, out32: Arr, use32: bool, counter: Arr) -> int:
         """x = points[v], x ← φ(pass p's blend) x for p = 0 … P−1, then x ← M x + t with (M, t) =
         mats[prefix[v]]; stored as `deform_points_entry` stores (out must not share memory with points)."""
+        return self.chain_points_call(points, table, idx, val, prefix, mats, rows, use_rows, offsets, out,
+                                      out32, use32)(counter)
+
+    def chain_points_call(self, points: Arr, table: Arr, idx: Arr, val: Arr, prefix: Arr, mats: Arr,
+                          rows: Arr, use_rows: bool, offsets: bool, out: Arr, out32: Arr,
+                          use32: bool) -> Call:
+        """`chain_points_entry` checked and bound to its arguments, waiting for a counter."""
         m, n_pass, N, K, n_mats = self._chain_shapes(table, idx, val, prefix, mats)
         _shape(points, (N, 3), "points")
         _shape(out, (N, 3), "out")
         if use32:
             _shape(out32, (N, 3), "out32")
         n_rows = _rows_ok(rows, use_rows, N)
-        done = self._fns["ak_chain_points"](
-            _ptr(points, _F64, "points"), N, _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"),
-            _ptr(val, _F64, "val"), n_pass, K, _ptr(prefix, _I32, "prefix"), _ptr(mats, _F64, "mats"), n_mats,
-            _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), bool(offsets), _ptr(out, _F64, "out", True),
-            _ptr(out32, _F32, "out32", True), bool(use32), _counter(counter))
-        return _done(done, N)
+        args = (_ptr(points, _F64, "points"), N, _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"),
+                _ptr(val, _F64, "val"), n_pass, K, _ptr(prefix, _I32, "prefix"), _ptr(mats, _F64, "mats"),
+                n_mats, _ptr(rows, _I64, "rows"), n_rows, bool(use_rows), bool(offsets),
+                _ptr(out, _F64, "out", True), _ptr(out32, _F32, "out32", True), bool(use32))
+        return Call(self._fns["ak_chain_points"], args, N,
+                    (points, table, idx, val, prefix, mats, rows, out, out32))
 
     def chain_motion_entry(self, table: Arr, idx: Arr, val: Arr, prefix: Arr,
                            mats: Arr, rows: Arr, use_rows: bool, out: Arr, out32: Arr,
                            use32: bool, counter: Arr) -> int:
         """The motion (M, t) ∘ F_(P−1) ∘ ⋯ ∘ F_0 of `chain_points_entry` per vertex, stored as
         `motion_params` stores."""
+        return self.chain_motion_call(table, idx, val, prefix, mats, rows, use_rows, out, out32,
+                                      use32)(counter)
+
+    def chain_motion_call(self, table: Arr, idx: Arr, val: Arr, prefix: Arr, mats: Arr, rows: Arr,
+                          use_rows: bool, out: Arr, out32: Arr, use32: bool) -> Call:
+        """`chain_motion_entry` checked and bound to its arguments, waiting for a counter."""
         m, n_pass, N, K, n_mats = self._chain_shapes(table, idx, val, prefix, mats)
         _shape(out32 if use32 else out, (4, N, 3), "out32" if use32 else "out")
         n_rows = _rows_ok(rows, use_rows, N)
-        done = self._fns["ak_chain_motion"](
-            _ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"), _ptr(val, _F64, "val"), n_pass, N, K,
-            _ptr(prefix, _I32, "prefix"), _ptr(mats, _F64, "mats"), n_mats, _ptr(rows, _I64, "rows"), n_rows,
-            bool(use_rows), _ptr(out, _F64, "out", True), _ptr(out32, _F32, "out32", True), bool(use32),
-            _counter(counter))
-        return _done(done, N)
+        args = (_ptr(table, _F64, "table"), m, _ptr(idx, _I32, "idx"), _ptr(val, _F64, "val"), n_pass, N, K,
+                _ptr(prefix, _I32, "prefix"), _ptr(mats, _F64, "mats"), n_mats, _ptr(rows, _I64, "rows"),
+                n_rows, bool(use_rows), _ptr(out, _F64, "out", True), _ptr(out32, _F32, "out32", True),
+                bool(use32))
+        return Call(self._fns["ak_chain_motion"], args, N, (table, idx, val, prefix, mats, rows, out, out32))
 
     def polar_log(self, M: Arr, R: Arr, Yh: Arr) -> int:
         """R[i] = U Vᵀ, Yh[i] = V diag(log σ) Vᵀ for the SVD of each M[i] (n, 3, 3); returns n."""

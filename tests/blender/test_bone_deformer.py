@@ -737,9 +737,10 @@ def test_pooled_bone_weight_follows_the_bones_tree(bl, installed):
 
 def test_an_update_of_many_bone_deformed_objects_matches_each_alone_bit_for_bit(bl, installed, monkeypatch):
     """One update of several bone-deformed objects computes all their moved bones in one batch and their
-    parameters in one batch per branch treatment (evaluate._prefetch, kinds.bone's prefetch); each
-    object gets bit for bit the offsets it gets evaluated alone, and a deformer naming a bone its
-    armature lost reports it without touching the others."""
+    parameters in one batch per branch treatment (evaluate._prefetch, kinds.bone's prefetch) and their
+    vertices in one kernel batch (accel.KernelBatch); each object gets bit for bit the offsets it gets
+    evaluated alone, and a deformer naming a bone its armature lost reports it without touching the
+    others."""
     import importlib
 
     bone = importlib.import_module(f"{installed.package}.blender.kinds.bone")
@@ -755,9 +756,15 @@ def test_an_update_of_many_bone_deformed_objects_matches_each_alone_bit_for_bit(
             pose_bone.rotation_mode = ("XYZ", "QUATERNION", "AXIS_ANGLE", "ZXY")[n]
         rigs.append((bar, arm, deformer))
     bpy.context.view_layer.update()
-    batches = []
+    for _bar_obj, arm, _deformer in rigs:  # an update after the bind's: the next one is incremental
+        arm.pose.bones[0].location.x += 0.01
+    bpy.context.view_layer.update()
+    batches, kernel_batches = [], []
     real = bone._bone_rows
     monkeypatch.setattr(bone, "_bone_rows", lambda *a: batches.append(len(a[2])) or real(*a))
+    kernel = importlib.import_module(f"{installed.package}.accel.batch").KernelBatch
+    real_run = kernel.run
+    monkeypatch.setattr(kernel, "run", lambda self: kernel_batches.append(len(self)) or real_run(self))
     for _bar_obj, arm, _deformer in rigs:
         for pose_bone in arm.pose.bones:
             if pose_bone.rotation_mode == "QUATERNION":
@@ -771,6 +778,8 @@ def test_an_update_of_many_bone_deformed_objects_matches_each_alone_bit_for_bit(
     lost.data.bones["B3"].name = "Gone"  # its deformer still names B3
     bpy.context.view_layer.update()
     assert batches == [15], "in one batch: every bone read, the lost rig's up to the missing one"
+    if importlib.import_module(f"{installed.package}.accel").active():
+        assert kernel_batches[0] == 3, "the blends of the three sound rigs in one kernel batch"
     assert "no bone named 'B3'" in rigs[3][2].status
     for bar, _arm, deformer in rigs[:3]:
         assert deformer.status == ""

@@ -135,3 +135,32 @@ def test_a_pinned_block_runs_on_the_backend_it_started_with(kernel, monkeypatch)
         monkeypatch.delenv(accel.ACCEL_ENV)
         assert not accel.active()
     assert accel.active()
+
+
+def test_chain_rows_in_a_batch_are_the_rows_computed_at_once(kernel) -> None:  # noqa: F811
+    """The bones' blend down a hierarchy (accel.chain_points / chain_motions with rows) batched as the
+    vertex map is: the same bits as at once."""
+    rng = np.random.default_rng(11)
+    n, passes = CHUNK + 300, 2
+    pts, params, idx, val = blend_case(rng, n, m=5, k=3)
+    idx3 = np.stack([idx, np.roll(idx, 1, axis=0)])[:passes]
+    val3 = np.stack([val, val[::-1]])[:passes]
+    prefix = rng.integers(0, 3, n).astype(np.int32)
+    prefixes = np.eye(4)[:3].T.reshape(1, 12).repeat(3, axis=0)
+    prefixes[:, 9:] = rng.normal(size=(3, 3))
+    rows = np.flatnonzero(rng.random(n) < 0.6)
+    chain = (idx3, val3, prefix, prefixes)
+    alone = accel.chain_points(pts, params, *chain, rows, np.full((n, 3), 2.0), offsets=True)
+    alone_m = accel.chain_motions(params, *chain, np.full((4, n, 3), 2.0, np.float32), rows=rows)
+    batch = accel.KernelBatch()
+    out, out_m = np.full((n, 3), 2.0), np.full((4, n, 3), 2.0, np.float32)
+    with accel.collecting(batch):
+        accel.chain_points(pts, params, *chain, rows, out, offsets=True)
+        accel.chain_motions(params, *chain, out_m, rows=rows)
+        full = accel.chain_points(pts, params, *chain)  # no rows: at once
+    assert len(batch) == 2
+    assert np.all(out == 2.0) and np.all(out_m == 2.0)
+    batch.run()
+    assert out.tobytes() == alone.tobytes()
+    assert out_m.tobytes() == alone_m.tobytes()
+    assert np.array_equal(full[rows] - pts[rows], alone[rows])
