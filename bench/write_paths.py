@@ -13,6 +13,7 @@ Two scenes: a ~5,000-vertex mesh beside 5,000 other objects (the visibility re-f
 
 from __future__ import annotations
 
+import importlib
 import time
 import traceback
 
@@ -20,6 +21,7 @@ import bpy
 import common
 import native
 import numpy as np
+import ours
 from common import Samples, Table, fmt_ms, fmt_ratio
 
 FRAMES = 16
@@ -64,7 +66,8 @@ def _modifier(target, ng, carrier=None) -> None:
     mod = target.modifiers.new("Floor", "NODES")
     mod.node_group = ng
     if carrier is not None:
-        mod["Socket_1"] = carrier
+        inputs = importlib.import_module(f"{ours.INNER}.blender.files.modifier_inputs")
+        inputs.set_value(mod, "Socket_1", carrier)
         mod.node_group = ng  # re-assigned: the relation to the carrier is built
 
 

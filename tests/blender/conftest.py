@@ -8,11 +8,13 @@ BLENDER_USER_RESOURCES must be set before bpy is imported, so this module sets i
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import subprocess
 import sys
 import tempfile
 import textwrap
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -56,6 +58,33 @@ def _fresh_zip() -> Path:
 def pytest_configure(config) -> None:
     config.addinivalue_line("markers", "attributes: inspects the mesh-attribute output store directly "
                                        "(skipped on AFFINE_DEFORMERS_OUTPUT_STORE=POSITIONS)")
+
+
+_SESSION_START = time.monotonic()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    """Record this suite's counts where `AFFINE_SUITE_RECORD` says (a folder; `make test` sets it), for
+    README's table of tested versions (tools/tested_versions.py)."""
+    folder = os.environ.get("AFFINE_SUITE_RECORD")
+    if not folder:
+        return
+    stats = terminalreporter.stats
+    version = bpy.app.version
+    label = os.environ.get("AFFINE_SUITE_LABEL") or f"{version[0]}.{version[1]}"
+    record = {
+        "label": label,
+        "blender": bpy.app.version_string,
+        "python": ".".join(map(str, sys.version_info[:3])),
+        "passed": len(stats.get("passed", [])),
+        "failed": len(stats.get("failed", [])) + len(stats.get("error", [])),
+        "skipped": len(stats.get("skipped", [])),
+        "seconds": round(time.monotonic() - _SESSION_START, 1),
+        "exit": int(exitstatus),
+    }
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    name = "".join(c if c.isalnum() else "_" for c in label)
+    (Path(folder) / f"{name}.json").write_text(json.dumps(record), encoding="utf-8")
 
 
 def pytest_collection_modifyitems(config, items) -> None:

@@ -147,11 +147,13 @@ def _steps(plan_json: str, folder: Path) -> dict[str, str]:
     }
 
 
-def run(run_blender: Callable[..., object], folder: Path, bodies: list[Body] | None = None) -> Run:
+def run(run_blender: Callable[..., object], folder: Path, bodies: list[Body] | None = None,
+        build_asset: Callable[..., object] | None = None) -> Run:
     """Build the asset and measure every context in five fresh processes, one after the other (each
     needs the file the one before saved); `run_blender(script, env_extra=None)` runs a script in a
     fresh bpy process (conftest.run_blender): the last one with an empty user directory, where the
-    add-on is not installed."""
+    add-on is not installed. `build_asset`, when given, runs the first process instead (another
+    Blender saves the asset: test_cross_version.py)."""
     bodies = plan() if bodies is None else bodies
     steps = _steps(_plan_json(bodies), folder)
     seconds, positions, statuses = {}, {}, {}
@@ -161,6 +163,8 @@ def run(run_blender: Callable[..., object], folder: Path, bodies: list[Body] | N
         start = time.perf_counter()
         if step == "bare":
             run_blender(_script(call, addon=False), env_extra={"BLENDER_USER_RESOURCES": str(bare_user)})
+        elif step == "asset" and build_asset is not None:
+            build_asset(_script(call))
         else:
             run_blender(_script(call))
         seconds[step] = time.perf_counter() - start

@@ -12,6 +12,7 @@ import json
 import bpy
 import numpy as np
 
+from tests.blender.conftest import PACKAGE
 from tests.blender.test_animation import _animated_scene
 
 
@@ -21,10 +22,10 @@ def _frame_check(installed):
 
 def _stamp(obj, deformer) -> np.ndarray:
     """The output's stamp: the mesh's attribute (every point), or a position carrier's last point."""
-    carrier = next((m for m in obj.modifiers if m.type == "NODES"), None)
-    carrier = next((v for v in (carrier.values() if carrier else ()) if isinstance(v, bpy.types.Object)
-                    and v.get("affine_deformers_positions") and len(v.data.vertices)), None)
-    if carrier is not None:
+    nodes = importlib.import_module(f"{PACKAGE}.blender.files.nodes")
+    mod = next((m for m in obj.modifiers if m.type == "NODES"), None)
+    carrier = nodes.carrier_of(mod) if mod is not None else None
+    if carrier is not None and carrier.get("affine_deformers_positions") and len(carrier.data.vertices):
         return np.array([carrier.data.vertices[len(carrier.data.vertices) - 1].co.x], np.float32)
     values = np.empty(len(obj.data.vertices), np.float32)
     obj.data.attributes[f".affdef_{deformer.uid}_frame"].data.foreach_get("value", values)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import nodes, storage
+from . import modifier_inputs, nodes, storage
 
 GROUP_NAME = "AffineDeformer Input"
 GROUP_MARK = "affine_deformers_input"  # custom property identifying the group (value = version)
@@ -160,7 +160,7 @@ def offset_of(mod: bpy.types.Modifier) -> str:
     if not is_input_modifier(mod):
         return ""
     identifier = nodes.offset_socket_identifier(mod.node_group)
-    value = mod.get(identifier) if identifier else None
+    value = modifier_inputs.value(mod, identifier)
     return value if isinstance(value, str) else ""
 
 
@@ -173,7 +173,7 @@ def ensure_modifier(obj: bpy.types.Object, offset_attr: str, carrier: bpy.types.
         ng = ensure_group()
         mod = obj.modifiers.new(name=MODIFIER_NAME.format(label), type="NODES")
         mod.node_group = ng
-        mod[nodes.offset_socket_identifier(ng)] = offset_attr
+        modifier_inputs.set_value(mod, nodes.offset_socket_identifier(ng), offset_attr)
         mod.show_expanded = False
     if obj.modifiers[0] != mod:
         obj.modifiers.move(list(obj.modifiers).index(mod), 0)
@@ -185,5 +185,5 @@ def remove_stale(obj: bpy.types.Object, offset_attrs: set[str]) -> None:
     """Remove the input modifiers on `obj` of deformers that are gone (not in `offset_attrs`)."""
     for mod in [m for m in obj.modifiers if is_input_modifier(m) and offset_of(m) not in offset_attrs]:
         if not mod.is_override_data:  # only our local insertions; anything from the library stays
-            obj.modifiers.remove(mod)
+            nodes.remove_modifier(obj, mod)
 

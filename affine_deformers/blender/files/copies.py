@@ -118,7 +118,7 @@ def handle(depsgraph: bpy.types.Depsgraph) -> list[str]:
                 continue
             name = mod.name
             _cage, collection = nodes.controls(mod)
-            obj.modifiers.remove(mod)
+            nodes.remove_modifier(obj, mod)
             relations.drop_if_unused(collection)
             messages.append(f"Removed '{name}' copied to '{obj.name}' from '{source.name}': an affine "
                             f"deformer cannot be copied there ({problem})")

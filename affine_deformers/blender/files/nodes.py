@@ -56,6 +56,7 @@ import numpy as np
 
 from .. import caches
 from ..update import frame_check
+from . import modifier_inputs
 
 GROUP_NAME = "AffineDeformer"
 GROUP_MARK = "affine_deformers_group"  # custom property identifying our group (value = version)
@@ -109,7 +110,7 @@ def _is_our_group(ng: bpy.types.NodeTree | None) -> bool:
 def offset_attribute(mod: bpy.types.Modifier) -> str:
     """The offset attribute our modifier reads ('' when `mod` is not ours)."""
     identifier = _our_offset_identifier(mod.node_group) if mod.type == "NODES" else None
-    value = mod.get(identifier) if identifier else None
+    value = modifier_inputs.value(mod, identifier)
     return value if isinstance(value, str) else ""
 
 
@@ -467,7 +468,7 @@ def is_modifier_for(mod: bpy.types.Modifier | None, offset_attr: str) -> bool:
     if mod is None or mod.type != "NODES":
         return False
     identifier = _our_offset_identifier(mod.node_group)
-    return identifier is not None and mod.get(identifier) == offset_attr
+    return identifier is not None and modifier_inputs.value(mod, identifier) == offset_attr
 
 
 def ensure_modifier(obj: bpy.types.Object, offset_attr: str, motion_attrs: tuple[str, ...], label: str,
@@ -479,10 +480,22 @@ def ensure_modifier(obj: bpy.types.Object, offset_attr: str, motion_attrs: tuple
         ng = ensure_group()
         mod = obj.modifiers.new(name=label, type="NODES")
         mod.node_group = ng
-        mod[offset_socket_identifier(ng)] = offset_attr
+        modifier_inputs.set_value(mod, offset_socket_identifier(ng), offset_attr)
         mod.show_viewport, mod.show_render = show_viewport, show_render
     set_motion_names(mod, motion_attrs)
     return mod
+
+
+def remove_modifier(obj: bpy.types.Object, mod: bpy.types.NodesModifier) -> None:
+    """Remove a modifier of ours, emptying its ID inputs first: Blender 5.2 and 5.3 keep the users of
+    the IDs a removed modifier named (measured on 5.2.4 and 5.3.0), so a probe collection or a carrier
+    would look used after its deformer is gone."""
+    ng = mod.node_group
+    if ng is not None:
+        for (_name, socket_type), identifier in _input_identifiers(ng).items():
+            if socket_type in ("NodeSocketObject", "NodeSocketCollection"):
+                modifier_inputs.set_value(mod, identifier, None)
+    obj.modifiers.remove(mod)
 
 
 def set_motion_names(mod: bpy.types.NodesModifier, motion_attrs: tuple[str, ...]) -> bool:
@@ -494,18 +507,16 @@ def set_motion_names(mod: bpy.types.NodesModifier, motion_attrs: tuple[str, ...]
         mod.node_group = ng  # let the modifier pick up the new inputs before they are set
     for name, value in zip(MOTION_SOCKETS, motion_attrs, strict=True):
         identifier = _input_identifier(ng, name, "NodeSocketString")
-        if mod.get(identifier) != value:
-            mod[identifier] = value
-            changed = True
+        changed = modifier_inputs.set_value(mod, identifier, value) or changed
     if changed:
-        mod.node_group = ng  # assigning an ID property does not tag the modifier; re-assigning does
+        mod.node_group = ng  # assigning an input does not tag the modifier; re-assigning does
     return changed
 
 
 def set_offset_name(mod: bpy.types.NodesModifier, offset_attr: str) -> None:
     """Point our modifier at another offset attribute (a deformer that got a new id)."""
     ng = mod.node_group
-    mod[offset_socket_identifier(ng)] = offset_attr
+    modifier_inputs.set_value(mod, offset_socket_identifier(ng), offset_attr)
     mod.node_group = ng
 
 
@@ -515,8 +526,8 @@ def controls(mod: bpy.types.NodesModifier) -> tuple[bpy.types.Object | None, bpy
     keys = [(name, socket_type) for name, socket_type, _ in CONTROL_SOCKETS]
     if identifiers is None or not all(key in identifiers for key in keys):  # a linked group may be old
         return None, None
-    cage = mod.get(identifiers[keys[0]])
-    probes = mod.get(identifiers[keys[1]])
+    cage = modifier_inputs.value(mod, identifiers[keys[0]])
+    probes = modifier_inputs.value(mod, identifiers[keys[1]])
     return (cage if isinstance(cage, bpy.types.Object) else None,
             probes if isinstance(probes, bpy.types.Collection) else None)
 
@@ -531,11 +542,9 @@ def set_controls(mod: bpy.types.NodesModifier, cage: bpy.types.Object | None,
         mod.node_group = ng  # let the modifier pick up the new inputs before they are set
     for (name, socket_type, _), value in zip(CONTROL_SOCKETS, (cage, probes), strict=True):
         identifier = _input_identifier(ng, name, socket_type)
-        if mod.get(identifier) != value:
-            mod[identifier] = value
-            changed = True
+        changed = modifier_inputs.set_value(mod, identifier, value) or changed
     if changed:
-        # Assigning an ID property does not tag the depsgraph relations; re-assigning the group does.
+        # Assigning an input does not tag the depsgraph relations; re-assigning the group does.
         mod.node_group = ng
     return changed
 
@@ -562,7 +571,7 @@ def carrier_of(mod: bpy.types.NodesModifier) -> bpy.types.Object | None:
     modifier: carrier_input.py); None: none, or no such input."""
     ng = mod.node_group
     identifier = _input_identifier(ng, CARRIER_SOCKET, "NodeSocketObject") if ng is not None else None
-    value = mod.get(identifier) if identifier else None
+    value = modifier_inputs.value(mod, identifier)
     return value if isinstance(value, bpy.types.Object) else None
 
 
@@ -573,9 +582,8 @@ def set_carrier(mod: bpy.types.NodesModifier, carrier: bpy.types.Object | None) 
     identifier = _input_identifier(ng, CARRIER_SOCKET, "NodeSocketObject") if ng is not None else None
     if identifier is None:
         return False
-    if mod.get(identifier) != carrier:
-        mod[identifier] = carrier
-        mod.node_group = ng  # assigning an ID property does not tag the relations; re-assigning does
+    if modifier_inputs.set_value(mod, identifier, carrier):
+        mod.node_group = ng  # assigning an input does not tag the relations; re-assigning does
     return True
 
 

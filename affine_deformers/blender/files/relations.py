@@ -163,7 +163,7 @@ def remove_modifier(obj: bpy.types.Object, uid: str) -> None:
     if mod is None:
         return
     _cage, collection = nodes.controls(mod)
-    obj.modifiers.remove(mod)
+    nodes.remove_modifier(obj, mod)
     drop_if_unused(collection)
 
 

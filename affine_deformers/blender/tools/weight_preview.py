@@ -38,7 +38,7 @@ import bpy
 import numpy as np
 
 from .. import caches, kinds
-from ..files import storage
+from ..files import modifier_inputs, storage
 from ..kinds import BindError
 from ..ui.addressing import linked_mesh_problem
 
@@ -221,11 +221,7 @@ def find_modifier(obj: bpy.types.Object) -> bpy.types.NodesModifier | None:
 
 
 def _set_input(mod: bpy.types.NodesModifier, name: str, value: str) -> bool:
-    identifier = _socket_identifier(mod.node_group, name)
-    if mod.get(identifier) == value:
-        return False
-    mod[identifier] = value
-    return True
+    return modifier_inputs.set_value(mod, _socket_identifier(mod.node_group, name), value)
 
 
 def _ensure_modifier(obj: bpy.types.Object, source: str, display: str) -> bpy.types.NodesModifier:

@@ -15,7 +15,7 @@ from bpy.app.handlers import persistent
 from .. import caches
 from ..files import carrier, copies, instances, nodes, relations
 from ..kinds import transforms
-from . import evaluate, read_ahead
+from . import evaluate, read_ahead, registry
 
 _syncing = False  # relations.sync_scene is running (its depsgraph.update() calls this handler again)
 
@@ -52,6 +52,9 @@ def on_depsgraph_update_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgr
     if _syncing or read_ahead.is_helper(scene):
         return
     try:
+        # Before `_sync`, which may evaluate again: the depsgraph then lists that pass's updates only
+        # (an appended rig whose node group `_sync` upgraded was never registered, and never updated).
+        registry.note(depsgraph)
         scene_changed = False
         for update in depsgraph.updates if depsgraph is not None else ():
             # Visibility, collection and view layer changes all list the scene; moving a control does not.
