@@ -37,6 +37,8 @@ CONTEXT_TITLES = {
     "bare_asset": "asset without the add-on",
     "bare_shot": "shot without the add-on",
 }
+#: The prefix of the statuses that hold a body's modifiers' warnings (pipeline_matrix_scene.WARNINGS).
+WARNINGS_KEY = "warnings"
 #: Contexts where the add-on is not installed: a cell's "status" is the modifier's warning there.
 WITHOUT_ADDON = ("bare_asset", "bare_shot")
 #: The first Blender with the Warning node (frame_check.py): before it, a modifier without the add-on
@@ -331,9 +333,26 @@ def picture_problems(run: Run) -> list[str]:
     return found
 
 
+def warning_problems(run: Run) -> list[str]:
+    """A warning icon on a modifier where the add-on runs and nothing is wrong: artists learn to ignore
+    the icon, then miss the one that matters (the add-on not running). Any warning in a context with
+    the add-on fails, whatever the cell's verdict."""
+    found = []
+    for key, text in run.statuses.items():
+        label, _, rest = key.partition("|")
+        if label != WARNINGS_KEY or not text:
+            continue
+        context, name, frame = rest.split("|")
+        if context not in WITHOUT_ADDON and context != "input":
+            found.append(f"{name} in {CONTEXT_TITLES.get(context, context)} at frame {frame}: a modifier "
+                         f"warns \"{text}\"")
+    return found
+
+
 def problems(run: Run) -> list[str]:
-    """Everything that fails: the asset's problems, the pictures', and every failing cell."""
-    return asset_problems(run) + picture_problems(run) + failures(run)
+    """Everything that fails: the asset's problems, the pictures', every failing cell and every warning
+    where the add-on runs."""
+    return asset_problems(run) + picture_problems(run) + failures(run) + warning_problems(run)
 
 
 def markdown(run: Run, date: str, failed: list[str]) -> str:

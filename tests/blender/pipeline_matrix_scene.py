@@ -233,6 +233,7 @@ class Record:
         key = f"{label}|{name}|{frame}"
         self.positions[key] = positions(obj, depsgraph)
         self.statuses[key] = status(obj)
+        self.statuses[f"{WARNINGS}|{key}"] = node_warnings(obj)
 
     def measure(self, label: str, names, get, frames=VISIT) -> None:
         """Visit `frames` and record every body (`get(name)`: its object in this context)."""
@@ -246,6 +247,18 @@ class Record:
         np.savez(out + ".npz", **self.positions)
         with open(out + ".json", "w") as file:
             json.dump(self.statuses, file)
+
+
+#: The prefix of the keys under which `Record.add` keeps the warnings on a body's modifiers.
+WARNINGS = "warnings"
+
+
+def node_warnings(obj) -> str:
+    """The warnings Blender shows on any Geometry Nodes modifier of `obj` (`node_warnings`: 4.3 on),
+    ours, our input modifiers' and the artist's alike."""
+    found = [w.message for mod in obj.modifiers if mod.type == "NODES"
+             for w in getattr(mod, "node_warnings", ())]
+    return " / ".join(dict.fromkeys(found))
 
 
 def ours(obj) -> list[bpy.types.Modifier]:

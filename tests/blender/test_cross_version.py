@@ -66,7 +66,8 @@ def test_a_file_saved_by_an_older_blender_plays_here_as_it_did_there(bl, extensi
     assert run.blender.startswith(label), (run.blender, label)
     # The render's picture is not compared with the asset's: another Blender's Cycles may shade the
     # same meshes differently. The render cells compare the meshes that render evaluated.
-    failed = pipeline_matrix.asset_problems(run) + pipeline_matrix.failures(run)
+    failed = (pipeline_matrix.asset_problems(run) + pipeline_matrix.failures(run)
+              + pipeline_matrix.warning_problems(run))
     worst = max((c.error for body in bodies for context in ("local", "overridden", "reopened", "render")
                  if (c := pipeline_matrix.cell(run, body, context)).error is not None), default=0.0)
     print(f"saved by {run.blender}, opened by {bpy.app.version_string}: {len(bodies)} bodies, "

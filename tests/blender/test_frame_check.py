@@ -14,6 +14,7 @@ import numpy as np
 
 from tests.blender.conftest import PACKAGE
 from tests.blender.test_animation import _animated_scene
+from tests.blender.test_artist_moves import blender_scene_time
 
 
 def _frame_check(installed):
@@ -41,9 +42,9 @@ def test_the_stamp_is_the_scene_time_or_every_frame(bl, installed):
         assert deformer.status == ""
         stamp = _stamp(target, deformer)
         assert np.all(stamp == np.float32(frame + subframe)), (frame, subframe, stamp[:3])
-    scene.render.frame_map_old, scene.render.frame_map_new = 100, 50  # time remapping halves ctime
+    scene.render.frame_map_old, scene.render.frame_map_new = 100, 50  # Time Stretching: frame 10 at time 20
     scene.frame_set(10)
-    assert np.all(_stamp(target, deformer) == np.float32(5.0))
+    assert np.all(_stamp(target, deformer) == blender_scene_time()) and blender_scene_time() == 20.0
     scene.render.frame_map_old = scene.render.frame_map_new = 100
 
     still = bl.grid_cube(cuts=3, name="Still")

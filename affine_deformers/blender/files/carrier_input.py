@@ -27,7 +27,10 @@ from . import modifier_inputs, nodes, storage
 
 GROUP_NAME = "AffineDeformer Input"
 GROUP_MARK = "affine_deformers_input"  # custom property identifying the group (value = version)
-GROUP_VERSION = 1
+GROUP_VERSION = 2
+#: 1: the copy chain; 2: an attribute is removed only where the geometry has it (Remove Named
+#: Attribute warns "Attribute does not exist" on the modifier otherwise, on every working override).
+KNOWN_VERSIONS = (1, 2)
 MODIFIER_NAME = "{} Input"
 #: (suffix of the attribute name in place of "_offset", data type) of every output attribute.
 _ATTRIBUTES = (("_offset", "FLOAT_VECTOR"),
@@ -36,13 +39,17 @@ _ATTRIBUTES = (("_offset", "FLOAT_VECTOR"),
 
 
 def _is_group(ng: bpy.types.NodeTree | None) -> bool:
-    return ng is not None and ng.bl_idname == "GeometryNodeTree" and ng.get(GROUP_MARK) == GROUP_VERSION
+    """Our input group, of the current or an older version (an older one still copies; see
+    `ensure_group`)."""
+    return ng is not None and ng.bl_idname == "GeometryNodeTree" and ng.get(GROUP_MARK) in KNOWN_VERSIONS
 
 
 def ensure_group() -> bpy.types.NodeTree:
-    """The input group of this file, made when missing."""
+    """The input group of this file at the current version: made when missing, rebuilt in place when an
+    older version saved it (its modifiers keep their inputs)."""
     found = next((ng for ng in bpy.data.node_groups if _is_group(ng) and nodes.is_editable(ng)), None)
     if found is not None:
+        upgrade_group(found)
         return found
     ng = bpy.data.node_groups.new(GROUP_NAME, "GeometryNodeTree")
     ng.is_modifier = True
@@ -59,6 +66,17 @@ def ensure_group() -> bpy.types.NodeTree:
     _build_nodes(ng)
     ng[GROUP_MARK] = GROUP_VERSION
     return ng
+
+
+def upgrade_group(ng: bpy.types.NodeTree) -> bool:
+    """Rebuild an input group of an older version in place (its modifiers keep their inputs); a linked
+    one is left as it is. True when it changed."""
+    if not _is_group(ng) or ng.get(GROUP_MARK) == GROUP_VERSION or not nodes.is_editable(ng):
+        return False
+    ng.nodes.clear()
+    _build_nodes(ng)
+    ng[GROUP_MARK] = GROUP_VERSION
+    return True
 
 
 def _name_socket(ng: bpy.types.NodeTree, offset_name: bpy.types.NodeSocket, suffix: str,
@@ -108,12 +126,25 @@ def _copy(ng: bpy.types.NodeTree, geometry: bpy.types.NodeSocket, carrier: bpy.t
     remove.location = (x + 360, y + 80)
     ng.links.new(geometry, remove.inputs["Geometry"])
     ng.links.new(name, remove.inputs["Name"])
+    # Remove only what is there: Remove Named Attribute warns on the modifier when it finds nothing, and
+    # the lazy Switch does not evaluate it then.
+    here = ng.nodes.new("GeometryNodeSampleIndex")  # a single value: does the geometry have it?
+    here.data_type, here.domain = "BOOLEAN", "POINT"
+    here.location = (x + 180, y + 240)
+    ng.links.new(geometry, here.inputs["Geometry"])
+    ng.links.new(named.outputs["Exists"], here.inputs["Value"])
+    removed = _geometry_switch(ng, here.outputs[0], geometry, remove.outputs[0], (x + 450, y + 160))
+    return _geometry_switch(ng, exists.outputs[0], removed, store.outputs[0], (x + 540, y))
+
+
+def _geometry_switch(ng: bpy.types.NodeTree, condition: bpy.types.NodeSocket, false: bpy.types.NodeSocket,
+                     true: bpy.types.NodeSocket, location: tuple[float, float]) -> bpy.types.NodeSocket:
     switch = ng.nodes.new("GeometryNodeSwitch")
     switch.input_type = "GEOMETRY"
-    switch.location = (x + 540, y)
-    ng.links.new(exists.outputs[0], switch.inputs["Switch"])
-    ng.links.new(remove.outputs[0], switch.inputs["False"])
-    ng.links.new(store.outputs[0], switch.inputs["True"])
+    switch.location = location
+    ng.links.new(condition, switch.inputs["Switch"])
+    ng.links.new(false, switch.inputs["False"])
+    ng.links.new(true, switch.inputs["True"])
     return switch.outputs[0]
 
 
@@ -141,14 +172,9 @@ def _build_nodes(ng: bpy.types.NodeTree) -> None:
     has_points.location = (-300, -600)
     ng.links.new(size.outputs["Point Count"], has_points.inputs[0])
     has_points.inputs[1].default_value = 0.5
-    switch = ng.nodes.new("GeometryNodeSwitch")
-    switch.input_type = "GEOMETRY"
-    switch.location = (500, 0)
-    ng.links.new(has_points.outputs[0], switch.inputs["Switch"])
-    ng.links.new(group_in.outputs[0], switch.inputs["False"])
-    ng.links.new(geometry, switch.inputs["True"])
+    shown = _geometry_switch(ng, has_points.outputs[0], group_in.outputs[0], geometry, (500, 0))
     group_out.location = (700, 0)
-    ng.links.new(switch.outputs[0], group_out.inputs[0])
+    ng.links.new(shown, group_out.inputs[0])
 
 
 def is_input_modifier(mod: bpy.types.Modifier) -> bool:

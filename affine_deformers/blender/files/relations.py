@@ -35,7 +35,7 @@ from __future__ import annotations
 import bpy
 
 from .. import kinds
-from . import nodes, storage
+from . import carrier_input, nodes, storage
 
 PROBES_NAME = ".AffineDeformer Probes"
 PROBES_MARK = "affine_deformers_probes"  # custom property on the probe collections we own
@@ -190,6 +190,7 @@ def upgrade_all() -> None:
     Writes nothing when everything is current."""
     for ng in list(bpy.data.node_groups):
         nodes.upgrade_group(ng)
+        carrier_input.upgrade_group(ng)
     for obj in bpy.data.objects:
         if obj.library is not None or obj.type != "MESH":
             continue

@@ -71,13 +71,40 @@ def convert(obj: bpy.types.Object, modifier: bpy.types.Modifier, depsgraph: bpy.
     except (BindError, ValueError):
         provided.remove(obj, deformer_index(obj, deformer))
         raise
+    take_over(obj, deformer, modifier)
+    return deformer, warnings
+
+
+def take_over(obj: bpy.types.Object, deformer, modifier: bpy.types.Modifier) -> None:
+    """Put the bound bone deformer's modifier directly below the Armature modifier `modifier` and turn
+    that off (kept, so Restore can turn it back on), so the mesh is not deformed twice."""
     ours = nodes.find_modifier(obj, storage.offset_name(deformer.uid))
     stack = list(obj.modifiers)
-    obj.modifiers.move(stack.index(ours), stack.index(modifier) + 1)
+    if ours is not None:
+        obj.modifiers.move(stack.index(ours), stack.index(modifier) + 1)
     deformer[CONVERTED_KEY] = {"modifier": modifier.name, "show_viewport": bool(modifier.show_viewport),
                                "show_render": bool(modifier.show_render)}
     modifier.show_viewport = modifier.show_render = False
-    return deformer, warnings
+
+
+def doubling_modifiers(obj: bpy.types.Object, armature: bpy.types.Object | None) -> list[bpy.types.Modifier]:
+    """The enabled (viewport or render) Armature modifiers of `obj` that name `armature`: beside a bone
+    deformer of the same armature they deform the mesh a second time."""
+    if armature is None or obj.type != "MESH":
+        return []
+    return [m for m in obj.modifiers if m.type == "ARMATURE" and m.object == armature
+            and (m.show_viewport or m.show_render)]
+
+
+def doubling_warning(obj: bpy.types.Object, armature: bpy.types.Object | None) -> str:
+    """The status naming an Armature modifier that deforms by the same armature as a bone deformer
+    ('' when there is none)."""
+    doubled = doubling_modifiers(obj, armature)
+    if not doubled:
+        return ""
+    names = ", ".join(f"'{m.name}'" for m in doubled)
+    return (f"The Armature modifier {names} also deforms '{obj.name}' by '{armature.name}': the mesh is "
+            "deformed twice (turn it off, or add the bone deformer with Convert)")
 
 
 def restore(obj: bpy.types.Object, index: int) -> str:

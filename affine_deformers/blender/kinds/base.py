@@ -253,6 +253,11 @@ class DeformerKind(ABC):
     def set_up(self, deformer, adopted: Adopted) -> None:
         """Give a new, unbound deformer item its controls and the kind's defaults."""
 
+    def after_add(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
+        """Finish a deformer just added and bound (the add operator's last step); returns what to add
+        to its report ('' when nothing)."""
+        return ""
+
     @abstractmethod
     def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
         """The report after a new deformer of this kind was added and bound."""

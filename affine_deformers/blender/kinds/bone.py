@@ -338,7 +338,8 @@ def _finish(reading: _Reading) -> Motions:
     if deformer.branch_rule != "CHANNELS":
         chain.references = chain.pivots = None
     return Motions(matrices, np.array([r.at_rest for r in chosen]), chain=chain,
-                   pool=_pool_mix(chain.parents, _pool_scales(deformer)))
+                   pool=_pool_mix(chain.parents, _pool_scales(deformer)),
+                   warning=armature_convert.doubling_warning(reading.obj, armature))
 
 
 _batch = Batch(_read, _fill, _finish)
@@ -489,6 +490,19 @@ class BoneKind(BatchedKind, DeformerKind):
         deformer.weight_mode = "VERTEX_GROUPS" if painted else "INVERSE_DISTANCE"
         deformer.normalize = "SUM"  # as the Armature modifier: a vertex's bone weights sum to 1
         deformer.max_influences = DEFAULT_INFLUENCES
+        replaced = armature_convert.doubling_modifiers(target, armature)
+        if replaced and replaced[0].vertex_group and not replaced[0].invert_vertex_group:
+            deformer.mask_group = replaced[0].vertex_group  # as Convert: the modifier's mask carries over
+
+    def after_add(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
+        """An enabled Armature modifier of the same armature would deform the mesh a second time: the
+        deformer takes its place as Convert does (the modifier kept, turned off; Restore undoes it)."""
+        replaced = armature_convert.doubling_modifiers(target, adopted.controls[0])
+        if not replaced:
+            return ""
+        armature_convert.take_over(target, deformer, replaced[0])
+        return (f"; '{replaced[0].name}' is turned off (it would deform the mesh a second time; "
+                "'Back to' turns it on again)")
 
     def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
         weights_from = ("their vertex groups" if deformer.weight_mode == "VERTEX_GROUPS"

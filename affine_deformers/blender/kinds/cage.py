@@ -368,6 +368,21 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
     return points, topology, loops, start, total
 
 
+def _flipped_faces(loops: np.ndarray, start: np.ndarray, total: np.ndarray, now_loops: np.ndarray,
+                   now_start: np.ndarray, now_total: np.ndarray) -> int:
+    """How many faces hold the same vertices as at bind but in another order (flipped normals), when
+    that is the only change (else 0: a topology change)."""
+    if not (np.array_equal(start, now_start) and np.array_equal(total, now_total)
+            and len(loops) == len(now_loops)) or len(total) == 0:
+        return 0
+    face = np.repeat(np.arange(len(total)), total)
+    then = loops[np.lexsort((loops, face))]
+    now = now_loops[np.lexsort((now_loops, face))]
+    if not np.array_equal(then, now):
+        return 0
+    return int(np.count_nonzero(np.add.reduceat((loops != now_loops).astype(np.int64), start)))
+
+
 class CageKind(DeformerKind):
     """A closed mesh with outward normals; each face is a control."""
 
@@ -584,6 +599,13 @@ class CageKind(DeformerKind):
         same = (len(state.points) == len(rest) and np.array_equal(state.loop_vertices, loops)
                 and np.array_equal(state.loop_start, start) and np.array_equal(state.loop_total, total))
         if not same:
+            flipped = _flipped_faces(loops, start, total, state.loop_vertices, state.loop_start,
+                                     state.loop_total)
+            if flipped:
+                return Motions.invalid(
+                    F, f"Cage '{cage.name}' has {flipped} of {F} faces turned the other way since bind (its "
+                       "normals were flipped): the cage is inside out there and the mesh shows its rest "
+                       "shape; flip them back (Recalculate Outside), or rebind")
             return Motions.invalid(
                 F, f"Cage '{cage.name}' changed topology since bind ({len(rest)} → {len(state.points)} "
                    f"vertices, {F} → {len(state.loop_total)} faces): the mesh shows its rest shape; rebind")

@@ -69,9 +69,12 @@ class AddDeformer(TargetPolled):
             kind.set_up(deformer, adopted)
         if not _bind_new(self, context, target, deformer, adopted.created):
             return {"CANCELLED"}
+        finished = kind.after_add(target, deformer, adopted)
         if adopted.warning:
             self.report({"WARNING"}, adopted.warning)
-        self.report({"INFO"}, kind.added_message(target, deformer, adopted))
+        self.report({"INFO"}, kind.added_message(target, deformer, adopted) + finished)
+        if finished:
+            _refresh(context, target)
         return {"FINISHED"}
 
 

@@ -5,7 +5,8 @@ never shows a stale shape.
 The update writes, beside the offsets or motions, a FLOAT point attribute `.affdef_<uid>_frame`
 holding the same value at every point (storage.frame_name): the scene time of the update
 (`scene_time`, what Geometry Nodes' Scene Time node gives as Frame: (frame + subframe) × the time
-remapping), or `STAMP_ALWAYS` when the output is right at every frame (`right_at_every_frame`).
+remapping of Time Stretching), or `STAMP_ALWAYS` when the output is right at every frame
+(`right_at_every_frame`).
 A constant is used rather than one value because the modifiers before ours (Subdivision, Mirror,
 Bevel, …) interpolate point attributes: any point of their output then still holds the stamp, to
 the rounding of a weighted mean (`TOLERANCE`, `RELATIVE_TOLERANCE`).
@@ -67,9 +68,10 @@ def forget(key: caches.Key | None = None) -> None:
 
 def scene_time(scene: bpy.types.Scene) -> np.float32:
     """The scene time Geometry Nodes' Scene Time node gives as Frame, in float32 as Blender forms it:
-    (frame + subframe) × frame_map_new / frame_map_old."""
+    (frame + subframe) × frame_map_old / frame_map_new (Time Stretching 100 → 50 plays frame 5 at
+    time 10; measured on 4.2, 5.0 and 5.3 with a Scene Time node, test_artist_moves.py)."""
     render = scene.render
-    remap = np.float32(render.frame_map_new) / np.float32(render.frame_map_old)
+    remap = np.float32(render.frame_map_old) / np.float32(render.frame_map_new)
     return (np.float32(scene.frame_current) + np.float32(scene.frame_subframe)) * remap
 
 

@@ -1,0 +1,197 @@
+"""An artist's ordinary moves, checked against what Blender itself gives (issue 55): each case builds
+the rig the way an artist does (the menu's defaults, the usual toggles) and compares with Blender's
+own result for the same rig (its Armature modifier, Scene Time), never with the add-on's formula.
+
+Here: Affine Bones added where the mesh already has an Armature modifier of that armature (it must
+not deform the mesh twice), and the scene's frame mapped to time by Time Stretching (the output
+stamp must agree with what Scene Time gives, or every frame shows the input).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import bpy
+import numpy as np
+import pytest
+
+from tests.blender.test_bone_deformer import _armature, _bar, _paint, _ramp_weights
+
+
+def _skinned_bar(bl):
+    """The bar of test_bone_deformer skinned to a two-bone 'Rig' by an Armature modifier (Preserve
+    Volume), as an artist's mesh arrives: painted groups, the modifier on."""
+    bar = _bar(bl)
+    arm = _armature([0.0, 2.0, 4.0])
+    x = bl.rest_positions(bar)[:, 0].astype(np.float64)
+    centers = [0.5 * (a + b) for a, b in itertools.pairwise([0.0, 2.0, 4.0])]
+    _paint(bar, _ramp_weights(x, centers, centers[1] - centers[0]), ["B0", "B1"])
+    native = bar.modifiers.new("Armature", "ARMATURE")
+    native.object, native.use_deform_preserve_volume = arm, True
+    return bar, arm, native
+
+
+def _bend(arm, degrees: float = 60.0) -> None:
+    bone = arm.pose.bones["B1"]
+    bone.rotation_mode = "XYZ"
+    bone.rotation_euler = (0.0, 0.0, np.radians(degrees))
+    bpy.context.view_layer.update()
+
+
+def _armature_alone(bl, bar, native) -> np.ndarray:
+    """What Blender's Armature modifier gives the posed bar, with every deformer of ours off."""
+    ours = [m for m in bar.modifiers if m.type == "NODES"]
+    states = [(m.show_viewport, m.show_render) for m in ours]
+    native_state = (native.show_viewport, native.show_render)
+    for m in ours:
+        m.show_viewport = False
+    native.show_viewport = True
+    bpy.context.view_layer.update()
+    found = bl.evaluated_positions(bar).astype(np.float64)
+    for m, (viewport, render) in zip(ours, states, strict=True):
+        m.show_viewport, m.show_render = viewport, render
+    native.show_viewport, native.show_render = native_state
+    bpy.context.view_layer.update()
+    return found
+
+
+@pytest.mark.parametrize("selected", ["mesh only", "mesh and armature"])
+def test_affine_bones_from_the_menu_does_not_deform_the_mesh_twice(bl, selected):
+    bar, arm, native = _skinned_bar(bl)
+    chosen = [bar] if selected == "mesh only" else [bar, arm]
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=chosen):
+        assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+    deformer = bar.affine_deformers[0]
+    assert not native.show_viewport and not native.show_render, "the Armature modifier is turned off"
+    stack = [m.type for m in bar.modifiers]
+    assert stack == ["ARMATURE", "NODES"], stack  # in the Armature modifier's place, as Convert puts it
+    _bend(arm)
+    ours = bl.evaluated_positions(bar).astype(np.float64)
+    theirs = _armature_alone(bl, bar, native)
+    rest = bl.rest_positions(bar).astype(np.float64)
+    moved = np.abs(theirs - rest).max()
+    assert moved > 1.0, moved
+    # Once deformed: near what the Armature gives (they blend differently where the groups overlap),
+    # where twice deformed was 1.97 off on this 4-unit bar.
+    assert np.abs(ours - theirs).max() < 0.1 * moved, np.abs(ours - theirs).max()
+    assert deformer.status == "", deformer.status
+    # Back to the Armature modifier: the deformer's own button undoes the take-over.
+    assert bl.run_op(bpy.ops.object.affine_armature_restore, bar, index=0) == {"FINISHED"}
+    assert native.show_viewport and native.show_render and len(bar.affine_deformers) == 0
+
+
+def test_an_armature_modifier_turned_back_on_beside_the_bone_deformer_is_named(bl):
+    bar, arm, native = _skinned_bar(bl)
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+    deformer = bar.affine_deformers[0]
+    native.show_render = True  # on in renders again: a render would deform the mesh twice
+    _bend(arm)
+    bl.evaluated_positions(bar)
+    assert f"'{native.name}'" in deformer.status and "twice" in deformer.status, deformer.status
+    native.show_render = False
+    _bend(arm, 50.0)
+    bl.evaluated_positions(bar)
+    assert deformer.status == "", deformer.status
+
+
+# ------------------------------------------------------------------------------------------ time
+
+
+def blender_scene_time() -> np.float32:
+    """What Blender's own Scene Time node gives as Frame at the current frame (a throw-away object
+    whose Geometry Nodes modifier stores it), to compare the add-on's stamp with."""
+    ng = bpy.data.node_groups.new(".scene time probe", "GeometryNodeTree")
+    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    group_in, group_out = ng.nodes.new("NodeGroupInput"), ng.nodes.new("NodeGroupOutput")
+    store = ng.nodes.new("GeometryNodeStoreNamedAttribute")
+    store.data_type, store.domain = "FLOAT", "POINT"
+    store.inputs["Name"].default_value = "scene_time"
+    ng.links.new(group_in.outputs[0], store.inputs["Geometry"])
+    ng.links.new(ng.nodes.new("GeometryNodeInputSceneTime").outputs["Frame"], store.inputs["Value"])
+    ng.links.new(store.outputs[0], group_out.inputs[0])
+    mesh = bpy.data.meshes.new(".scene time probe")
+    mesh.vertices.add(1)
+    obj = bpy.data.objects.new(".scene time probe", mesh)
+    obj.modifiers.new("Scene Time", "NODES").node_group = ng
+    bpy.context.scene.collection.objects.link(obj)
+    try:
+        evaluated = obj.evaluated_get(bpy.context.evaluated_depsgraph_get()).data
+        value = np.empty(1, np.float32)
+        evaluated.attributes["scene_time"].data.foreach_get("value", value)
+    finally:
+        bpy.data.objects.remove(obj)
+        bpy.data.meshes.remove(mesh)
+        bpy.data.node_groups.remove(ng)
+    return value[0]
+
+
+def _rising_probe_rig(bl):
+    """A cube following one probe keyed to rise from 0 to 4 over frames 1 to 41 (one probe: the mesh
+    moves exactly as the probe, as Blender evaluates it)."""
+    target = bl.grid_cube(cuts=3)
+    probe = bl.empty("Lift", (0.0, 0.0, 0.0))
+    deformer = bl.add_probe_deformer(target, [probe])
+    for frame, z in ((1, 0.0), (41, 4.0)):
+        probe.location.z = z
+        probe.keyframe_insert("location", index=2, frame=frame)
+    return target, probe, deformer
+
+
+def _probe_rise(probe) -> float:
+    return probe.evaluated_get(bpy.context.evaluated_depsgraph_get()).matrix_world.translation.z
+
+
+@pytest.mark.parametrize("old_new", [(100, 50), (50, 100), (25, 40)], ids=["slower", "faster", "odd"])
+def test_time_stretching_plays_every_frame(bl, old_new):
+    target, probe, deformer = _rising_probe_rig(bl)
+    scene = bpy.context.scene
+    scene.render.frame_map_old, scene.render.frame_map_new = old_new
+    rest = bl.rest_positions(target).astype(np.float64)
+    for frame, subframe in ((5, 0.0), (9, 0.0), (2, 0.5), (7, 0.25), (5, 0.0)):
+        scene.frame_set(frame, subframe=subframe)
+        rise = _probe_rise(probe)
+        assert rise > 0.0, "the probe has risen (Blender evaluates its action at the stretched time)"
+        got = bl.evaluated_positions(target).astype(np.float64)
+        assert np.abs(got - rest - (0.0, 0.0, rise)).max() < 1e-5, (frame, subframe, rise)
+        assert deformer.status == "", deformer.status
+
+
+def test_the_stamp_agrees_with_blenders_scene_time(bl, installed):
+    """The stamp is compared with Scene Time by the node group: they must agree at every time mapping
+    (else every frame looks stale and shows the input)."""
+    import importlib
+
+    check = importlib.import_module(f"{installed.package}.blender.update.frame_check")
+    scene = bpy.context.scene
+    for old, new in ((100, 50), (50, 100), (30, 70), (100, 100)):
+        scene.render.frame_map_old, scene.render.frame_map_new = old, new
+        for frame, subframe in ((5, 0.0), (13, 0.25), (1, 0.5)):
+            scene.frame_set(frame, subframe=subframe)
+            found = blender_scene_time()
+            ours = check.scene_time(scene)
+            assert abs(float(ours) - float(found)) <= check.TOLERANCE, (old, new, frame, subframe, found)
+
+
+# ------------------------------------------------------------------------------------------ cages
+
+
+def test_a_cage_whose_faces_were_flipped_after_binding_is_called_inside_out(bl):
+    import bmesh
+
+    from tests.blender.test_cage_deformer import add_cage_deformer, box_cage
+
+    target = bl.grid_cube(cuts=4)
+    cage = box_cage()
+    deformer = add_cage_deformer(target, cage)
+    bm = bmesh.new()
+    bm.from_mesh(cage.data)
+    bmesh.ops.reverse_faces(bm, faces=bm.faces[:2])
+    bm.to_mesh(cage.data)
+    bm.free()
+    cage.data.update()
+    bl.evaluated_positions(target)
+    status = deformer.status
+    assert "turned the other way" in status and "changed topology" not in status, status
+    assert f"2 of {len(cage.data.polygons)} faces" in status, status
