@@ -339,6 +339,35 @@ def polar(M: ArrayLike) -> tuple[FloatArray, FloatArray]:
     return R, 0.5 * (S + np.swapaxes(S, -1, -2))
 
 
+#: The smallest singular value `nearest_positive` lets a degenerate motion keep (a control scaled to
+#: zero acts as one scaled to this: the limit of the nearby valid poses, without log 0 = −∞).
+SCALE_FLOOR = 1e-6
+
+
+def nearest_positive(A: ArrayLike, pivot: ArrayLike, floor: float = SCALE_FLOOR) -> FloatArray:
+    """The motion of Aff+(3) that a collapsed motion A (4, 4) stands for: A itself when every singular
+    value of its 3×3 part M = U Σ Vᵀ is at least `floor`, else U diag(max(σ, floor)) Vᵀ, with the
+    control's `pivot` (its rest origin, (3,)) keeping its image A · pivot. So what a control scaled to
+    zero holds collapses onto it, as a bone scaled to zero collapses its vertices in Blender's
+    Armature modifier, and scale 0 gives the shape of scale `floor`: the limit of the nearby valid
+    poses. ValueError for a mirrored A (det M < 0), which no valid pose approaches."""
+    A = np.array(A, dtype=np.float64)
+    M = A[:3, :3]
+    U, s, Vt = np.linalg.svd(M)
+    if s.min() >= floor and np.linalg.det(M) > 0.0:
+        return A
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
+        if s.min() >= floor:
+            raise ValueError("the motion is mirrored")
+        U = U * np.array([1.0, 1.0, -1.0])  # σ₃ ≈ 0: the sign of its direction is free
+    M_new = (U * np.maximum(s, floor)) @ Vt
+    p = np.asarray(pivot, dtype=np.float64)
+    out = np.eye(4)
+    out[:3, :3] = M_new
+    out[:3, 3] = M @ p + A[:3, 3] - M_new @ p
+    return out
+
+
 def _where(flat_index: int, lead: tuple[int, ...]) -> str:
     if len(lead) <= 1:
         return f"{flat_index}"

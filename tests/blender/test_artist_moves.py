@@ -195,3 +195,103 @@ def test_a_cage_whose_faces_were_flipped_after_binding_is_called_inside_out(bl):
     status = deformer.status
     assert "turned the other way" in status and "changed topology" not in status, status
     assert f"2 of {len(cage.data.polygons)} faces" in status, status
+
+
+# ------------------------------------------------------------------------------- degenerate controls
+
+
+def _two_probe_bar(bl):
+    """The bar of test_bone_deformer (x from 0 to 4) with probes at its ends, Falloff weights of radius
+    2.5 (so the far end holds no weight of the near probe), the end probe moved and turned."""
+    bar = _bar(bl)
+    start, end = bl.empty("Start", (0.0, 0.0, 0.0)), bl.empty("End", (4.0, 0.0, 0.0))
+    deformer = bl.add_probe_deformer(bar, [start, end], weight_mode="FALLOFF", radius=2.5)
+    end.location = (4.0, 0.5, 1.0)
+    end.rotation_euler = (0.4, 0.0, 0.3)
+    bpy.context.view_layer.update()
+    return bar, start, end, deformer
+
+
+def _held(bl, bar, deformer, index: int) -> np.ndarray:
+    """Which vertices the probe `index` holds any weight of."""
+    return bl.dense_weights(bar, deformer)[:, index] > 0.0
+
+
+@pytest.mark.parametrize("scale", [(1.0, 1.0, 0.0), (0.0, 0.0, 0.0), (0.0, 1.0, 1.0)],
+                         ids=["one axis", "all axes", "x axis"])
+def test_a_probe_scaled_to_zero_collapses_what_it_holds_and_nothing_else(bl, scale):
+    bar, start, _end, deformer = _two_probe_bar(bl)
+    before = bl.evaluated_positions(bar).astype(np.float64)
+    held = _held(bl, bar, deformer, 0)
+    assert 0 < held.sum() < len(held)
+    start.scale = tuple(s if s else 1e-6 for s in scale)
+    bpy.context.view_layer.update()
+    near = bl.evaluated_positions(bar).astype(np.float64)
+    start.scale = scale
+    bpy.context.view_layer.update()
+    at_zero = bl.evaluated_positions(bar).astype(np.float64)
+    size = np.ptp(before, axis=0).max()
+    assert np.abs(at_zero - near).max() <= 0.01 * size, "scale 0 is the limit of the nearby scales"
+    assert np.array_equal(at_zero[~held], before[~held]), "vertices it does not hold stay where they were"
+    assert np.abs(at_zero[held] - before[held]).max() > 0.05, "what it holds collapses"
+    assert "Probe 'Start' is scaled to zero" in deformer.status, deformer.status
+    start.scale = (1.0, 1.0, 1.0)
+    bpy.context.view_layer.update()
+    assert np.array_equal(bl.evaluated_positions(bar).astype(np.float64), before) and deformer.status == ""
+
+
+@pytest.mark.parametrize("how", ["mirrored", "deleted"])
+def test_a_mirrored_or_deleted_probe_hands_its_vertices_to_the_others(bl, how):
+    bar, start, _end, deformer = _two_probe_bar(bl)
+    before = bl.evaluated_positions(bar).astype(np.float64)
+    held = _held(bl, bar, deformer, 0)
+    only_start = held & ~_held(bl, bar, deformer, 1)
+    if how == "mirrored":
+        start.scale = (-1.0, 1.0, 1.0)
+    else:
+        bpy.data.objects.remove(start)
+    bpy.context.view_layer.update()
+    got = bl.evaluated_positions(bar).astype(np.float64)
+    rest = bl.rest_positions(bar).astype(np.float64)
+    assert np.array_equal(got[~held], before[~held]), "vertices it does not hold stay where they were"
+    assert np.array_equal(got[only_start], rest[only_start]), "held by it alone: nothing moves them"
+    shared = held & ~only_start
+    assert shared.any() and np.abs(got[shared] - rest[shared]).max() > 0.05, "shared ones follow 'End'"
+    assert np.isfinite(got).all() and np.abs(got - rest).max() < 3.0, "nothing is flung"
+    assert "'Start'" in deformer.status and "follow the other probes" in deformer.status, deformer.status
+
+
+def test_a_bone_scaled_to_zero_collapses_its_vertices_as_the_armature_modifier_does(bl):
+    bar, arm, native = _skinned_bar(bl)
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+    deformer = bar.affine_deformers[0]
+    _bend(arm, 30.0)
+    before = bl.evaluated_positions(bar).astype(np.float64)
+    arm.pose.bones["B1"].scale = (0.0, 0.0, 0.0)
+    bpy.context.view_layer.update()
+    ours = bl.evaluated_positions(bar).astype(np.float64)
+    theirs = _armature_alone(bl, bar, native)
+    x = bl.rest_positions(bar)[:, 0]
+    only_b0, only_b1 = x <= 1.0, x >= 3.0  # the ramps of _skinned_bar: one bone's alone there
+    assert np.array_equal(ours[only_b0], before[only_b0]), "the other bone's vertices stay"
+    assert np.abs(ours[only_b1] - theirs[only_b1]).max() < 1e-4, "its own collapse onto its head"
+    # Nothing is flung: every vertex stays by what is left of the rig, bone B0 (x from 0 to 2 on the X
+    # axis) with B1 shrunk onto its head; the cross-section's half diagonal is 0.28. Between the bones
+    # the blend of logarithms collapses more than Armature's linear blend (s^w, not w·s): the limit of
+    # the nearby scales, as the probe test checks.
+    along = np.clip(ours[:, 0], 0.0, 2.0)
+    off_rig = np.hypot(ours[:, 0] - along, np.hypot(ours[:, 1], ours[:, 2]))
+    assert np.isfinite(ours).all() and off_rig.max() < 0.3, off_rig.max()
+    assert "Bone 'B1' is scaled to zero" in deformer.status, deformer.status
+    # The limit of the nearby scales, flattened along the bone: its rotation is still in its matrix.
+    # (Scaled to zero on every axis, a turned bone's matrix holds no rotation, and its blend with
+    # the parent turns as the unturned one: 0.13 on this bar, 3 %; not yet followed, see the issue.)
+    arm.pose.bones["B1"].scale = (1.0, 1e-6, 1.0)
+    bpy.context.view_layer.update()
+    near = bl.evaluated_positions(bar).astype(np.float64)
+    arm.pose.bones["B1"].scale = (1.0, 0.0, 1.0)
+    bpy.context.view_layer.update()
+    flat = bl.evaluated_positions(bar).astype(np.float64)
+    assert np.abs(near - flat).max() <= 0.01 * 4.0, "scale 0 is the limit of the nearby scales"
+    assert np.array_equal(flat[only_b0], before[only_b0]) and "'B1'" in deformer.status

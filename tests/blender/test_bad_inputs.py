@@ -1,5 +1,7 @@
 """Bad input never crashes and never corrupts the mesh: each case gives a clear message, the mesh data
-is untouched and the evaluated mesh shows the exact rest shape; fixing the input recovers."""
+is untouched and the evaluated mesh shows the exact rest shape, or, for a control gone degenerate
+(deleted, scaled to zero, mirrored), only what that control holds changes (issue 55); fixing the input
+recovers."""
 
 from __future__ import annotations
 
@@ -24,11 +26,22 @@ def _assert_intact(bl, target, rest):
     assert np.array_equal(bl.evaluated_positions(target), rest), "evaluated mesh must show the rest shape"
 
 
+def _follows_beta(bl, target, rest):
+    """Every vertex follows 'Beta' alone (the rig's other probe, turned 0.7 about X at (0, 0, −1)): the
+    weight of a probe that is gone went to it (issue 55: only what the bad probe holds changes)."""
+    assert np.array_equal(bl.rest_positions(target), rest), "mesh data must never change"
+    c, s = np.cos(0.7), np.sin(0.7)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    pivot = np.array([0.0, 0.0, -1.0])
+    expected = (rest.astype(np.float64) - pivot) @ turn.T + pivot
+    assert np.abs(bl.evaluated_positions(target) - expected).max() < 1e-5
+
+
 def test_deleted_probe(bl, rig):
     target, probes, deformer, rest = rig
     bpy.data.objects.remove(probes[0], do_unlink=True)
-    _assert_intact(bl, target, rest)
-    assert "Probe 'Alpha' was deleted" in deformer.status
+    _follows_beta(bl, target, rest)
+    assert "Probe 'Alpha' was deleted" in deformer.status and "follow the other probes" in deformer.status
     assert deformer.probes[0].object is None
 
 
@@ -36,14 +49,21 @@ def test_probe_deleted_from_the_scene_but_kept_by_the_pointer(bl, rig):
     target, probes, deformer, rest = rig
     with bpy.context.temp_override(selected_objects=[probes[0]], active_object=probes[0], object=probes[0]):
         bpy.ops.object.delete()
-    _assert_intact(bl, target, rest)
+    _follows_beta(bl, target, rest)
     assert "Probe 'Alpha' is not in any scene" in deformer.status
 
 
 def test_probe_scaled_to_zero(bl, rig):
     target, probes, deformer, rest = rig
+    probes[0].scale = (1e-6, 1e-6, 1e-6)
+    bpy.context.view_layer.update()
+    near = bl.evaluated_positions(target).astype(np.float64)
     probes[0].scale = (0.0, 0.0, 0.0)
-    _assert_intact(bl, target, rest)
+    bpy.context.view_layer.update()
+    got = bl.evaluated_positions(target).astype(np.float64)
+    assert np.array_equal(bl.rest_positions(target), rest), "mesh data must never change"
+    assert np.abs(got - near).max() <= 0.01 * 2.0, "the limit of the nearby scales (issue 55)"
+    assert np.isfinite(got).all() and np.abs(got).max() < 2.0, "collapsed towards its probes, not flung"
     assert "Probe 'Alpha'" in deformer.status and "scaled to zero" in deformer.status
     probes[0].scale = (1.0, 1.0, 1.0)  # fixing the input recovers without rebinding
     assert np.abs(bl.evaluated_positions(target) - rest).max() > 0.05
@@ -335,7 +355,7 @@ def test_a_stored_rest_matrix_mirrored_against_its_probe_is_named(bl, rig):
     item = deformer.probes[0]
     item.rest_matrix = [-v if i == 0 else v for i, v in enumerate(item.rest_matrix)]
     bpy.context.scene.frame_set(2)
-    _assert_intact(bl, target, rest)
+    _assert_intact(bl, target, rest)  # the deformer's own data: it shows its rest shape
     assert deformer.status == ("Probe 'Alpha' is mirrored relative to its Rest Matrix (determinant -1, "
                                "now 1): the mesh shows its rest shape")
 

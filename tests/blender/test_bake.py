@@ -329,12 +329,13 @@ def test_bad_requests_are_refused_with_clear_messages_and_change_nothing(bl, ins
         _bake(bl, target, index=1, mode="SHAPE_KEYS")
     target.affine_deformers.remove(1)
 
-    # A probe scaled to zero at frame 6: the bake stops there instead of baking the rest shape.
+    # A probe with a non-finite scale at frame 6: the bake stops there instead of baking the rest
+    # shape. (Scaled to zero it deforms, collapsing what it holds: that bakes as it shows.)
     probe = bpy.data.objects["B"]
     _keyframe(probe, 5, scale=(1, 1, 1))
-    _keyframe(probe, 6, scale=(0, 0, 0))
+    _keyframe(probe, 6, scale=(float("nan"), 1, 1))
     _keyframe(probe, 7, scale=(1, 1, 1))
-    with pytest.raises(RuntimeError, match="Frame 6: Probe 'B' is scaled to zero"):
+    with pytest.raises(RuntimeError, match="Frame 6: Probe 'B' has a non-finite transform"):
         _bake(bl, target, index=0, mode="SHAPE_KEYS")
     assert target.data.shape_keys is None
 

@@ -87,6 +87,26 @@ def take_over(obj: bpy.types.Object, deformer, modifier: bpy.types.Modifier) -> 
     modifier.show_viewport = modifier.show_render = False
 
 
+def take_over_doubling(obj: bpy.types.Object, deformer, armature: bpy.types.Object) -> str:
+    """After a bone deformer was added and bound: an enabled Armature modifier of the same armature
+    would deform the mesh a second time, so the deformer takes its place as Convert does (`take_over`;
+    'Back to' undoes it). Returns what to add to the add operator's report."""
+    replaced = doubling_modifiers(obj, armature)
+    if not replaced:
+        return ""
+    take_over(obj, deformer, replaced[0])
+    return (f"; '{replaced[0].name}' is turned off (it would deform the mesh a second time; 'Back to' "
+            "turns it on again)")
+
+
+def modifier_armature(target: bpy.types.Object) -> bpy.types.Object | None:
+    """The armature of `target`'s first enabled Armature modifier that names one (None: none)."""
+    for mod in target.modifiers:
+        if mod.type == "ARMATURE" and mod.object is not None and (mod.show_viewport or mod.show_render):
+            return mod.object
+    return None
+
+
 def doubling_modifiers(obj: bpy.types.Object, armature: bpy.types.Object | None) -> list[bpy.types.Modifier]:
     """The enabled (viewport or render) Armature modifiers of `obj` that name `armature`: beside a bone
     deformer of the same armature they deform the mesh a second time."""

@@ -38,7 +38,7 @@ import bpy
 import numpy as np
 from bpy.props import CollectionProperty, IntProperty, PointerProperty
 
-from ...core import hierarchy, unwrap
+from ...core import aff3, hierarchy, unwrap
 from .. import caches
 from ..files import storage
 from ..update.validation import coordinates_problem, stored_array
@@ -175,6 +175,7 @@ class _BoneRow:
     turn: np.ndarray  # (3,) rot(P · R_i) · the channels' rotation vector: its own turn, target rest space
     head: np.ndarray  # (3,) its rest head, target space: the point its own turn is about
     error: str = ""
+    warning: str = ""  # scaled to zero: it still deforms (aff3.nearest_positive), with a status
 
 
 #: Per-bone memo keyed on the exact bits of every input of `_bone_row`. Bounded: cleared when full.
@@ -237,6 +238,14 @@ def _bone_row(frame_matrix: np.ndarray, frame_inverse: np.ndarray, pose: np.ndar
         matrix = ordered_matmul(ordered_matmul(frame_matrix, local), frame_inverse)
     matrix[3] = (0.0, 0.0, 0.0, 1.0)
     reason = motion_problem(matrix, "pose")
+    if reason == "is scaled to zero" or reason.startswith("is mirrored"):
+        try:  # the limit of the nearby poses: what it holds collapses onto its head, as Armature's do
+            collapsed = aff3.nearest_positive(matrix, head)
+        except ValueError:
+            pass
+        else:
+            return _BoneRow(collapsed, False, unturned, turn, head,
+                            warning="Bone '{bone}' is scaled to zero: the vertices it holds collapse onto it")
     if reason:
         return _BoneRow(identity, False, unturned, turn, head,
                         "Bone '{bone}' " + reason + ": the mesh shows its input")
@@ -337,9 +346,11 @@ def _finish(reading: _Reading) -> Motions:
                                "unwrapped (non-finite or too many turns): the mesh shows its input")
     if deformer.branch_rule != "CHANNELS":
         chain.references = chain.pivots = None
+    warnings = [row.warning.replace("{bone}", name) for name, row in rows.items() if row.warning]
+    warnings.append(armature_convert.doubling_warning(reading.obj, armature))
     return Motions(matrices, np.array([r.at_rest for r in chosen]), chain=chain,
                    pool=_pool_mix(chain.parents, _pool_scales(deformer)),
-                   warning=armature_convert.doubling_warning(reading.obj, armature))
+                   warning="; ".join(w for w in warnings if w))
 
 
 _batch = Batch(_read, _fill, _finish)
@@ -424,14 +435,6 @@ def _rest_inverse(rest: np.ndarray) -> tuple[np.ndarray, bool]:
     return found
 
 
-def modifier_armature(target: bpy.types.Object) -> bpy.types.Object | None:
-    """The armature of `target`'s first enabled Armature modifier that names one (None: none)."""
-    for mod in target.modifiers:
-        if mod.type == "ARMATURE" and mod.object is not None and (mod.show_viewport or mod.show_render):
-            return mod.object
-    return None
-
-
 class BoneKind(BatchedKind, DeformerKind):
     """An Armature object's pose bones (all deform bones, or a chosen set) drive the mesh."""
 
@@ -466,7 +469,7 @@ class BoneKind(BatchedKind, DeformerKind):
         """The one selected armature; none selected: the armature of the mesh's (first enabled) Armature
         modifier, as a built-in deformer takes its object."""
         selected = [o for o in (getattr(context, "selected_objects", None) or []) if o.type == "ARMATURE"]
-        from_modifier = None if selected else modifier_armature(target)
+        from_modifier = None if selected else armature_convert.modifier_armature(target)
         if from_modifier is not None:
             if not deform_bones(from_modifier):
                 raise BindError(f"Armature '{from_modifier.name}' has no deform bones")
@@ -495,14 +498,7 @@ class BoneKind(BatchedKind, DeformerKind):
             deformer.mask_group = replaced[0].vertex_group  # as Convert: the modifier's mask carries over
 
     def after_add(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
-        """An enabled Armature modifier of the same armature would deform the mesh a second time: the
-        deformer takes its place as Convert does (the modifier kept, turned off; Restore undoes it)."""
-        replaced = armature_convert.doubling_modifiers(target, adopted.controls[0])
-        if not replaced:
-            return ""
-        armature_convert.take_over(target, deformer, replaced[0])
-        return (f"; '{replaced[0].name}' is turned off (it would deform the mesh a second time; "
-                "'Back to' turns it on again)")
+        return armature_convert.take_over_doubling(target, deformer, adopted.controls[0])
 
     def added_message(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
         weights_from = ("their vertex groups" if deformer.weight_mode == "VERTEX_GROUPS"

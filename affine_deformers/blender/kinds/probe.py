@@ -17,7 +17,7 @@ import numpy as np
 from bpy.props import CollectionProperty, IntProperty
 
 from ... import accel
-from ...core import weights
+from ...core import aff3, weights
 from .. import caches
 from ..files import storage
 from ..update.validation import (
@@ -268,6 +268,11 @@ class _ProbeRow:
     frame: np.ndarray  # (3, 3) channel frame
     pivot: np.ndarray  # (3,) current origin in the target's space
     error: str = ""
+    #: A degenerate probe that still deforms (a status naming it, its vertices only affected):
+    #: scaled to zero (collapsed onto it: aff3.nearest_positive) or skipped (mirrored, deleted: its
+    #: weight goes to the vertex's other probes).
+    warning: str = ""
+    skip: bool = False
 
 
 #: Per-probe memo: a probe whose inputs (its and the target's world matrix, its channels and scales,
@@ -331,13 +336,18 @@ def _read(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Mo
     stale = StaleControls(obj, storage.offset_name(deformer.uid), depsgraph, bool(m))
     for i, item in enumerate(probes):
         probe = item.object
+        gone = ""
         if probe is None:
-            problem = (f"Probe '{item.name or '?'}' was deleted or unassigned: remove it from the "
-                       "deformer or pick another object")
+            gone = (f"Probe '{item.name or '?'}' was deleted or unassigned: its vertices follow the other "
+                    "probes; remove it from the deformer or pick another object")
         elif not in_a_scene(probe):
-            problem = (f"Probe '{probe.name}' is not in any scene (deleted?): remove it from the "
-                       "deformer or link it back")
-        elif probe == obj:  # kept here too: a message set when it was picked must not be wiped
+            gone = (f"Probe '{probe.name}' is not in any scene (deleted?): its vertices follow the other "
+                    "probes; remove it from the deformer or link it back")
+        if gone:  # only what it held changes: its weight goes to the other probes
+            rows.append(_ProbeRow(np.eye(4), True, rest_modes[i], tuple(rest_rotations[i]), np.eye(3),
+                                  np.zeros(3), warning=gone, skip=True))
+            continue
+        if probe == obj:  # kept here too: a message set when it was picked must not be wiped
             problem = f"'{obj.name}' cannot be a probe of itself: pick another object for probe {i + 1}"
         if problem:
             break
@@ -384,6 +394,9 @@ def _finish(reading: _Reading) -> Motions:
             return Motions.invalid(m, row.error.format(probe=deformer.probes[i].object.name, target=obj.name))
     if reading.problem:
         return Motions.invalid(m, reading.problem)
+    warnings = [row.warning.format(probe=_probe_name(deformer.probes[i]), target=obj.name)
+                for i, row in enumerate(rows) if row.warning]
+    skipped = np.array([row.skip for row in rows], dtype=bool)
     rest_modes, rest_rotations = reading.rest_modes, reading.rest_rotations
     if m == 0:
         return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool),
@@ -393,7 +406,12 @@ def _finish(reading: _Reading) -> Motions:
                          np.array([r.rotation for r in rows], dtype=np.float64),
                          np.stack([r.frame for r in rows]), np.stack([r.pivot for r in rows]))
     return Motions(np.stack([r.matrix for r in rows]), np.array([r.at_rest for r in rows]), turns=turns,
-                   pool=pool_coefficients(deformer))
+                   pool=pool_coefficients(deformer), warning="; ".join(warnings),
+                   valid=~skipped if skipped.any() else None)
+
+
+def _probe_name(item) -> str:
+    return item.object.name if item.object is not None else (item.name or "?")
 
 
 _batch = ProbeKind.batch = Batch(_read, _fill, _finish)
@@ -515,6 +533,17 @@ def _probe_row(target_world: np.ndarray, world: np.ndarray, channels: tuple[floa
         if dets[0] < 0.0:  # the rest is the mirrored one (an Empty scaled by −1 at bind, or damaged)
             reason = (f"is mirrored relative to its Rest Matrix (determinant {shown(dets[0])}, now "
                       f"{shown(dets[1])})")
+    # A rest matrix mirrored against a probe that is not is bind data gone bad (or a probe mirrored at
+    # bind and no longer): the deformer's own data, so the mesh shows its rest shape.
+    if reason == "is scaled to zero" or reason == "is mirrored (negative scale)":
+        try:  # the limit of the nearby poses: what it holds collapses onto it
+            collapsed = aff3.nearest_positive(matrix, rest[:3, 3].astype(np.float64))
+        except ValueError:  # mirrored: no valid pose is near, its weight goes to the other probes
+            return _ProbeRow(identity, True, mode, rotation, frame, pivot,
+                             warning="Probe '{probe}' " + reason + ": an affine blend cannot mirror, its "
+                                     "vertices follow the other probes", skip=True)
+        return _ProbeRow(collapsed, False, mode, rotation, frame, pivot,
+                         warning="Probe '{probe}' is scaled to zero: the vertices it holds collapse onto it")
     if reason:
         return _ProbeRow(identity, False, mode, rotation, frame, pivot,
                          "Probe '{probe}' " + reason + ": the mesh shows its rest shape")

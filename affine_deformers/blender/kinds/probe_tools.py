@@ -228,7 +228,7 @@ def probe_states(obj: bpy.types.Object, deformer, motions, error: str,
     m = len(deformer.probes)
     if not deformer.is_bound:
         states = ["INVALID" if item.object is None else "AT_REST" for item in deformer.probes]
-    elif motions is not None and not error and len(motions.at_rest) == m:
+    elif motions is not None and not error and not motions.warning and len(motions.at_rest) == m:
         states = ["AT_REST" if at_rest else "MOVING" for at_rest in motions.at_rest.tolist()]
     else:
         try:
@@ -251,7 +251,8 @@ def record_states(obj: bpy.types.Object, deformer, motions, error: str,
     """Store each probe's state on its item after an evaluation (only changes; never raises)."""
     try:
         key = None
-        if motions is not None and not error and deformer.weight_mode != "VERTEX_GROUPS":
+        if (motions is not None and not error and not motions.warning
+                and deformer.weight_mode != "VERTEX_GROUPS"):
             key = (motions.at_rest.tobytes(), deformer.bind_generation, len(deformer.probes))
             if _recorded.get((obj.session_uid, deformer.uid)) == key:
                 return
