@@ -486,3 +486,47 @@ def test_inverse3_matches_numpy_and_flags_singular_matrices():
     np.testing.assert_allclose(inv[good] @ M[good], np.broadcast_to(np.eye(3), (good.sum(), 3, 3)),
                                atol=1e-9)
     assert abs(det[1]) < 1e-12 and not good[1]
+
+
+# ------------------------------------------------------------------------- degenerate controls
+
+
+_DIRECTION = hnp.arrays(np.float64, 3, elements=st.floats(-1.0, 1.0)).filter(
+    lambda a: np.linalg.norm(a) > 0.1)
+
+
+@settings(max_examples=60, deadline=None)
+@given(axis=_DIRECTION, angle=st.floats(-3.0, 3.0), other=_DIRECTION, other_angle=st.floats(-3.0, 3.0),
+       scales=hnp.arrays(np.float64, 3, elements=st.floats(0.05, 4.0)), zeros=st.integers(1, 3),
+       pivot=hnp.arrays(np.float64, 3, elements=st.floats(-5.0, 5.0)),
+       shift=hnp.arrays(np.float64, 3, elements=st.floats(-5.0, 5.0)))
+def test_a_collapsed_motion_is_the_one_of_its_scales_raised_to_the_floor(axis, angle, other, other_angle,
+                                                                        scales, zeros, pivot, shift):
+    """A = R diag(s) Qᵀ with `zeros` singular values 0 (a control scaled to zero on that many axes),
+    built from its exact factors: nearest_positive gives R diag(max(s, floor)) Qᵀ, which keeps the
+    pivot's image; the limit of the nearby valid poses (rank 2 determines the rotation; rank ≤ 1
+    leaves the null space's rotation free, so only the singular values and the pivot are checked)."""
+    R = aff3.so3_exp(axis / np.linalg.norm(axis) * angle)
+    Q = aff3.so3_exp(other / np.linalg.norm(other) * other_angle)
+    s = scales.copy()
+    s[:zeros] = 0.0
+    A = np.eye(4)
+    A[:3, :3] = R @ np.diag(s) @ Q.T
+    A[:3, 3] = shift
+    out = aff3.nearest_positive(A, pivot)
+    floor = aff3.SCALE_FLOOR
+    singular = np.sort(np.linalg.svd(out[:3, :3])[1])
+    assert np.allclose(singular, np.sort(np.maximum(s, floor)), rtol=1e-9, atol=1e-12)
+    assert np.linalg.det(out[:3, :3]) > 0.0
+    assert np.allclose(out[:3, :3] @ pivot + out[:3, 3], A[:3, :3] @ pivot + A[:3, 3], atol=1e-9)
+    if zeros == 1:
+        assert np.allclose(out[:3, :3], R @ np.diag(np.maximum(s, floor)) @ Q.T, atol=1e-9)
+
+
+def test_a_motion_in_aff3_is_kept_and_a_mirrored_one_refused():
+    A = random_affine(np.random.default_rng(5), 1)[0]
+    assert np.array_equal(aff3.nearest_positive(A, np.zeros(3)), A)
+    mirrored = A.copy()
+    mirrored[:3, 0] *= -1.0
+    with pytest.raises(ValueError, match="mirrored"):
+        aff3.nearest_positive(mirrored, np.zeros(3))
