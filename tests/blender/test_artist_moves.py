@@ -295,3 +295,33 @@ def test_a_bone_scaled_to_zero_collapses_its_vertices_as_the_armature_modifier_d
     flat = bl.evaluated_positions(bar).astype(np.float64)
     assert np.abs(near - flat).max() <= 0.01 * 4.0, "scale 0 is the limit of the nearby scales"
     assert np.array_equal(flat[only_b0], before[only_b0]) and "'B1'" in deformer.status
+
+
+@pytest.mark.parametrize("where", ["beside", "around half"])
+def test_a_cage_that_does_not_hold_the_mesh_says_how_many_vertices_are_outside(bl, where):
+    from tests.blender.test_cage_deformer import add_cage_deformer, box_cage
+
+    target = bl.grid_cube(cuts=6)  # the cube from −1 to 1
+    cage = box_cage()
+    if where == "beside":
+        cage.location.x = 5.0
+    else:
+        cage.location.x = 1.4  # the box cage of test_cage_deformer spans ±1.5: x < −0.1 is outside
+    bpy.context.view_layer.update()
+    deformer = add_cage_deformer(target, cage)
+    rest = bl.rest_positions(target).astype(np.float64)
+    world_x = rest[:, 0]
+    lo = cage.location.x - 1.5
+    expected = int(np.count_nonzero(world_x < lo - 0.05))
+    status = deformer.status
+    assert "lie outside cage 'Cage'" in status, status
+    counted = int(status.split(" of ")[0])
+    assert expected <= counted <= int(np.count_nonzero(world_x < lo + 0.05)), (counted, expected)
+    bpy.context.scene.frame_set(3)
+    assert "lie outside cage" in deformer.status, "it keeps saying it"
+    assert bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=0) == {"FINISHED"}
+    assert "lie outside cage" in deformer.status
+    cage.location.x = 0.0  # it holds the mesh now: Rebind clears the warning
+    bpy.context.view_layer.update()
+    assert bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=0) == {"FINISHED"}
+    assert deformer.status == "", deformer.status

@@ -331,3 +331,23 @@ def test_a_rigidly_turned_half_of_a_long_cage_moves_rigidly_and_the_far_half_sta
     near_moved = motion.params.any(axis=1)
     far_nodes = hw.node_points[:, 0] < -3.0
     assert not (W[far_nodes][:, near_moved] > 0.0).any(), "far nodes hold no moved face: bitwise at rest"
+
+
+def test_outside_points_are_those_the_cage_does_not_hold():
+    """A box cage, rotated: points clearly outside (beyond a grid cell of the surface) and clearly
+    inside are classified exactly (the exact answer: the box's own coordinates); near the surface a
+    point may count as inside."""
+    from affine_deformers.core.cage.harmonic import outside_points
+    from affine_deformers.core.cage.topology import CageTopology
+
+    corners = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-2.0, 2.0) for z in (-0.5, 0.5)])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    c, s = np.cos(0.4), np.sin(0.4)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(7)
+    local = rng.uniform(-3.0, 3.0, size=(20000, 3))
+    out = outside_points(local @ turn.T, corners @ turn.T, CageTopology.from_polygons(quads, 8))
+    beyond = np.abs(local) / np.array([1.0, 2.0, 0.5])
+    cell = 0.25  # more than the spacing of the classifying grid over this cage
+    assert np.all(out[np.any(np.abs(local) > np.array([1.0, 2.0, 0.5]) + cell, axis=1)])
+    assert not np.any(out[np.all(beyond < 1.0, axis=1)])

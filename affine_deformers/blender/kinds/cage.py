@@ -67,7 +67,7 @@ from ...core.cage import (
     signed_volume,
 )
 from ...core.cage import pool as cage_pool
-from ...core.cage.harmonic import harmonic_weights
+from ...core.cage.harmonic import harmonic_weights, outside_points
 from .. import caches
 from ..files import nodes, storage
 from ..update.validation import (
@@ -368,6 +368,19 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
     return points, topology, loops, start, total
 
 
+def _outside_warning(deformer, rest_points: np.ndarray, cage_points: np.ndarray,
+                     topology: CageTopology) -> str:
+    """The bind warning for target vertices the rest cage does not enclose ('' when it holds them all):
+    they follow the cage's motion extrapolated, where Mesh Deform leaves them."""
+    outside = int(np.count_nonzero(outside_points(rest_points, cage_points, topology)))
+    if not outside:
+        return ""
+    name = deformer.cage.name if deformer.cage is not None else "?"
+    return (f"{outside} of {len(rest_points)} vertices ({outside / len(rest_points):.0%}) lie outside cage "
+            f"'{name}': they follow its motion extrapolated; make the cage enclose the mesh (or add the "
+            "deformer with no cage selected: a cage is made around it)")
+
+
 def _flipped_faces(loops: np.ndarray, start: np.ndarray, total: np.ndarray, now_loops: np.ndarray,
                    now_start: np.ndarray, now_total: np.ndarray) -> int:
     """How many faces hold the same vertices as at bind but in another order (flipped normals), when
@@ -570,17 +583,18 @@ class CageKind(DeformerKind):
             raise BindError(problem)
         points, topology, *_ = rest_cage(deformer)
         _node_data.pop((obj.session_uid, deformer.uid), None)
+        warning = _outside_warning(deformer, rest_points, points, topology)
         if weight_mode(deformer) == "HARMONIC":
             weights = harmonic_weights(rest_points, points, topology)
             store_array(deformer, NODE_POINTS, weights.node_points.ravel())
             store_array(deformer, NODE_WEIGHTS, weights.node_weights.ravel())
-            return weights.indices, weights.values, ""
+            return weights.indices, weights.values, warning
         indices, values = cage_weights(rest_points, points, topology, exponent=deformer.exponent,
                                        half_space=deformer.half_space, k=deformer.max_influences)
         for key in NODE_KEYS:  # the weights now index faces
             if key in deformer:
                 del deformer[key]
-        return indices, values, ""
+        return indices, values, warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
         try:

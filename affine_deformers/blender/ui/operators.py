@@ -70,8 +70,9 @@ class AddDeformer(TargetPolled):
         if not _bind_new(self, context, target, deformer, adopted.created):
             return {"CANCELLED"}
         finished = kind.after_add(target, deformer, adopted)
-        if adopted.warning:
-            self.report({"WARNING"}, adopted.warning)
+        for warning in (adopted.warning, deformer.bind_warning):
+            if warning:
+                self.report({"WARNING"}, warning)
         self.report({"INFO"}, kind.added_message(target, deformer, adopted) + finished)
         if finished:
             _refresh(context, target)
@@ -111,6 +112,8 @@ class AFFINE_OT_deformer_bind(DeformerIndexed, bpy.types.Operator):
             return {"CANCELLED"}
         _lock_render_interface(context)
         _refresh(context, obj)
+        if deformer.bind_warning:
+            self.report({"WARNING"}, deformer.bind_warning)
         self.report({"INFO"}, f"Bound '{deformer.name}' on '{obj.name}' "
                     f"({deformer.bound_vertex_count} vertices)")
         return {"FINISHED"}

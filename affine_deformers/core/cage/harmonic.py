@@ -207,6 +207,32 @@ def inside_nodes(grid: CageGrid, z_hits: np.ndarray) -> np.ndarray:
     return (above % 2 == 1).reshape(nx, ny, nz)
 
 
+#: Nodes of the grid `outside_points` classifies points on: a point within about one cell of this
+#: grid's spacing from the cage surface counts as inside.
+OUTSIDE_GRID_NODES = 1 << 15
+
+
+def outside_points(points: np.ndarray, cage_points: np.ndarray, topology: CageTopology) -> np.ndarray:
+    """(N,) bool: the points that lie outside the closed cage, by more than about a cell of a grid of
+    OUTSIDE_GRID_NODES nodes over the cage (the parity of +z rays at the nodes, `inside_nodes`): a
+    point counts as outside when it is off the grid or every corner of its grid cell is outside. So a
+    point near the surface counts as inside; the count is of points the cage does not hold."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    cage = np.asarray(cage_points, dtype=np.float64)
+    grid = cage_grid(cage, nodes=OUTSIDE_GRID_NODES)
+    fan, fan_face = topology.fan_triangles()
+    inside = inside_nodes(grid, axis_hits(grid, cage, fan, fan_face, 2)[0])
+    cell = np.floor((pts - grid.origin) / grid.spacing).astype(np.int64)
+    shape = np.array(grid.shape)
+    on_grid = np.all((cell >= 0) & (cell < shape - 1), axis=1)
+    out = ~on_grid
+    c = cell[on_grid]
+    corners = inside[c[:, None, 0] + CORNERS[None, :, 0], c[:, None, 1] + CORNERS[None, :, 1],
+                     c[:, None, 2] + CORNERS[None, :, 2]]
+    out[on_grid] = ~corners.any(axis=1)
+    return out
+
+
 @dataclass(frozen=True)
 class _Crossings:
     """Grid edges cut by the cage along one axis, each listed from both ends (2E rows): `node` the flat
