@@ -325,3 +325,46 @@ def test_a_cage_that_does_not_hold_the_mesh_says_how_many_vertices_are_outside(b
     bpy.context.view_layer.update()
     assert bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=0) == {"FINISHED"}
     assert deformer.status == "", deformer.status
+
+
+def test_time_stretching_in_an_animation_render(bl, tmp_path):
+    """`-a` of a time-stretched shot: at every rendered frame the render's own evaluation of the mesh
+    follows the probe as that render evaluates it (Blender's Scene Time, not the add-on's formula)."""
+    target, probe, deformer = _rising_probe_rig(bl)
+    scene = bpy.context.scene
+    scene.render.frame_map_old, scene.render.frame_map_new = 100, 50
+    scene.frame_start, scene.frame_end = 2, 4
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(camera)
+    camera.location = (0.0, -8.0, 2.0)
+    camera.rotation_euler = (np.radians(80.0), 0.0, 0.0)
+    scene.camera = camera
+    scene.render.engine = "CYCLES"
+    scene.cycles.samples, scene.cycles.device = 1, "CPU"
+    scene.render.resolution_x = scene.render.resolution_y = 16
+    scene.render.filepath = str(tmp_path / "frame_")
+    rest = bl.rest_positions(target).astype(np.float64)
+    seen: dict[int, float] = {}
+
+    def capture(scene, depsgraph=None):
+        if depsgraph is None or depsgraph.mode != "RENDER":
+            return
+        depsgraph.update()  # the pass the render runs after the handlers (pipeline_matrix_scene)
+        rise = probe.evaluated_get(depsgraph).matrix_world.translation.z
+        mesh = target.evaluated_get(depsgraph).data
+        co = np.empty(len(mesh.vertices) * 3, np.float32)
+        mesh.vertices.foreach_get("co", co)
+        seen[scene.frame_current] = float(np.abs(co.reshape(-1, 3) - rest - (0.0, 0.0, rise)).max())
+        seen[-scene.frame_current] = rise
+
+    capture.__name__ = "artist_moves_render_capture"
+    handlers = bpy.app.handlers.frame_change_post
+    handlers.append(capture)  # after the add-on's handler, which writes the deformation
+    try:
+        assert bpy.ops.render.render(animation=True) == {"FINISHED"}
+    finally:
+        handlers.remove(capture)
+    assert sorted(k for k in seen if k > 0) == [2, 3, 4], seen
+    assert all(seen[-f] > 0.0 for f in (2, 3, 4)), "the probe has risen at every rendered frame"
+    assert all(seen[f] < 1e-5 for f in (2, 3, 4)), seen
+    assert deformer.status == ""
