@@ -317,6 +317,20 @@ def test_a_cage_that_does_not_hold_the_mesh_says_how_many_vertices_are_outside(b
     assert "lie outside cage 'Cage'" in status, status
     counted = int(status.split(" of ")[0])
     assert expected <= counted <= int(np.count_nonzero(world_x < lo + 0.05)), (counted, expected)
+    # Turning the cage's top half 45° (as issue 55's artist did): the vertices it does not hold move no
+    # more than 1.5 × the cage's own largest vertex move (Mesh Deform leaves them where they are).
+    from tests.blender.test_cage_deformer import cage_points, set_cage_points
+
+    points = cage_points(cage)
+    top = points[:, 2] > 0.0
+    c, s = np.cos(np.radians(45.0)), np.sin(np.radians(45.0))
+    turned = points.copy()
+    turned[top] = points[top] @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
+    set_cage_points(cage, turned)
+    cage_move = np.abs(turned - points).max()
+    moved = np.abs(bl.evaluated_positions(target) - rest).max()
+    assert moved <= 1.5 * cage_move, (moved, cage_move)
+    set_cage_points(cage, points)
     bpy.context.scene.frame_set(3)
     assert "lie outside cage" in deformer.status, "it keeps saying it"
     assert bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=0) == {"FINISHED"}

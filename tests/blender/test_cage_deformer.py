@@ -1032,7 +1032,14 @@ def test_weight_options_reweight_live_from_the_stored_rest(bl, core_cage, core_h
         expected = np.zeros((len(rest), 24 + len(mixes)))  # columns 24 …: the pooled nodes
         np.add.at(expected, (np.arange(len(rest))[:, None], idx), val)
         expected = expected[:, :24] + expected[:, 24:] @ mixes
-        assert np.abs(dense_weights(target, deformer, mixes) - expected).max() < 1e-6, options
+        got = dense_weights(target, deformer, mixes)
+        # Vertices the cage holds: exactly the core's weights. Those outside fade out of the cage's
+        # edits (issue 55): the same weights scaled by one factor in [0, 1] per vertex.
+        held = np.all(np.abs(rest) < 1.5 - 1e-6, axis=1)  # none here: the target is the cage's shell
+        assert np.abs(got[held] - expected[held]).max(initial=0.0) < 1e-6, options
+        factor = got[~held].sum(axis=1) / expected[~held].sum(axis=1)
+        assert np.all((factor >= 0.0) & (factor <= 1.0 + 1e-9)) and factor.min() < 0.99, options
+        assert np.abs(got[~held] - factor[:, None] * expected[~held]).max() < 1e-6, options
     assert np.array_equal(np.asarray(deformer["cage_rest_points"]).reshape(-1, 3), stored_rest)
     columns = [a for a in affdef_attributes(target) if a.startswith(f".affdef_{deformer.uid}_idx")]
     assert len(columns) == idx.shape[1] in (3, 11)  # 3 faces, and a cell's 8 pooled nodes where any pools
@@ -1047,8 +1054,12 @@ def test_weight_options_reweight_live_from_the_stored_rest(bl, core_cage, core_h
     deformer.max_influences = 5  # not an option of harmonic weights: nothing changes
     assert np.abs(dense_weights(target, deformer) - harmonic).max() < 1e-6
     outside = np.abs(rest).max(axis=1) > 1.5
-    assert outside.sum() > 50 and np.allclose(harmonic[outside].sum(axis=1), 1.0, atol=1e-5), \
-        "vertices outside the cage get weights from the exterior harmonic field"
+    sums = harmonic[outside].sum(axis=1)
+    # Vertices outside the cage fade out of its edits with their distance from it (issue 55: Mesh
+    # Deform leaves them; none follows beyond 10 % of the cage's diagonal, here 0.52: the corners).
+    assert outside.sum() > 50 and np.all((sums >= 0.0) & (sums <= 1.0 + 1e-5)), \
+        "vertices outside the cage get weights from the exterior harmonic field, faded"
+    assert sums.min() < 1e-3 and sums.max() > 0.05, (sums.min(), sums.max())
 
 
 def test_mask_group_and_strength(bl):

@@ -67,6 +67,7 @@ from ...core.cage import (
     signed_volume,
 )
 from ...core.cage import pool as cage_pool
+from ...core.cage.distances import nearest_faces
 from ...core.cage.harmonic import harmonic_weights, outside_points
 from .. import caches
 from ..files import nodes, storage
@@ -368,17 +369,39 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
     return points, topology, loops, start, total
 
 
-def _outside_warning(deformer, rest_points: np.ndarray, cage_points: np.ndarray,
-                     topology: CageTopology) -> str:
-    """The bind warning for target vertices the rest cage does not enclose ('' when it holds them all):
-    they follow the cage's motion extrapolated, where Mesh Deform leaves them."""
-    outside = int(np.count_nonzero(outside_points(rest_points, cage_points, topology)))
-    if not outside:
+#: Vertices outside the rest cage fade out of its edits over this share of the cage's diagonal (Mesh
+#: Deform leaves them where they are; the faces' affine motions would move them ever further away).
+OUTSIDE_FADE = 0.1
+
+
+def _outside_warning(deformer, outside: np.ndarray) -> str:
+    """The bind warning for target vertices the rest cage does not enclose ('' when it holds them all)."""
+    count = int(np.count_nonzero(outside))
+    if not count:
         return ""
     name = deformer.cage.name if deformer.cage is not None else "?"
-    return (f"{outside} of {len(rest_points)} vertices ({outside / len(rest_points):.0%}) lie outside cage "
-            f"'{name}': they follow its motion extrapolated; make the cage enclose the mesh (or add the "
-            "deformer with no cage selected: a cage is made around it)")
+    return (f"{count} of {len(outside)} vertices ({count / len(outside):.0%}) lie outside cage '{name}': "
+            f"they follow its edits less the further out they are (none beyond {OUTSIDE_FADE:.0%} of its "
+            "size); make the cage enclose the mesh (or add the deformer with no cage selected: a cage "
+            "is made around it)")
+
+
+def _faded_outside(values: np.ndarray, rest_points: np.ndarray, outside: np.ndarray,
+                   cage_points: np.ndarray, topology: CageTopology) -> np.ndarray:
+    """The weights of vertices outside the cage scaled by a smooth fade from 1 at its surface to 0 at
+    OUTSIDE_FADE of its diagonal (the missing weight is the identity's: they stay, as with Mesh Deform;
+    the cage object's own motion still carries them, it is applied after the blend)."""
+    if not outside.any():
+        return values
+    reach = OUTSIDE_FADE * float(np.linalg.norm(np.ptp(cage_points, axis=0)))
+    rows = np.flatnonzero(outside)
+    point, _face, distance = nearest_faces(rest_points[rows], cage_points, topology, 0.0)
+    nearest = np.full(len(rows), np.inf)
+    np.minimum.at(nearest, point, distance)
+    x = np.clip(1.0 - nearest / reach, 0.0, 1.0)
+    faded = values.copy()
+    faded[rows] *= (x * x * (3.0 - 2.0 * x))[:, None]
+    return faded
 
 
 def _flipped_faces(loops: np.ndarray, start: np.ndarray, total: np.ndarray, now_loops: np.ndarray,
@@ -583,18 +606,20 @@ class CageKind(DeformerKind):
             raise BindError(problem)
         points, topology, *_ = rest_cage(deformer)
         _node_data.pop((obj.session_uid, deformer.uid), None)
-        warning = _outside_warning(deformer, rest_points, points, topology)
+        outside = outside_points(rest_points, points, topology)
+        warning = _outside_warning(deformer, outside)
         if weight_mode(deformer) == "HARMONIC":
             weights = harmonic_weights(rest_points, points, topology)
             store_array(deformer, NODE_POINTS, weights.node_points.ravel())
             store_array(deformer, NODE_WEIGHTS, weights.node_weights.ravel())
-            return weights.indices, weights.values, warning
-        indices, values = cage_weights(rest_points, points, topology, exponent=deformer.exponent,
-                                       half_space=deformer.half_space, k=deformer.max_influences)
-        for key in NODE_KEYS:  # the weights now index faces
-            if key in deformer:
-                del deformer[key]
-        return indices, values, warning
+            indices, values = weights.indices, weights.values
+        else:
+            indices, values = cage_weights(rest_points, points, topology, exponent=deformer.exponent,
+                                           half_space=deformer.half_space, k=deformer.max_influences)
+            for key in NODE_KEYS:  # the weights now index faces
+                if key in deformer:
+                    del deformer[key]
+        return indices, _faded_outside(values, rest_points, outside, points, topology), warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
         try:
