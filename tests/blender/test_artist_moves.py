@@ -31,8 +31,8 @@ def _skinned_bar(bl):
     return bar, arm, native
 
 
-def _bend(arm, degrees: float = 60.0) -> None:
-    bone = arm.pose.bones["B1"]
+def _bend(arm, degrees: float = 60.0, name: str = "B1") -> None:
+    bone = arm.pose.bones[name]
     bone.rotation_mode = "XYZ"
     bone.rotation_euler = (0.0, 0.0, np.radians(degrees))
     bpy.context.view_layer.update()
@@ -382,3 +382,30 @@ def test_time_stretching_in_an_animation_render(bl, tmp_path):
     assert all(seen[-f] > 0.0 for f in (2, 3, 4)), "the probe has risen at every rendered frame"
     assert all(seen[f] < 1e-5 for f in (2, 3, 4)), seen
     assert deformer.status == ""
+
+
+# ------------------------------------------------------------------------------------------ a rigger's edits
+
+
+@pytest.mark.parametrize("modifier", ["kept", "removed"])
+def test_a_renamed_bone_is_followed_and_rebind_keeps_the_painted_weights(bl, modifier):
+    """B1 → Forearm (issue 57): Blender renames the vertex group where the mesh uses the armature (an
+    Armature modifier, even off); the deformer follows, renaming the group itself where Blender did
+    not; the shape stays, and Rebind gives the same shape from the renamed group."""
+    bar, arm, native = _skinned_bar(bl)
+    with bpy.context.temp_override(active_object=bar, object=bar, selected_objects=[bar]):
+        assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+    deformer = bar.affine_deformers[0]
+    if modifier == "removed":
+        bar.modifiers.remove(native)
+    _bend(arm, 40.0)
+    before = bl.evaluated_positions(bar).copy()
+    arm.data.bones["B1"].name = "Forearm"
+    bpy.context.view_layer.update()
+    assert [item.name for item in deformer.bones] == ["B0", "Forearm"], deformer.status
+    assert bar.vertex_groups.get("Forearm") is not None and bar.vertex_groups.get("B1") is None
+    assert deformer.status == "" and np.array_equal(bl.evaluated_positions(bar), before)
+    _bend(arm, 0.0, "Forearm")
+    assert bl.run_op(bpy.ops.object.affine_deformer_bind, bar, index=0) == {"FINISHED"}
+    _bend(arm, 40.0, "Forearm")
+    assert deformer.status == "" and np.abs(bl.evaluated_positions(bar) - before).max() < 1e-5

@@ -238,13 +238,22 @@ def test_bad_inputs_get_a_message_and_the_input_passes_through(bl):
     pose.scale = (1.0, 1.0, 1.0)
     bpy.context.view_layer.update()
     assert deformer.status == ""
-    arm.data.bones["B1"].name = "Renamed"
+    posed = bl.evaluated_positions(bar).copy()
+    arm.data.bones["B1"].name = "Renamed"  # followed (issue 57): the item takes the new name
     bpy.context.view_layer.update()
-    assert "has no bone named 'B1'" in deformer.status
-    assert np.array_equal(bl.evaluated_positions(bar), rest)
+    assert deformer.status == "" and deformer.bones[1].name == "Renamed"
+    assert np.array_equal(bl.evaluated_positions(bar), posed)
     arm.data.bones["Renamed"].name = "B1"
     bpy.context.view_layer.update()
-    assert deformer.status == ""
+    assert deformer.status == "" and deformer.bones[1].name == "B1"
+    arm.data.bones.active = arm.data.bones["B1"]
+    bpy.context.view_layer.objects.active = arm
+    bpy.ops.object.mode_set(mode="EDIT")
+    arm.data.edit_bones.remove(arm.data.edit_bones["B1"])  # deleted: nothing to follow
+    bpy.ops.object.mode_set(mode="OBJECT")
+    bpy.context.view_layer.update()
+    assert "has no bone named 'B1'" in deformer.status and "rebind" not in deformer.status
+    assert np.array_equal(bl.evaluated_positions(bar), rest)
     bpy.data.objects.remove(arm, do_unlink=True)
     bpy.context.view_layer.update()
     assert "armature" in deformer.status.lower()

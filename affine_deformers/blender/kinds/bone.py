@@ -334,7 +334,8 @@ def _finish(reading: _Reading) -> Motions:
             return Motions.invalid(m, message)
     if reading.missing:
         return Motions.invalid(m, f"Armature '{armature.name}' has no bone named '{reading.missing}' "
-                               "(renamed or deleted?): rename it back, remove it from the deformer or rebind")
+                               "(deleted, or renamed where it could not be told apart): rename it back or "
+                               "remove it from the deformer")
     chosen = [rows[item.name] for item in deformer.bones]
     if m == 0:
         return Motions(np.zeros((0, 4, 4)), np.zeros(0, dtype=bool))
@@ -613,6 +614,9 @@ class BoneKind(BatchedKind, DeformerKind):
     def control_groups(self, deformer, complete: bool = False) -> list[str]:
         """Each bone's name: the Armature modifier's convention, a group per bone name."""
         return [item.name for item in deformer.bones]
+
+    def follow_renames(self, obj: bpy.types.Object, deformer) -> None:
+        bone_tools.follow_renames(obj, deformer, stored_segments(deformer)[0])
 
 
 @caches.register

@@ -6,6 +6,7 @@ list. Converting an Armature modifier into a bone deformer: kinds/armature_conve
 from __future__ import annotations
 
 import bpy
+import numpy as np
 from bpy.props import FloatProperty, IntProperty, StringProperty
 
 from ..ui.addressing import DeformerIndexed, active_target, addressed_deformer
@@ -149,3 +150,55 @@ def draw_controls(layout: bpy.types.UILayout, deformer, index: int) -> None:
 
 
 CLASSES = (AffineDeformerBone, AFFINE_OT_deformer_bone_add, AFFINE_OT_deformer_bone_remove, AFFINE_UL_bones)
+
+
+#: A stored rest segment and a bone's current one match within this share of the segments' extent.
+RENAME_MATCH = 1e-4
+
+
+def follow_renames(obj: bpy.types.Object, deformer, segments: np.ndarray | None) -> None:
+    """Follow bones renamed in the armature (B1 → Forearm, as riggers name sides): each item whose
+    bone is gone takes the name of the deform bone no item names whose rest segment, carried into the
+    target's space by the objects' current transforms, is its stored one (`segments` (m, 2, 3), or
+    None when damaged); a lone missing item and a lone unnamed deform bone match without it. Its
+    vertex group follows too where Blender did not rename it (a mesh without an Armature modifier
+    or parent of that armature). Runs before every update; costs a dict lookup per bone when nothing
+    was renamed."""
+    armature = deformer.armature
+    if armature is None or armature.type != "ARMATURE":
+        return
+    bones = armature.data.bones
+    missing = [i for i, item in enumerate(deformer.bones) if bones.get(item.name) is None]
+    if not missing:
+        return
+    named = {item.name for item in deformer.bones}
+    free = [name for name in deform_bones(armature) if name not in named]
+    if not free:
+        return
+    found: dict[int, str] = {}
+    if segments is not None and len(segments) == len(deformer.bones):
+        try:
+            frame = np.linalg.solve(np.array(obj.matrix_world), np.array(armature.matrix_world))
+        except np.linalg.LinAlgError:
+            frame = None
+        if frame is not None:
+            extent = max(float(np.ptp(segments.reshape(-1, 3), axis=0).max()), 1e-9)
+            for i in missing:
+                for name in free:
+                    bone = bones[name]
+                    now = np.array([frame[:3, :3] @ np.array(point) + frame[:3, 3]
+                                    for point in (bone.head_local, bone.tail_local)])
+                    close = np.abs(now - segments[i]).max() <= RENAME_MATCH * extent
+                    if close and name not in found.values():
+                        found[i] = name
+                        break
+    if not found and len(missing) == 1 and len(free) == 1:
+        found[missing[0]] = free[0]
+    groups = obj.vertex_groups
+    for i, name in found.items():
+        item = deformer.bones[i]
+        old = item.name
+        group = groups.get(old)
+        if group is not None and groups.get(name) is None:
+            group.name = name
+        item.name = name
