@@ -84,9 +84,11 @@ def create(obj: bpy.types.Object, kind: str, name: str):
 
 
 def bind(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
-         only: list[int] | None = None) -> None:
+         only: list[int] | None = None, rest_from=None) -> None:
     """Make the controls' current poses the rest pose (all controls, or those at indices `only`),
-    then compute and store the weights."""
+    then compute and store the weights. `rest_from`: a bound deformer of the same kind on another
+    object (the source of a copy), whose rest is carried over instead (DeformerKind.adopt_rest),
+    where the kind can."""
     problem = target_problem(obj)
     if problem:
         raise BindError(problem)
@@ -101,8 +103,26 @@ def bind(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph,
                           bool(deformer.get("stored_show_render", True)))
     if relations.sync(obj, deformer):
         depsgraph.update()
-    kind.store_rest(obj, deformer, depsgraph, only)
+    if rest_from is None or not _adopt_rest(obj, deformer, rest_from, depsgraph):
+        kind.store_rest(obj, deformer, depsgraph, only)
     reweight(obj, deformer)
+
+
+def _adopt_rest(obj: bpy.types.Object, deformer, source: tuple, depsgraph: bpy.types.Depsgraph) -> bool:
+    """`DeformerKind.adopt_rest` from `source` = (its object, its deformer): the rest poses in the world
+    are the source's, carried into `obj`'s space by the two objects' current transforms."""
+    source_obj, source_deformer = source
+    if source_deformer.kind != deformer.kind or not source_deformer.is_bound:
+        return False
+    def world(o: bpy.types.Object) -> np.ndarray:
+        return np.array(o.evaluated_get(depsgraph).matrix_world, dtype=np.float64)
+
+    try:
+        relative = np.linalg.solve(world(obj), world(source_obj))
+    except np.linalg.LinAlgError:
+        return False
+    kind = _kind(deformer)
+    return bool(np.isfinite(relative).all()) and kind.adopt_rest(source_deformer, deformer, relative)
 
 
 def mask_weights(obj: bpy.types.Object, deformer) -> tuple[np.ndarray | None, str]:

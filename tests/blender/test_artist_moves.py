@@ -409,3 +409,56 @@ def test_a_renamed_bone_is_followed_and_rebind_keeps_the_painted_weights(bl, mod
     assert bl.run_op(bpy.ops.object.affine_deformer_bind, bar, index=0) == {"FINISHED"}
     _bend(arm, 40.0, "Forearm")
     assert deformer.status == "" and np.abs(bl.evaluated_positions(bar) - before).max() < 1e-5
+
+
+@pytest.mark.parametrize("kind", ["probe", "cage", "bone"])
+def test_copy_modifiers_while_posed_deforms_the_copy_as_the_source(bl, installed, kind):
+    """Ctrl+L ▸ Copy Modifiers from a posed rig onto an identical mesh (issue 57): the copy binds at
+    the source's rest poses, so it shows the source's deformation at once and its rest when the
+    controls go back, where it used to bind at the posed controls (no deformation, then a wrong one)."""
+    import importlib
+
+    copies = importlib.import_module(f"{installed.package}.blender.files.copies")
+    from tests.blender.test_cage_deformer import add_cage_deformer, box_cage, cage_points, set_cage_points
+
+    if kind == "bone":
+        source, arm, native = _skinned_bar(bl)
+        source.modifiers.remove(native)
+        with bpy.context.temp_override(active_object=source, object=source, selected_objects=[source, arm]):
+            assert bpy.ops.object.affine_bone_deformer_add() == {"FINISHED"}
+
+        def pose(on):
+            _bend(arm, 50.0 if on else 0.0)
+    elif kind == "cage":
+        source = bl.grid_cube(cuts=4)
+        cage = box_cage()
+        add_cage_deformer(source, cage)
+        rest_cage = cage_points(cage)
+
+        def pose(on):
+            set_cage_points(cage, rest_cage + (rest_cage[:, 2:3] > 0) * np.array([0.4, 0.0, 0.3]) * on)
+    else:
+        source = bl.grid_cube(cuts=4)
+        probe = bl.empty("P", (1.5, 0.0, 0.0))
+        bl.add_probe_deformer(source, [probe, bl.empty("Q", (-1.5, 0.0, 0.0))])
+
+        def pose(on):
+            probe.location = (1.5, 0.0, 0.7 * on)
+            probe.rotation_euler = (0.0, 0.5 * on, 0.0)
+            bpy.context.view_layer.update()
+
+    twin = bpy.data.objects.new("Twin", source.data.copy())  # the vertex groups come with the mesh
+    bpy.context.scene.collection.objects.link(twin)
+    pose(True)
+    ours = [m for m in source.modifiers if m.type == "NODES"]
+    with bpy.context.temp_override(active_object=source, object=source, selected_objects=[source, twin],
+                                   selected_editable_objects=[source, twin]):
+        assert bpy.ops.object.make_links_data(type="MODIFIERS") == {"FINISHED"}
+    bpy.context.evaluated_depsgraph_get()
+    copies.bind_adopted()  # the timer Blender runs after the handler (none runs in a bpy module)
+    assert len(twin.affine_deformers) == 1 and twin.affine_deformers[0].status == "", ours
+    expected = bl.evaluated_positions(source).astype(np.float64)
+    assert np.abs(expected - bl.rest_positions(source)).max() > 0.1, "the source is posed"
+    assert np.abs(bl.evaluated_positions(twin) - expected).max() < 1e-5, "it shows what the source shows"
+    pose(False)
+    assert np.abs(bl.evaluated_positions(twin) - bl.rest_positions(twin)).max() < 1e-5, "and rests with it"

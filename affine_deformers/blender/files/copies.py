@@ -7,7 +7,8 @@ that does nothing on the target and no word. The depsgraph handler sees the copi
 and finds there a modifier of ours reading the attributes of a deformer that lives on another object
 (with another mesh). On a mesh that can carry a deformer the copy is **adopted**: a deformer item of
 the source's kind with its controls and settings and an id of its own, the modifier repointed at it,
-bound to its own mesh at the controls' current poses. The bind waits for a timer (`bind_adopted`):
+bound to its own mesh at the source's rest poses (carried over by the two objects' transforms), so a
+copy made while the rig is posed deforms as the source does. The bind waits for a timer (`bind_adopted`):
 painted weights are read by evaluating a depsgraph, which a depsgraph handler must not do. Anywhere
 else (not a mesh, linked data) the copy is removed, and the console says why.
 """
@@ -22,6 +23,7 @@ from .. import binding, kinds
 from . import nodes, relations, storage
 
 ADOPTED = "affine_deformers_adopted_from"  # ID property on an adopted item until it is bound
+ADOPTED_UID = "affine_deformers_adopted_uid"  # … and the source deformer's uid, whose rest it takes
 #: Deformer properties an adopted item does not copy: its identity, bind results and viewport state.
 _NOT_COPIED = frozenset({"rna_type", "name", "uid", "kind", "bound_flag", "is_bound", "status",
                          "bind_warning", "bound_vertex_count", "bound_topology", "bind_generation",
@@ -91,6 +93,7 @@ def _adopt(obj: bpy.types.Object, mod: bpy.types.Modifier, source: bpy.types.Obj
         new = binding.create(obj, deformer.kind, deformer.name)
         _copy_properties(deformer, new, _NOT_COPIED)
         new[ADOPTED] = source.name
+        new[ADOPTED_UID] = deformer.uid
         # The status of an unbound deformer shows its bind warning: "Not bound: press Bind (…)".
         new.bind_warning = f"copied from '{source.name}', binds to this mesh at the next idle moment"
     nodes.set_offset_name(mod, storage.offset_name(new.uid))
@@ -127,8 +130,15 @@ def handle(depsgraph: bpy.types.Depsgraph) -> list[str]:
     return messages
 
 
+def _source(name: str, uid: str | None) -> tuple | None:
+    """(object, deformer) the adopted copy came from, when both are still there."""
+    obj = bpy.data.objects.get(name)
+    deformer = next((d for d in obj.affine_deformers if d.uid == uid), None) if obj and uid else None
+    return (obj, deformer) if deformer is not None else None
+
+
 def bind_adopted() -> None:
-    """Bind every adopted deformer at its controls' current poses (a timer: outside the depsgraph
+    """Bind every adopted deformer at its source's rest poses (a timer: outside the depsgraph
     handler). A failure leaves it unbound with the reason in its status. Returns None (no repeat)."""
     try:
         depsgraph = bpy.context.evaluated_depsgraph_get()
@@ -139,9 +149,12 @@ def bind_adopted() -> None:
                 source = deformer.get(ADOPTED)
                 if source is None:
                     continue
+                uid = deformer.get(ADOPTED_UID)
                 del deformer[ADOPTED]
-                try:
-                    binding.bind(obj, deformer, depsgraph)
+                if uid is not None:
+                    del deformer[ADOPTED_UID]
+                try:  # at the source's rest, so the copy deforms as the source does (issue 57)
+                    binding.bind(obj, deformer, depsgraph, rest_from=_source(source, uid))
                     deformer.status = deformer.bind_warning
                 except Exception as exc:  # the item stays, unbound, saying why
                     deformer.status = f"Copied from '{source}': binding failed ({exc}): press Bind"

@@ -253,6 +253,13 @@ class DeformerKind(ABC):
     def set_up(self, deformer, adopted: Adopted) -> None:
         """Give a new, unbound deformer item its controls and the kind's defaults."""
 
+    def adopt_rest(self, source, deformer, relative: np.ndarray) -> bool:
+        """Give `deformer`, a copy of the bound `source` on another mesh (Copy Modifiers, Copy to
+        Selected), the source's rest data carried into its target's space by `relative` (4, 4: the
+        source target's space → this one's), instead of binding at the controls' current poses.
+        False when the kind cannot (the copy then binds at the current poses)."""
+        return False
+
     def after_add(self, target: bpy.types.Object, deformer, adopted: Adopted) -> str:
         """Finish a deformer just added and bound (the add operator's last step); returns what to add
         to its report ('' when nothing)."""

@@ -615,6 +615,13 @@ class BoneKind(BatchedKind, DeformerKind):
         """Each bone's name: the Armature modifier's convention, a group per bone name."""
         return [item.name for item in deformer.bones]
 
+    def adopt_rest(self, source, deformer, relative: np.ndarray) -> bool:
+        segments, problem = stored_segments(source)
+        if problem or len(segments) != len(deformer.bones):
+            return False
+        deformer[REST_SEGMENTS] = (segments @ relative[:3, :3].T + relative[:3, 3]).ravel().tolist()
+        return True
+
     def follow_renames(self, obj: bpy.types.Object, deformer) -> None:
         bone_tools.follow_renames(obj, deformer, stored_segments(deformer)[0])
 

@@ -595,6 +595,20 @@ class CageKind(DeformerKind):
         store_array(deformer, LOOP_START, state.loop_start)
         store_array(deformer, LOOP_TOTAL, state.loop_total)
 
+    def adopt_rest(self, source, deformer, relative: np.ndarray) -> bool:
+        try:
+            points, _topology, loops, start, total = rest_cage(source)
+        except BindError:
+            return False
+        matrix = np.asarray(source.cage_rest_matrix, dtype=np.float64).reshape(4, 4)
+        deformer.cage_rest_matrix = np.float32(relative @ matrix).ravel().tolist()
+        deformer.cage_rest_rotation_mode = source.cage_rest_rotation_mode
+        deformer.cage_rest_rotation = tuple(source.cage_rest_rotation)
+        store_array(deformer, REST_POINTS, (points @ relative[:3, :3].T + relative[:3, 3]).ravel())
+        for key, array in ((LOOP_VERTICES, loops), (LOOP_START, start), (LOOP_TOTAL, total)):
+            store_array(deformer, key, array)
+        return True
+
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
         """From the stored rest cage only. 'HARMONIC': each vertex's 8 trilinear grid-node weights

@@ -160,6 +160,15 @@ class ProbeKind(BatchedKind, DeformerKind):
             item.rest_rotation_mode = evaluated.rotation_mode
             item.rest_rotation = rotation_channels(evaluated)
 
+    def adopt_rest(self, source, deformer, relative: np.ndarray) -> bool:
+        rests = rest_matrices(source).astype(np.float64)
+        if len(rests) != len(deformer.probes):
+            return False
+        for item, rest, src in zip(deformer.probes, rests, source.probes, strict=True):
+            item.rest_matrix = np.float32(relative @ rest).ravel().tolist()
+            item.rest_rotation_mode, item.rest_rotation = src.rest_rotation_mode, tuple(src.rest_rotation)
+        return True
+
     def sparse_weights(self, obj: bpy.types.Object, deformer,
                        rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
         problem = settings_problem(deformer)
