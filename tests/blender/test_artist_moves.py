@@ -462,3 +462,27 @@ def test_copy_modifiers_while_posed_deforms_the_copy_as_the_source(bl, installed
     assert np.abs(bl.evaluated_positions(twin) - expected).max() < 1e-5, "it shows what the source shows"
     pose(False)
     assert np.abs(bl.evaluated_positions(twin) - bl.rest_positions(twin)).max() < 1e-5, "and rests with it"
+
+
+def test_remake_cage_refuses_to_throw_a_posed_cage_away(bl):
+    """Remake Cage after the made cage was posed (issue 57): refused with the reason, the edit and the
+    deformation kept; after Rebind (the pose is the rest now) it remakes."""
+    from tests.blender.test_cage_deformer import cage_points, set_cage_points
+
+    target = bl.uv_sphere(segments=16, rings=8)
+    with bpy.context.temp_override(active_object=target, object=target, selected_objects=[target]):
+        assert bpy.ops.object.affine_cage_deformer_add() == {"FINISHED"}
+    deformer = target.affine_deformers[0]
+    cage = deformer.cage
+    points = cage_points(cage)
+    set_cage_points(cage, points + (points[:, 2:3] > 0.0) * np.array([0.3, 0.0, 0.0]))
+    edited = cage_points(cage)
+    posed = bl.evaluated_positions(target).copy()
+    assert np.abs(posed - bl.rest_positions(target)).max() > 0.1
+    with pytest.raises(RuntimeError, match=r"is posed or edited .*moved up to 0\.3"):
+        bl.run_op(bpy.ops.object.affine_cage_remake, target, index=0)
+    assert np.array_equal(cage_points(cage), edited), "the edit is kept"
+    assert np.array_equal(bl.evaluated_positions(target), posed), "the deformation is kept"
+    assert bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=0) == {"FINISHED"}
+    assert bl.run_op(bpy.ops.object.affine_cage_remake, target, index=0) == {"FINISHED"}
+    assert deformer.status == ""

@@ -107,7 +107,7 @@ from .transforms import (
 )
 
 CAGE = "CAGE"  # the kind's id
-REST_POINTS = "cage_rest_points"
+REST_POINTS = cage_tools.REST_POINTS
 LOOP_VERTICES = "cage_loop_vertices"
 LOOP_START = "cage_loop_start"
 LOOP_TOTAL = "cage_loop_total"

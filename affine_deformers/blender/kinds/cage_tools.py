@@ -92,9 +92,38 @@ def make_cage(context: bpy.types.Context, target: bpy.types.Object,
     return cage
 
 
+#: ID property of a cage deformer: its rest cage's points (V, 3) in the target's space (kinds/cage.py).
+REST_POINTS = "cage_rest_points"
+#: A cage whose points left their rest by more than this share of its size holds an artist's edit.
+EDITED = 1e-5
+
+
+def _edited(obj: bpy.types.Object, deformer, cage: bpy.types.Object) -> str:
+    """What an artist changed of the cage since it was bound — its mesh's points moved (Edit Mode, a
+    script) or its vertex count — in words ('' when nothing): a remade cage would not keep it."""
+    stored = deformer.get(REST_POINTS)
+    if stored is None:
+        return ""
+    rest = np.asarray(stored, dtype=np.float64).reshape(-1, 3)
+    mesh = cage.data
+    if len(mesh.vertices) != len(rest):
+        return f"its vertex count changed since binding ({len(rest)} → {len(mesh.vertices)})"
+    co = np.empty(len(rest) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    try:
+        relative = np.linalg.solve(np.array(obj.matrix_world), np.array(cage.matrix_world))
+    except np.linalg.LinAlgError:
+        return ""
+    now = co.reshape(-1, 3).astype(np.float64) @ relative[:3, :3].T + relative[:3, 3]
+    moved = float(np.abs(now - rest).max())
+    size = float(np.ptp(rest, axis=0).max()) if len(rest) else 0.0
+    return f"its vertices moved up to {moved:.3g} since binding" if moved > EDITED * max(size, 1e-9) else ""
+
+
 class AFFINE_OT_cage_remake(DeformerIndexed, bpy.types.Operator):
     """Make the deformer's cage again around the mesh's rest shape with at most Cage Faces quads (the cage
-    object and its mesh keep their names; a cage with shape keys is refused), and rebind"""
+    object and its mesh keep their names; a cage with shape keys, posed or edited is refused), and
+    rebind"""
 
     bl_idname = "object.affine_cage_remake"
     bl_label = "Remake Cage"
@@ -119,6 +148,12 @@ class AFFINE_OT_cage_remake(DeformerIndexed, bpy.types.Operator):
             # A new cage has other vertices: the keys (a keyed cage edit) could not follow it.
             self.report({"ERROR"}, f"Cage '{cage.name}' has shape keys, which a remade cage would lose: "
                                    "remove them first, or add a new cage deformer")
+            return {"CANCELLED"}
+        edited = _edited(obj, deformer, cage)
+        if edited:  # the deformation it makes would go with it (issue 57): refused, as for shape keys
+            self.report({"ERROR"}, f"Cage '{cage.name}' is posed or edited ({edited}), which a remade cage "
+                                   "would lose: bring it back to its rest shape, or Rebind to make this "
+                                   "shape the rest, then remake it")
             return {"CANCELLED"}
         faces = self.faces or deformer.cage_faces
         try:
