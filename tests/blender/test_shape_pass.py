@@ -186,3 +186,38 @@ def test_saved_and_reopened_the_pass_is_on_and_gives_the_same_shape(bl, tmp_path
     assert deformer.preserve_shape and deformer.shape_iterations == 2
     bpy.context.view_layer.update()
     assert np.abs(bl.evaluated_positions(target) - before).max() < 1e-6
+
+
+def test_an_edit_of_the_faces_alone_is_followed(bl):
+    """Splitting a bar's quads along the other diagonals keeps every vertex and the bind (issue 57); the
+    pass must use the new faces at once: the twin bound with those faces from the start."""
+    def make(name: str, split: bool):
+        target = bar(name)
+        if split:
+            _split(target)
+        low, high = bl.empty(f"{name} Low", (0.0, 0.0, -2.0)), bl.empty(f"{name} High", (0.0, 0.0, 2.0))
+        deformer = bl.add_probe_deformer(target, [low, high], weight_mode="INVERSE_DISTANCE",
+                                         preserve_shape=True)
+        high.rotation_euler = Euler((0.0, 1.2, 0.4))
+        high.location.x += 0.8
+        bpy.context.view_layer.update()
+        return target, deformer
+
+    target, deformer = make("Edited", False)
+    before = bl.evaluated_positions(target).copy()
+    _split(target)
+    followed = bl.evaluated_positions(target).copy()
+    assert deformer.status == "", deformer.status
+    twin, _twin_deformer = make("Twin", True)
+    fresh = bl.evaluated_positions(twin).copy()
+    assert np.abs(fresh - before).max() > 1e-5, "the faces matter to the pass"
+    assert np.abs(followed - fresh).max() < 1e-5, np.abs(followed - fresh).max()
+
+
+def _split(obj) -> None:
+    bm = bmesh.new()
+    bm.from_mesh(obj.data)
+    bmesh.ops.triangulate(bm, faces=bm.faces[:], quad_method="ALTERNATE")  # not the diagonals Blender takes
+    bm.to_mesh(obj.data)
+    bm.free()
+    obj.data.update()

@@ -107,12 +107,15 @@ def factor_for(obj: bpy.types.Object, deformer, bound: BindRecord, controls: int
     truncation's pooled nodes (MATH.md §12), which anchor nothing."""
     key = (obj.session_uid, deformer.uid)
     strength = float(deformer.shape_anchor)
-    state = (bound.serial, strength, accel.active())
+    mesh = obj.data
+    # The faces are the system's, not the bind's: an edit of the faces alone (n-gon caps triangulated)
+    # keeps the bind and must still rebuild the system (issue 57). Their counts catch such edits.
+    state = (bound.serial, strength, accel.active(), len(mesh.polygons), len(mesh.loops))
     known = _digests.get(key)
-    if known is not None and known[:3] == state and known[3] in _factors:
-        _factors.move_to_end(known[3])
-        return _factors[known[3]]
-    triangles = _triangles(obj.data)
+    if known is not None and known[:-1] == state and known[-1] in _factors:
+        _factors.move_to_end(known[-1])
+        return _factors[known[-1]]
+    triangles = _triangles(mesh)
     if not len(triangles):
         raise ShapePassError(f"'{obj.name}' has no faces: Preserve Shape needs a surface; turn it off")
     digest = _digest(bound.rest32, triangles, bound.indices, bound.values,
@@ -153,7 +156,7 @@ def _evict(keep: bytes) -> None:
 def summary(obj: bpy.types.Object, deformer) -> str:
     """What the panel shows about the deformer's factor ('' when none is built)."""
     known = _digests.get((obj.session_uid, deformer.uid))
-    found = _factors.get(known[3]) if known is not None else None
+    found = _factors.get(known[-1]) if known is not None else None
     return found.summary() if found is not None else ""
 
 

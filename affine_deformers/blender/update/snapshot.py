@@ -75,13 +75,15 @@ class Snapshot:
     backend: bool  # the compiled kernel is active (the kernels agree to ~1e-15, not bit for bit)
     reader: bool = True  # the modifier's group reads position carriers (a group replaced or downgraded
     # under an unchanged output must be written again, to the store it reads: output_store.py)
+    faces: tuple | None = None  # Preserve Shape's system is built on the faces: (polygons, loops) counts,
+    # so an edit of the faces alone (the bind kept) is recomputed (shape_pass.factor_for)
     motions: Motions | None = field(default=None, compare=False)
     bound: BindRecord | None = field(default=None, compare=False)
     modifier: bpy.types.Modifier | None = field(default=None, compare=False)  # the deformer's, looked up once
 
     def signature(self) -> tuple:
         return (self.mesh, self.serial, self.error, self.path, self.settings, self.motions_key, self.backend,
-                self.reader)
+                self.reader, self.faces)
 
     def result_state(self) -> tuple:
         """What a result is computed with besides the parameters (the incremental update's key)."""
@@ -133,5 +135,6 @@ def take(obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Sna
     return Snapshot(
         obj.data.session_uid, None if bound is None else bound.serial, error, path,
         tuple(getattr(deformer, name) for name in SETTINGS),
-        None if motions is None else motions.key(), accel.active(), nodes.reads_positions(mod), motions,
-        bound, mod)
+        None if motions is None else motions.key(), accel.active(), nodes.reads_positions(mod),
+        (len(obj.data.polygons), len(obj.data.loops)) if deformer.preserve_shape and obj.type == "MESH"
+        else None, motions, bound, mod)
