@@ -10,7 +10,7 @@ by tools/build_native.py into build/native/wheels/ (this script runs it for the 
 a second when nothing changed). One library serves every Python, so every Blender from 4.2 on.
 `blender_manifest.toml` lists the four platforms' wheels of the current version (checked here against
 what was built), and each package holds its own platform's only
-(`dist/affine_deformers-<version>-<platform>.zip`, see README "Blender versions" for the sizes); Blender
+(`dist/affine_deformers-<version>-<platform>.zip`, its size printed as it is built); Blender
 installs it by its platform tag. `--platform none` builds the small all-platform package without the
 kernel (the numpy kernel only).
 
@@ -47,7 +47,8 @@ def bpy_scripts_dir() -> Path:
     """The `<bpy>/<version>/scripts` folder of the installed bpy wheel (found without importing bpy)."""
     spec = importlib.util.find_spec("bpy")
     if spec is None or not spec.submodule_search_locations:
-        sys.exit("bpy is not installed in this interpreter; run `make venv` first")
+        sys.exit("bpy is not installed in this interpreter: run `make venv` and use .venv/bin/python "
+                 "(e.g. `.venv/bin/python tools/build_extension.py --platform none`); nothing was changed")
     base = Path(next(iter(spec.submodule_search_locations)))
     candidates = sorted(base.glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
     if not candidates:
@@ -199,6 +200,7 @@ def main() -> None:
             print(f"no kernel build for {wanted}: building the package without the compiled kernel")
             wanted = None
         targets = [wanted]
+    bpy_scripts_dir()  # exits with the fix when this interpreter has no bpy, before anything is deleted
     out = (ROOT / ns.output_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     for old in out.glob(f"{manifest['id']}-*.zip"):
