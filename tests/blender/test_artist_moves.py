@@ -486,3 +486,14 @@ def test_remake_cage_refuses_to_throw_a_posed_cage_away(bl):
     assert bl.run_op(bpy.ops.object.affine_deformer_bind, target, index=0) == {"FINISHED"}
     assert bl.run_op(bpy.ops.object.affine_cage_remake, target, index=0) == {"FINISHED"}
     assert deformer.status == ""
+
+
+def test_a_deleted_probe_whose_name_holds_braces_is_named(bl):
+    bar, start, _end, deformer = _two_probe_bar(bl)
+    start.name = "Start{0}"
+    bpy.context.view_layer.update()
+    deformer.probes[0].name = "Start{0}"
+    bpy.data.objects.remove(start)
+    bpy.context.view_layer.update()
+    assert np.isfinite(bl.evaluated_positions(bar)).all()
+    assert "Probe 'Start{0}' was deleted" in deformer.status, deformer.status

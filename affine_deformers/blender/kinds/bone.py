@@ -623,7 +623,7 @@ class BoneKind(BatchedKind, DeformerKind):
         return True
 
     def follow_renames(self, obj: bpy.types.Object, deformer) -> None:
-        bone_tools.follow_renames(obj, deformer, stored_segments(deformer)[0])
+        bone_tools.follow_renames(obj, deformer, lambda: stored_segments(deformer)[0])
 
 
 @caches.register

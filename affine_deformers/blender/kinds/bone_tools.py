@@ -5,6 +5,8 @@ list. Converting an Armature modifier into a bone deformer: kinds/armature_conve
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import bpy
 import numpy as np
 from bpy.props import FloatProperty, IntProperty, StringProperty
@@ -156,14 +158,14 @@ CLASSES = (AffineDeformerBone, AFFINE_OT_deformer_bone_add, AFFINE_OT_deformer_b
 RENAME_MATCH = 1e-4
 
 
-def follow_renames(obj: bpy.types.Object, deformer, segments: np.ndarray | None) -> None:
+def follow_renames(obj: bpy.types.Object, deformer, stored: Callable[[], np.ndarray | None]) -> None:
     """Follow bones renamed in the armature (B1 → Forearm, as riggers name sides): each item whose
     bone is gone takes the name of the deform bone no item names whose rest segment, carried into the
-    target's space by the objects' current transforms, is its stored one (`segments` (m, 2, 3), or
-    None when damaged); a lone missing item and a lone unnamed deform bone match without it. Its
-    vertex group follows too where Blender did not rename it (a mesh without an Armature modifier
-    or parent of that armature). Runs before every update; costs a dict lookup per bone when nothing
-    was renamed."""
+    target's space by the objects' current transforms, is its stored one (`stored()`: the segments
+    (m, 2, 3), or None when damaged; read only when a bone is missing); a lone missing item and a
+    lone unnamed deform bone match without it. Its vertex group follows too where Blender did not
+    rename it (a mesh without an Armature modifier or parent of that armature). Runs before every
+    update; costs a dict lookup per bone when nothing was renamed."""
     armature = deformer.armature
     if armature is None or armature.type != "ARMATURE":
         return
@@ -176,6 +178,7 @@ def follow_renames(obj: bpy.types.Object, deformer, segments: np.ndarray | None)
     if not free:
         return
     found: dict[int, str] = {}
+    segments = stored()
     if segments is not None and len(segments) == len(deformer.bones):
         try:
             frame = np.linalg.solve(np.array(obj.matrix_world), np.array(armature.matrix_world))

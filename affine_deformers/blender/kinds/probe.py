@@ -403,7 +403,8 @@ def _finish(reading: _Reading) -> Motions:
             return Motions.invalid(m, row.error.format(probe=deformer.probes[i].object.name, target=obj.name))
     if reading.problem:
         return Motions.invalid(m, reading.problem)
-    warnings = [row.warning.format(probe=_probe_name(deformer.probes[i]), target=obj.name)
+    # replace, not format: a name may hold braces (and a deleted probe's message holds its name already)
+    warnings = [row.warning.replace("{probe}", _probe_name(deformer.probes[i])).replace("{target}", obj.name)
                 for i, row in enumerate(rows) if row.warning]
     skipped = np.array([row.skip for row in rows], dtype=bool)
     rest_modes, rest_rotations = reading.rest_modes, reading.rest_rotations
