@@ -41,7 +41,6 @@ from bpy.props import CollectionProperty, IntProperty, PointerProperty
 from ...core import aff3, hierarchy, unwrap
 from .. import caches
 from ..files import storage
-from ..update.validation import coordinates_problem, stored_array
 from . import armature_convert, bone_tools
 from .base import (
     INTERFACE,
@@ -57,7 +56,7 @@ from .base import (
     single_selected,
 )
 from .batching import Batch, BatchedKind, keep_rows
-from .bone_tools import DEFAULT_INFLUENCES, deform_bones
+from .bone_tools import DEFAULT_INFLUENCES, REST_SEGMENTS, deform_bones, stored_segments
 from .services import control_picker, on_preview_option
 from .transforms import (
     MAX_COORDINATE,
@@ -73,7 +72,6 @@ from .transforms import (
 )
 from .weighting import control_weights, draw_weight_options, weight_settings_problem
 
-REST_SEGMENTS = "bone_rest_segments"  # ID property: (m, 2, 3) float64 heads and tails, target space
 #: A bone whose pose matrix differs from its rest by at most this (relative to the bone's scale of
 #: motion: entries of B·R⁻¹ − I) counts as at rest, so a rest pose gives the mesh exactly back.
 AT_REST_TOL = 1e-6
@@ -86,20 +84,6 @@ def settings_problem(deformer) -> str:
     what the update does ('' when none; kinds/weighting.py `weight_settings_problem`)."""
     bones = deformer.bones
     return weight_settings_problem(deformer, bones, lambda i: f"Bone '{bones[i].name}'")
-
-
-def stored_segments(deformer) -> tuple[np.ndarray | None, str]:
-    """(the bones' stored rest segments (m, 2, 3) — heads, tails in the target's space —, '') or
-    (None, what is damaged: not a float array of 6 values per bone, or a coordinate that is not
-    finite or not below MAX_COORDINATE in magnitude)."""
-    stored, problem = stored_array(deformer, REST_SEGMENTS, integer=False)
-    if not problem and stored.size != 6 * len(deformer.bones):
-        problem = f"'{REST_SEGMENTS}' holds {stored.size} values for {len(deformer.bones)} bones (6 each)"
-    if not problem:
-        problem = coordinates_problem(f"'{REST_SEGMENTS}'", stored)
-    if problem:
-        return None, f"The bone deformer's rest data is damaged ({problem})"
-    return stored.reshape(-1, 2, 3), ""
 
 
 def identity_channels(mode: str) -> tuple[float, float, float, float]:
@@ -623,7 +607,7 @@ class BoneKind(BatchedKind, DeformerKind):
         return True
 
     def follow_renames(self, obj: bpy.types.Object, deformer) -> None:
-        bone_tools.follow_renames(obj, deformer, lambda: stored_segments(deformer)[0])
+        bone_tools.follow_renames(obj, deformer)
 
 
 @caches.register

@@ -5,13 +5,12 @@ list. Converting an Armature modifier into a bone deformer: kinds/armature_conve
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import bpy
 import numpy as np
 from bpy.props import FloatProperty, IntProperty, StringProperty
 
 from ..ui.addressing import DeformerIndexed, active_target, addressed_deformer
+from ..update.validation import coordinates_problem, stored_array
 from .base import BindError
 from .services import on_item_weight_option, services
 
@@ -154,15 +153,32 @@ def draw_controls(layout: bpy.types.UILayout, deformer, index: int) -> None:
 CLASSES = (AffineDeformerBone, AFFINE_OT_deformer_bone_add, AFFINE_OT_deformer_bone_remove, AFFINE_UL_bones)
 
 
+REST_SEGMENTS = "bone_rest_segments"  # ID property: (m, 2, 3) float64 heads and tails, target space
+
+
+def stored_segments(deformer) -> tuple[np.ndarray | None, str]:
+    """(the bones' stored rest segments (m, 2, 3) — heads, tails in the target's space —, '') or
+    (None, what is damaged: not a float array of 6 values per bone, or a coordinate that is not
+    finite or not below MAX_COORDINATE in magnitude)."""
+    stored, problem = stored_array(deformer, REST_SEGMENTS, integer=False)
+    if not problem and stored.size != 6 * len(deformer.bones):
+        problem = f"'{REST_SEGMENTS}' holds {stored.size} values for {len(deformer.bones)} bones (6 each)"
+    if not problem:
+        problem = coordinates_problem(f"'{REST_SEGMENTS}'", stored)
+    if problem:
+        return None, f"The bone deformer's rest data is damaged ({problem})"
+    return stored.reshape(-1, 2, 3), ""
+
+
 #: A stored rest segment and a bone's current one match within this share of the segments' extent.
 RENAME_MATCH = 1e-4
 
 
-def follow_renames(obj: bpy.types.Object, deformer, stored: Callable[[], np.ndarray | None]) -> None:
+def follow_renames(obj: bpy.types.Object, deformer) -> None:
     """Follow bones renamed in the armature (B1 → Forearm, as riggers name sides): each item whose
     bone is gone takes the name of the deform bone no item names whose rest segment, carried into the
-    target's space by the objects' current transforms, is its stored one (`stored()`: the segments
-    (m, 2, 3), or None when damaged; read only when a bone is missing); a lone missing item and a
+    target's space by the objects' current transforms, is its stored one (`stored_segments`, read
+    only when a bone is missing); a lone missing item and a
     lone unnamed deform bone match without it. Its vertex group follows too where Blender did not
     rename it (a mesh without an Armature modifier or parent of that armature). Runs before every
     update; costs a dict lookup per bone when nothing was renamed."""
@@ -178,7 +194,7 @@ def follow_renames(obj: bpy.types.Object, deformer, stored: Callable[[], np.ndar
     if not free:
         return
     found: dict[int, str] = {}
-    segments = stored()
+    segments = stored_segments(deformer)[0]
     if segments is not None and len(segments) == len(deformer.bones):
         try:
             frame = np.linalg.solve(np.array(obj.matrix_world), np.array(armature.matrix_world))

@@ -67,7 +67,6 @@ from ...core.cage import (
     signed_volume,
 )
 from ...core.cage import pool as cage_pool
-from ...core.cage.distances import nearest_faces
 from ...core.cage.harmonic import harmonic_weights, outside_points
 from .. import caches
 from ..files import nodes, storage
@@ -78,7 +77,7 @@ from ..update.validation import (
     stored_array,
     values_problem,
 )
-from . import cage_motion, cage_tools
+from . import cage_binding, cage_motion, cage_tools
 from .base import (
     IDENTITY16,
     INTERFACE,
@@ -369,56 +368,6 @@ def rest_cage(deformer) -> tuple[np.ndarray, CageTopology, np.ndarray, np.ndarra
     return points, topology, loops, start, total
 
 
-#: Vertices outside the rest cage fade out of its edits over this share of the cage's diagonal (Mesh
-#: Deform leaves them where they are; the faces' affine motions would move them ever further away).
-OUTSIDE_FADE = 0.1
-
-
-def _outside_warning(deformer, outside: np.ndarray) -> str:
-    """The bind warning for target vertices the rest cage does not enclose ('' when it holds them all)."""
-    count = int(np.count_nonzero(outside))
-    if not count:
-        return ""
-    name = deformer.cage.name if deformer.cage is not None else "?"
-    return (f"{count} of {len(outside)} vertices ({count / len(outside):.0%}) lie outside cage '{name}': "
-            f"they follow its edits less the further out they are (none beyond {OUTSIDE_FADE:.0%} of its "
-            "size); make the cage enclose the mesh (or add the deformer with no cage selected: a cage "
-            "is made around it)")
-
-
-def _faded_outside(values: np.ndarray, rest_points: np.ndarray, outside: np.ndarray,
-                   cage_points: np.ndarray, topology: CageTopology) -> np.ndarray:
-    """The weights of vertices outside the cage scaled by a smooth fade from 1 at its surface to 0 at
-    OUTSIDE_FADE of its diagonal (the missing weight is the identity's: they stay, as with Mesh Deform;
-    the cage object's own motion still carries them, it is applied after the blend)."""
-    if not outside.any():
-        return values
-    reach = OUTSIDE_FADE * float(np.linalg.norm(np.ptp(cage_points, axis=0)))
-    rows = np.flatnonzero(outside)
-    point, _face, distance = nearest_faces(rest_points[rows], cage_points, topology, 0.0)
-    nearest = np.full(len(rows), np.inf)
-    np.minimum.at(nearest, point, distance)
-    x = np.clip(1.0 - nearest / reach, 0.0, 1.0)
-    faded = values.copy()
-    faded[rows] *= (x * x * (3.0 - 2.0 * x))[:, None]
-    return faded
-
-
-def _flipped_faces(loops: np.ndarray, start: np.ndarray, total: np.ndarray, now_loops: np.ndarray,
-                   now_start: np.ndarray, now_total: np.ndarray) -> int:
-    """How many faces hold the same vertices as at bind but in another order (flipped normals), when
-    that is the only change (else 0: a topology change)."""
-    if not (np.array_equal(start, now_start) and np.array_equal(total, now_total)
-            and len(loops) == len(now_loops)) or len(total) == 0:
-        return 0
-    face = np.repeat(np.arange(len(total)), total)
-    then = loops[np.lexsort((loops, face))]
-    now = now_loops[np.lexsort((now_loops, face))]
-    if not np.array_equal(then, now):
-        return 0
-    return int(np.count_nonzero(np.add.reduceat((loops != now_loops).astype(np.int64), start)))
-
-
 class CageKind(DeformerKind):
     """A closed mesh with outward normals; each face is a control."""
 
@@ -621,7 +570,7 @@ class CageKind(DeformerKind):
         points, topology, *_ = rest_cage(deformer)
         _node_data.pop((obj.session_uid, deformer.uid), None)
         outside = outside_points(rest_points, points, topology)
-        warning = _outside_warning(deformer, outside)
+        warning = cage_binding.outside_warning(deformer, outside)
         if weight_mode(deformer) == "HARMONIC":
             weights = harmonic_weights(rest_points, points, topology)
             store_array(deformer, NODE_POINTS, weights.node_points.ravel())
@@ -633,7 +582,7 @@ class CageKind(DeformerKind):
             for key in NODE_KEYS:  # the weights now index faces
                 if key in deformer:
                     del deformer[key]
-        return indices, _faded_outside(values, rest_points, outside, points, topology), warning
+        return indices, cage_binding.faded_outside(values, rest_points, outside, points, topology), warning
 
     def current_motions(self, obj: bpy.types.Object, deformer, depsgraph: bpy.types.Depsgraph) -> Motions:
         try:
@@ -652,7 +601,7 @@ class CageKind(DeformerKind):
         same = (len(state.points) == len(rest) and np.array_equal(state.loop_vertices, loops)
                 and np.array_equal(state.loop_start, start) and np.array_equal(state.loop_total, total))
         if not same:
-            flipped = _flipped_faces(loops, start, total, state.loop_vertices, state.loop_start,
+            flipped = cage_binding.flipped_faces(loops, start, total, state.loop_vertices, state.loop_start,
                                      state.loop_total)
             if flipped:
                 return Motions.invalid(
