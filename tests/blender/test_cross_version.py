@@ -9,7 +9,7 @@ compared with the asset's own frames as the saving Blender computed them. A file
 Blender and reopened here is the matrix's own "reopened" column (test_pipeline_matrix.py).
 
 Which Blenders save: `AFFINE_SAVING_PYTHONS`, "4.2=/path/python,4.5=/path/python,…" (`make test` sets it
-for the 5.2 and 5.3 suites); only those older than the running Blender are used. Without it the test
+for every suite); only those older than the running Blender are used. Without it the test
 skips.
 """
 
@@ -44,7 +44,7 @@ def _older(label: str) -> bool:
 def test_a_file_saved_by_an_older_blender_plays_here_as_it_did_there(bl, extension_zip, tmp_path, saver):
     label, python = saver
     if not python:
-        pytest.skip(f"{SAVERS_ENV} is not set (`make test` sets it for the 5.2 and 5.3 suites)")
+        pytest.skip(f"{SAVERS_ENV} is not set (`make test` sets it for every suite)")
     if not _older(label):
         pytest.skip(f"Blender {label} is not older than this one ({bpy.app.version_string})")
     if not os.path.exists(python):
